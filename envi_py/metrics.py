@@ -21,6 +21,7 @@ beside it.
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -146,7 +147,9 @@ def distances(real_traces: np.ndarray, sim_traces: np.ndarray, cfg: MetricConfig
     mr, ms = driving_metrics(real_traces, cfg), driving_metrics(sim_traces, cfg)
     lo, hi = metric_bounds(scored, cfg)
     w1 = np.array([stats.wasserstein_distance(mr[:, j], ms[:, j]) for j in range(mr.shape[1])]) / (hi - lo)
-    ks = [stats.ks_2samp(mr[:, j], ms[:, j]) for j in range(mr.shape[1])]
+    with warnings.catch_warnings():  # with ties scipy falls back from the exact to the asymptotic p-value
+        warnings.simplefilter("ignore", RuntimeWarning)
+        ks = [stats.ks_2samp(mr[:, j], ms[:, j]) for j in range(mr.shape[1])]
     kld = gaussian_kld(safety_comfort(real_traces, cfg), safety_comfort(sim_traces, cfg))
     return Distances(w1, np.array([k.statistic for k in ks]), np.array([k.pvalue for k in ks]),
                      accuracy(mr, ms, scored, cfg), kld)

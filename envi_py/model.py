@@ -114,7 +114,7 @@ class TrainingRecord:
     period_ms: float | None = None
     selection: dict[str, Any] = field(default_factory=dict)  # which epoch won and why
     versions: dict[str, str] = field(default_factory=lambda: {
-        "envi": __version__, "torch": torch.__version__, "numpy": np.__version__,
+        "envi": __version__, "torch": str(torch.__version__), "numpy": str(np.__version__),
         "python": platform.python_version()})
 
 

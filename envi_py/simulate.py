@@ -8,7 +8,6 @@ is the reference; the native runtime implements the same loop and is tested agai
 
 from __future__ import annotations
 
-from dataclasses import replace
 from typing import Sequence
 
 import numpy as np
@@ -100,8 +99,3 @@ def simulate_logs(ckpt: Checkpoint, controller: ControllerSpec, init_logs: Seque
                 result[i * runs + r] = Log(None, time.copy(), tr[:, :ckpt.config.n_state].copy(),
                                            tr[:, ckpt.config.n_state:].copy(), meta)
     return [lg for lg in result if lg is not None]
-
-
-def with_controller(log: Log, controller: ControllerSpec) -> Log:
-    """A copy of ``log`` whose metadata names ``controller``."""
-    return replace(log, meta=replace(log.meta, controller=controller.to_json()))

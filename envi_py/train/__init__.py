@@ -1,0 +1,33 @@
+"""Training algorithms for environment models: each module turns logs into a :class:`Checkpoint`.
+
+``bc`` (behaviour cloning), ``random`` (the paper's baseline); every algorithm shares
+:mod:`.common` for data preparation, closed-loop model selection and the training record.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable, Sequence
+
+from ..logs import Log
+from ..model import Checkpoint
+
+Trainer = Callable[..., Checkpoint]
+
+
+def get_trainer(name: str) -> Trainer:
+    """The training function of an algorithm by name; imported lazily so each stays independent."""
+    if name == "bc":
+        from .bc import train_bc
+        return train_bc
+    if name == "random":
+        from .random import train_random
+        return train_random
+    if name in ("gail", "bcxgail"):
+        from . import gail
+        return gail.train_gail if name == "gail" else gail.train_bcxgail
+    raise ValueError(f"unknown algorithm {name!r}; known: bc, gail, bcxgail, random")
+
+
+def train(name: str, train_logs: Sequence[Log], val_logs: Sequence[Log] = (), **kwargs: Any) -> Checkpoint:
+    """Train with the named algorithm."""
+    return get_trainer(name)(train_logs, val_logs, **kwargs)

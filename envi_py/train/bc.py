@@ -1,0 +1,60 @@
+"""Behaviour cloning (paper, Algorithm 1): supervised regression of the next state on the window.
+
+As in the paper, one Adam step per log per epoch (each log's windows form one batch), lr 5e-5 and
+300 epochs by default. The loss is MSE for a deterministic model and the Gaussian negative
+log-likelihood for a stochastic one. Every ``eval_every`` epochs the model is simulated in closed
+loop on the validation logs and the best one is kept (see :mod:`.common`).
+"""
+
+from __future__ import annotations
+
+from typing import Any, Sequence
+
+import numpy as np
+import torch
+from torch import nn
+from tqdm import tqdm
+
+from ..logs import Log
+from ..metrics import MetricConfig
+from ..model import EnvModel, Checkpoint
+from .common import Selector, dataset_for, model_config, new_checkpoint
+
+
+def bc_loss(model: EnvModel, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """MSE for a deterministic head, Gaussian NLL for a stochastic one."""
+    mean, log_std = model(x)
+    if log_std is None:
+        return nn.functional.mse_loss(mean, y)
+    return nn.functional.gaussian_nll_loss(mean, y, (2 * log_std).exp(), full=False)
+
+
+def train_bc(train_logs: Sequence[Log], val_logs: Sequence[Log] = (), *, epochs: int = 300, lr: float = 5e-5,
+             seed: int = 0, history: int = 10, hidden: Sequence[int] = (256, 256), head: str = "deterministic",
+             eval_every: int = 10, metric: MetricConfig = MetricConfig(), progress: bool = False,
+             **model_extra: Any) -> Checkpoint:
+    """Train a model by behaviour cloning on ``train_logs``; select on ``val_logs`` by closed-loop error."""
+    cfg = model_config(train_logs, history, hidden, head, **model_extra)
+    hyper = {"epochs": epochs, "lr": lr, "history": history, "hidden": list(hidden), "head": head,
+             "eval_every": eval_every, "batch": "one log per step"}
+    ckpt = new_checkpoint("bc", train_logs, val_logs, cfg, seed, hyper)
+    data = dataset_for(ckpt, train_logs)
+    xs = [torch.tensor(x) for x in data.X]
+    ys = [torch.tensor(y) for y in data.Y]
+    opt = torch.optim.Adam(ckpt.model.parameters(), lr=lr)
+    rng = np.random.default_rng(seed)
+    selector = Selector(val_logs, metric)
+    ckpt.model.train()
+    bar = tqdm(range(1, epochs + 1), desc="bc", disable=not progress, leave=False)
+    for epoch in bar:
+        total = 0.0
+        for i in rng.permutation(len(xs)):
+            loss = bc_loss(ckpt.model, xs[i], ys[i])
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+            total += loss.item()
+        if epoch % eval_every == 0 or epoch == epochs:
+            score = selector.consider(ckpt, epoch)
+            bar.set_postfix(loss=f"{total / len(xs):.2e}", val=f"{score:.4f}")
+    return selector.finish(ckpt, epochs)
