@@ -1,0 +1,33 @@
+"""Shared fixtures: where the real lane-keeping logs live and small helpers to build logs."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from envi_py.logs import DatasetSpec, Log, LogMeta, load_logs
+
+REAL_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "lane-keeping-fot"
+REAL_PATTERN = "log_{x}_{run}.csv"
+
+
+@pytest.fixture(scope="session")
+def real_dir() -> Path:
+    if not REAL_DATA.is_dir():
+        pytest.skip(f"real lane-keeping logs not found at {REAL_DATA}")
+    return REAL_DATA
+
+
+@pytest.fixture(scope="session")
+def real_logs(real_dir: Path) -> list[Log]:
+    return load_logs(real_dir, DatasetSpec(pattern=REAL_PATTERN), min_length=11)
+
+
+def make_log(color: np.ndarray, x: float = 30.0, period: float = 40.0, run: str = "r") -> Log:
+    """A lane-keeping log whose angles follow the controller exactly."""
+    color = np.asarray(color, dtype=float)
+    angle = np.sign(color - 40.0) * x
+    meta = LogMeta(controller={"name": "lane-keeping", "params": {"x": x}}, period_ms=period, run_id=run)
+    return Log(None, np.arange(len(color)) * period, color[:, None], angle[:, None], meta)

@@ -1,0 +1,104 @@
+"""Model structure, checkpoint round trip and safe loading, closed-loop rollout."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from envi_py.controllers import ControllerSpec
+from envi_py.dataset import Normaliser
+from envi_py.logs import LANE_KEEPING_SCHEMA
+from envi_py.model import Checkpoint, EnvModel, ModelConfig, TrainingRecord
+from envi_py.simulate import rollout, simulate_logs
+
+from .conftest import make_log
+
+
+def small_ckpt(head: str = "deterministic", **cfg) -> Checkpoint:
+    torch.manual_seed(0)
+    logs = [make_log(np.linspace(5, 80, 30))]
+    model = EnvModel(ModelConfig(n_state=1, n_action=1, hidden=(16, 16), head=head, **cfg))
+    return Checkpoint(model.eval(), Normaliser.fit(logs), LANE_KEEPING_SCHEMA, TrainingRecord("bc", 0))
+
+
+def test_paper_structure():
+    m = EnvModel(ModelConfig(n_state=1, n_action=1))
+    linears = [l for l in m.modules() if isinstance(l, torch.nn.Linear)]
+    assert [(l.in_features, l.out_features) for l in linears] == [(20, 256), (256, 256), (256, 1)]
+    out, log_std = m(torch.zeros(4, 20))
+    assert out.shape == (4, 1) and log_std is None and torch.all(out.abs() <= 1)
+
+
+def test_checkpoint_round_trip(tmp_path):
+    ck = small_ckpt("gaussian", round_to=(1.0,))
+    path = ck.save(tmp_path / "m.pt")
+    back = Checkpoint.load(path)
+    x = torch.randn(5, 20)
+    for a, b in zip(ck.model(x), back.model(x)):
+        torch.testing.assert_close(a, b)
+    assert back.config.round_to == (1.0,) and back.config.head == "gaussian"
+    assert back.record.versions["torch"] == str(torch.__version__)
+
+
+def test_loading_never_runs_pickled_code(tmp_path):
+    class Evil:
+        def __reduce__(self):
+            return (print, ("pwned",))
+
+    path = tmp_path / "evil.pt"
+    torch.save({"format": "envi-model", "payload": Evil()}, path)
+    with pytest.raises(ValueError, match="not an envi model checkpoint"):
+        Checkpoint.load(path)
+    (tmp_path / "junk.pt").write_bytes(b"not a model at all")
+    with pytest.raises(ValueError, match="junk.pt"):
+        Checkpoint.load(tmp_path / "junk.pt")
+    with pytest.raises(ValueError, match="no such model file"):
+        Checkpoint.load(tmp_path / "missing.pt")
+
+
+def test_rollout_applies_controller_and_keeps_range():
+    ck = small_ckpt(round_to=(1.0,))
+    init = np.stack([make_log(np.linspace(20, 60, 10)).values, make_log(np.linspace(60, 20, 10)).values])
+    out = rollout(ck, ControllerSpec("lane-keeping", {"x": 30}), init, steps=20, runs=2)
+    assert out.shape == (4, 30, 2)
+    np.testing.assert_array_equal(out[0, :10], init[0])
+    np.testing.assert_array_equal(out[2, :10], init[1])
+    sim = out[:, 10:]
+    np.testing.assert_array_equal(sim[..., 1], np.sign(sim[..., 0] - 40) * 30)
+    assert np.all(sim[..., 0] == np.round(sim[..., 0])) and sim[..., 0].min() >= 0 and sim[..., 0].max() <= 100
+
+
+def test_stochastic_rollout_repeats_with_seed_and_varies_without():
+    ck = small_ckpt("gaussian")
+    with torch.no_grad():
+        ck.model.log_std.bias.fill_(-1.0)
+    init = make_log(np.linspace(20, 60, 10)).values[None]
+    spec = ControllerSpec("lane-keeping", {"x": 30})
+    a = rollout(ck, spec, init, 15, runs=3, seed=5)
+    b = rollout(ck, spec, init, 15, runs=3, seed=5)
+    c = rollout(ck, spec, init, 15, runs=3, seed=6)
+    np.testing.assert_array_equal(a, b)
+    assert not np.array_equal(a, c)
+    assert not np.array_equal(a[0], a[1])  # runs from one window differ
+
+
+def test_random_baseline_ignores_action():
+    from envi_py.train.random import train_random
+
+    logs = [make_log(np.linspace(5, 80, 30))]
+    ck = train_random(logs)
+    init = logs[0].values[:10][None]
+    a = rollout(ck, ControllerSpec("lane-keeping", {"x": 10}), init, 50, seed=1)
+    b = rollout(ck, ControllerSpec("lane-keeping", {"x": 50}), init, 50, seed=1)
+    np.testing.assert_array_equal(a[..., 0], b[..., 0])
+    assert a[0, 10:, 0].min() >= 5 and a[0, 10:, 0].max() <= 80 and a[0, 10:, 0].std() > 5
+
+
+def test_simulated_logs_carry_metadata():
+    ck = small_ckpt()
+    src = make_log(np.linspace(20, 60, 40), run="7")
+    logs = simulate_logs(ck, ControllerSpec("lane-keeping", {"x": 30}), [src], runs=2)
+    assert len(logs) == 2 and len(logs[0]) == 40
+    assert logs[0].meta.source == "sim" and logs[1].meta.run_id == "7-sim1"
+    assert np.all(np.diff(logs[0].time) > 0)
