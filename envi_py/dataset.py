@@ -67,10 +67,45 @@ def windows(values: np.ndarray, history: int) -> np.ndarray:
     return np.lib.stride_tricks.sliding_window_view(values, history, axis=0).transpose(0, 2, 1)
 
 
-def log_pairs(z: np.ndarray, history: int, n_state: int) -> tuple[np.ndarray, np.ndarray]:
-    """Training pairs of one normalised log: X (T-l, l*C) and Y (T-l, |s|)."""
+#: Derived per-row input channels an effect may need (see :class:`envi_py.model.ModelConfig`):
+#: ``dt`` the interval from this row to the next, relative to the nominal period (sampling jitter);
+#: ``phase`` the position in the run, -1 at the first row to +1 at ``phase_rows`` and after (drift).
+EXTRA_CHANNELS = ("dt", "phase")
+
+
+def extra_channels(time_ms: np.ndarray, names: Sequence[str], period_ms: float, phase_rows: int,
+                   first_row: int = 0) -> np.ndarray:
+    """The derived channels of rows ``first_row...`` of a log, (T, len(names)), on a [-1, 1]-like scale."""
+    cols = []
+    for name in names:
+        if name == "dt":
+            dt = np.append(np.diff(time_ms), period_ms)
+            cols.append(np.clip(dt / period_ms - 1.0, -1.0, 3.0))
+        elif name == "phase":
+            cols.append(np.minimum(np.arange(first_row, first_row + len(time_ms)) / phase_rows, 1.0) * 2 - 1)
+        else:
+            raise ValueError(f"unknown extra channel {name!r}; known: {', '.join(EXTRA_CHANNELS)}")
+    return np.stack(cols, axis=1) if cols else np.zeros((len(time_ms), 0))
+
+
+def context_of(window_z: np.ndarray, n_state: int) -> np.ndarray:
+    """Per-run context from the normalised initial window(s) (..., l, C): mean and spread of each state.
+
+    It tells the model which run it is in (a faster robot swings wider) for all of the run, not only
+    while sigma_0 is still inside the sliding window.
+    """
+    s = window_z[..., :n_state]
+    return np.concatenate([s.mean(axis=-2), s.std(axis=-2)], axis=-1)
+
+
+def log_pairs(z: np.ndarray, history: int, n_state: int,
+              context: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Training pairs of one normalised log: X (T-l, l*C [+ context]) and Y (T-l, |s|)."""
     w = windows(z[:-1], history)
-    return w.reshape(w.shape[0], -1), z[history:, :n_state]
+    x = w.reshape(w.shape[0], -1)
+    if context is not None:
+        x = np.concatenate([x, np.broadcast_to(context, (x.shape[0], context.shape[-1]))], axis=1)
+    return x, z[history:, :n_state]
 
 
 @dataclass
@@ -82,18 +117,22 @@ class Dataset:
     n_state: int
     X: list[np.ndarray]
     Y: list[np.ndarray]
-    z: list[np.ndarray]  # each whole normalised log (T, C); GAIL rolls out from these
+    z: list[np.ndarray]  # each whole normalised log (T, C [+ extras]); GAIL rolls out from these
 
     @staticmethod
-    def build(logs: Sequence[Log], history: int, norm: Normaliser | None = None) -> "Dataset":
+    def build(logs: Sequence[Log], history: int, norm: Normaliser | None = None, extras: Sequence[str] = (),
+              period_ms: float = 40.0, phase_rows: int = 100, context: bool = False) -> "Dataset":
+        """Pairs of every log; ``extras`` and ``context`` as declared by the model's config."""
         norm = norm or Normaliser.fit(logs)
         n_state = logs[0].states.shape[1]
         zs, xs, ys = [], [], []
         for lg in logs:
             if len(lg) <= history:
                 raise ValueError(f"{lg.name}: {len(lg)} rows, need more than the history {history}")
-            z = norm.encode(lg.values).astype(np.float32)
-            x, y = log_pairs(z, history, n_state)
+            z = np.concatenate([norm.encode(lg.values), extra_channels(lg.time, extras, period_ms, phase_rows)],
+                               axis=1).astype(np.float32)
+            ctx = context_of(z[:history], n_state) if context else None
+            x, y = log_pairs(z, history, n_state, ctx)
             zs.append(z), xs.append(x), ys.append(y)
         return Dataset(norm, history, n_state, xs, ys, zs)
 

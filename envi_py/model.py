@@ -3,8 +3,8 @@
 The paper's structure is an MLP l*(|s|+|a|) -> 256 -> tanh -> 256 -> tanh -> |s| -> tanh on values
 normalised to [-1, 1]. Everything an unmodelled effect may need later is a field of
 :class:`ModelConfig` rather than a new class: a longer ``history``, a ``gaussian`` head (mean and
-log-std) for stochastic simulation, ``context_dim`` for a per-run context vector appended to the
-input, and output post-processing (``round_to`` sensor resolution, clamping to the valid range)
+log-std) for stochastic simulation, ``extras`` for derived input channels (``dt``, ``phase``),
+``context`` for a per-run context vector appended to the input, and output post-processing (``round_to`` sensor resolution, clamping to the valid range)
 applied by the simulator. The diagnosis retrains by changing the config, not the code.
 
 Checkpoints are a ``torch.save`` of plain tensors, numbers and strings, loaded with
@@ -41,12 +41,15 @@ class ModelConfig:
     hidden: tuple[int, ...] = (256, 256)
     head: str = "deterministic"  # or "gaussian"
     kind: str = "mlp"  # or "random": the paper's baseline, a state drawn at random each step
-    context_dim: int = 0
+    extras: tuple[str, ...] = ()  # derived per-row channels, see envi_py.dataset.EXTRA_CHANNELS
+    phase_rows: int = 100  # rows over which the 'phase' channel runs from -1 to 1
+    context: bool = False  # append the per-run context of sigma_0 (envi_py.dataset.context_of)
     round_to: tuple[float, ...] | None = None  # per-state resolution in physical units (None: no rounding)
     clamp: bool = True  # keep simulated states inside the schema's valid range
 
     def __post_init__(self) -> None:
         self.hidden = tuple(int(h) for h in self.hidden)
+        self.extras = tuple(self.extras)
         if self.round_to is not None:
             self.round_to = tuple(float(r) for r in self.round_to)
         if self.head not in ("deterministic", "gaussian"):
@@ -58,11 +61,26 @@ class ModelConfig:
 
     @property
     def channels(self) -> int:
+        """Logged channels of a window row (states and actions)."""
         return self.n_state + self.n_action
 
     @property
+    def row_width(self) -> int:
+        """Width of a window row as the model sees it: logged channels plus derived ones."""
+        return self.channels + len(self.extras)
+
+    @property
+    def context_dim(self) -> int:
+        return 2 * self.n_state if self.context else 0
+
+    @property
     def in_features(self) -> int:
-        return self.history * self.channels + self.context_dim
+        return self.history * self.row_width + self.context_dim
+
+    @property
+    def plain(self) -> bool:
+        """True for the paper's structure (no derived channels, no context): what the exporters support."""
+        return not self.extras and not self.context
 
     @property
     def stochastic(self) -> bool:
@@ -165,6 +183,7 @@ class Checkpoint:
         try:
             cfg = blob["config"]
             cfg["hidden"] = tuple(cfg["hidden"])
+            cfg["extras"] = tuple(cfg.get("extras", ()))
             model = EnvModel(ModelConfig(**cfg))
             model.load_state_dict(blob["state_dict"])
             rec = TrainingRecord(**blob["record"])

@@ -14,6 +14,7 @@ import numpy as np
 import torch
 
 from .controllers import ControllerSpec
+from .dataset import context_of, extra_channels
 from .logs import Log, LogMeta
 from .model import Checkpoint
 
@@ -29,6 +30,21 @@ def post_process(states: np.ndarray, ckpt: Checkpoint) -> np.ndarray:
         res = np.asarray(cfg.round_to)
         states = np.round(states / res) * res
     return states
+
+
+def _model_rows(ckpt: Checkpoint, values: np.ndarray, first_row: int) -> np.ndarray:
+    """Physical rows (B, n, C) -> the model's normalised rows, derived channels appended.
+
+    In simulation every interval is the nominal one (``dt`` = 0) and ``phase`` follows the row index.
+    """
+    cfg = ckpt.config
+    z = ckpt.norm.encode(values)
+    if not cfg.extras:
+        return z.astype(np.float32)
+    n = values.shape[1]
+    period = ckpt.record.period_ms or 40.0
+    ex = extra_channels(period * np.arange(n), cfg.extras, period, cfg.phase_rows, first_row)
+    return np.concatenate([z, np.broadcast_to(ex, (values.shape[0], n, ex.shape[1]))], axis=2).astype(np.float32)
 
 
 @torch.no_grad()
@@ -52,16 +68,20 @@ def rollout(ckpt: Checkpoint, controller: ControllerSpec, init: np.ndarray, step
     gen = torch.Generator().manual_seed(int(seed)) if cfg.stochastic else None
     out = np.empty((batch, hist + steps, chans))
     out[:, :hist] = np.repeat(init, runs, axis=0)
-    window = torch.from_numpy(norm.encode(out[:, :hist]).astype(np.float32))
+    window_np = _model_rows(ckpt, out[:, :hist], 0)
+    context = torch.from_numpy(context_of(window_np, ns).astype(np.float32)) if cfg.context else None
+    window = torch.from_numpy(window_np)
     model = ckpt.model.eval()
     for t in range(steps):
-        z = model.step(window.reshape(batch, -1), gen).numpy().astype(np.float64)
+        x = window.reshape(batch, -1)
+        if context is not None:
+            x = torch.cat([x, context], dim=1)
+        z = model.step(x, gen).numpy().astype(np.float64)
         s = post_process(norm.decode(np.concatenate([z, np.zeros((batch, chans - ns))], axis=1))[:, :ns], ckpt)
-        a = ctrl(s)
         out[:, hist + t, :ns] = s
-        out[:, hist + t, ns:] = a
-        row = torch.from_numpy(norm.encode(out[:, hist + t]).astype(np.float32))
-        window = torch.cat([window[:, 1:], row[:, None]], dim=1)
+        out[:, hist + t, ns:] = ctrl(s)
+        row = torch.from_numpy(_model_rows(ckpt, out[:, hist + t:hist + t + 1], hist + t))
+        window = torch.cat([window[:, 1:], row], dim=1)
     return out
 
 

@@ -94,4 +94,7 @@ class Selector:
 
 
 def dataset_for(ckpt: Checkpoint, logs: Sequence[Log]) -> Dataset:
-    return Dataset.build(logs, ckpt.config.history, ckpt.norm)
+    """Training pairs laid out as the checkpoint's model expects them (derived channels, context)."""
+    cfg = ckpt.config
+    return Dataset.build(logs, cfg.history, ckpt.norm, cfg.extras, ckpt.record.period_ms or 40.0,
+                         cfg.phase_rows, cfg.context)
