@@ -20,7 +20,7 @@ from .logs import DatasetSpec, Log, LogError, load_logs, write_log
 from .metrics import MetricConfig
 
 #: Subcommands contributed by other parts of the project: "module:function" taking the subparsers.
-PLUGINS: tuple[str, ...] = ()
+PLUGINS: tuple[str, ...] = ("envi_py.diagnose.cli:register",)
 
 
 def parse_where(items: Sequence[str] | None) -> dict[str, list[Any]] | None:

@@ -45,13 +45,16 @@ class ModelConfig:
     phase_rows: int = 100  # rows over which the 'phase' channel runs from -1 to 1
     context: bool = False  # append the per-run context of sigma_0 (envi_py.dataset.context_of)
     round_to: tuple[float, ...] | None = None  # per-state resolution in physical units (None: no rounding)
-    clamp: bool = True  # keep simulated states inside the schema's valid range
+    clamp: bool = True  # keep simulated states inside the valid range: ``limits``, else the schema's
+    limits: tuple[tuple[float, float], ...] | None = None  # per-state (low, high) observed physical limits
 
     def __post_init__(self) -> None:
         self.hidden = tuple(int(h) for h in self.hidden)
         self.extras = tuple(self.extras)
         if self.round_to is not None:
             self.round_to = tuple(float(r) for r in self.round_to)
+        if self.limits is not None:
+            self.limits = tuple((float(lo), float(hi)) for lo, hi in self.limits)
         if self.head not in ("deterministic", "gaussian"):
             raise ValueError(f"model head must be 'deterministic' or 'gaussian', not {self.head!r}")
         if self.kind not in ("mlp", "random"):

@@ -23,9 +23,8 @@ def post_process(states: np.ndarray, ckpt: Checkpoint) -> np.ndarray:
     """Physical-unit output post-processing declared by the model: clamp, then round."""
     cfg = ckpt.config
     if cfg.clamp:
-        lo = np.array([c.low for c in ckpt.schema.states])
-        hi = np.array([c.high for c in ckpt.schema.states])
-        states = np.clip(states, lo, hi)
+        limits = cfg.limits or [(c.low, c.high) for c in ckpt.schema.states]
+        states = np.clip(states, [lo for lo, _ in limits], [hi for _, hi in limits])
     if cfg.round_to is not None:
         res = np.asarray(cfg.round_to)
         states = np.round(states / res) * res

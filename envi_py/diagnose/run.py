@@ -1,0 +1,105 @@
+"""The whole diagnosis of one model against real logs: choose on one set of logs, confirm on another."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Sequence
+
+import numpy as np
+
+from ..dataset import split_logs
+from ..logs import Log
+from ..metrics import MetricConfig
+from ..model import Checkpoint
+from ..train.common import dataset_for
+from ..simulate import initial_windows, rollout
+from ..verify import controller_of, group_by_controller
+from .effects import Finding, run_candidates
+from .gap import by_version, coverage, horizon_gap, metric_gaps, residual_map, windows_of
+from .residuals import one_step_residuals
+from .shrink import load_recorded, shrink, simulate_groups
+
+
+@dataclass
+class Diagnosis:
+    """Everything the report shows; plain data so it serialises to JSON as it is."""
+
+    findings: list[Finding]
+    gaps: list[dict[str, Any]]  # per controller version: ranked metric gaps
+    horizon: list[dict[str, Any]]
+    residual_map: dict[str, Any]
+    versions: list[dict[str, Any]]
+    coverage: dict[str, Any]
+    shrink: dict[str, Any] | None
+    choose_logs: list[str] = field(default_factory=list)
+    confirm_logs: list[str] = field(default_factory=list)
+
+    @property
+    def significant(self) -> list[Finding]:
+        return [f for f in self.findings if f.significant]
+
+    def verdict(self) -> str:
+        """One paragraph a person reads first."""
+        gaps = [g["gaps"][0] for g in self.gaps]
+        worst = max(gaps, key=lambda g: g["ratio"])
+        text = (f"The largest closed-loop gap is in {worst['metric']} ({worst['ratio']:.1f}x the real-vs-real floor). "
+                f"Simulated runs leave the band of real runs after a median of {self.horizon[0]['median_exit_step']:.0f} "
+                f"steps; {self.coverage['outside_share']:.0%} of simulated windows lie outside the training data. ")
+        sig = self.significant
+        if not sig:
+            return text + "No candidate effect explains a significant share of the one-step residuals."
+        names = ", ".join(f"{f.effect} ({f.share:.0%} of residual mean square)" for f in sig)
+        text += f"Significant candidate effects, most important first: {names}. "
+        if self.shrink and self.shrink["after"]:
+            best = max(self.shrink["after"], key=lambda a: a["shrink"])
+            b = self.shrink["before"]
+            text += (f"Adding {best['effect']} changes the mean normalised W1 on the confirmation logs from "
+                     f"{b['mean_w1']:.4f} to {best['mean_w1']:.4f} ({best['shrink']:+.0%} shrink; floor "
+                     f"{b['mean_floor']:.4f}); {best['inside_floor']}/8 metrics within 1.5x the floor.")
+        return text
+
+    def to_json(self) -> dict[str, Any]:
+        return {"verdict": self.verdict(), "findings": [f.to_json() for f in self.findings], "gaps": self.gaps,
+                "horizon": self.horizon, "residual_map": self.residual_map, "versions": self.versions,
+                "coverage": self.coverage, "shrink": self.shrink, "choose_logs": self.choose_logs,
+                "confirm_logs": self.confirm_logs}
+
+
+def split_choose_confirm(logs: Sequence[Log], seed: int) -> tuple[list[Log], list[Log]]:
+    """Half of each controller version's logs to choose the effect, half to confirm it."""
+    choose, confirm = [], []
+    for group in group_by_controller(logs).values():
+        a, b = split_logs(group, [0.5, 0.5], seed)
+        choose += a
+        confirm += b
+    return choose, confirm
+
+
+def diagnose(ckpt: Checkpoint, real: Sequence[Log], confirm: Sequence[Log] | None = None,
+             train_logs: Sequence[Log] | None = None, val_logs: Sequence[Log] | None = None,
+             metric: MetricConfig = MetricConfig(), runs: int = 10, top: int = 2, retrain: bool = True,
+             alpha: float = 0.05, min_share: float = 0.05, seed: int = 0) -> Diagnosis:
+    """Diagnose ``ckpt`` on ``real`` logs; effects are confirmed on ``confirm`` (default: half of ``real``)."""
+    choose, confirm_l = (list(real), list(confirm)) if confirm else split_choose_confirm(real, seed)
+    res = one_step_residuals(ckpt, choose)
+    findings = run_candidates(res, ckpt, alpha, min_share)
+    groups = simulate_groups(ckpt, choose, runs, seed)
+    gaps = [{"controller": label, "gaps": metric_gaps(r, s, metric, seed=seed)} for label, r, s in groups]
+    horizon = [{"controller": label, **horizon_gap(r, s, metric.skip, seed)} for label, r, s in groups]
+    train_logs = list(train_logs) if train_logs is not None else load_recorded(ckpt.record.data, ckpt)
+    if val_logs is None:
+        val_logs = load_recorded(ckpt.record.validation, ckpt) if ckpt.record.validation else []
+    hist = ckpt.config.history
+    train_w = np.concatenate(dataset_for(ckpt, train_logs).X)[:, :hist * ckpt.config.row_width]
+    sims_full = []
+    for group in group_by_controller(choose).values():
+        sims_full.append(rollout(ckpt, controller_of(group[0]), initial_windows(group, hist),
+                                 min(len(g) for g in group) - hist, runs=1, seed=seed))
+    sim_w = np.concatenate([windows_of(s, ckpt.norm.encode, hist, metric.skip) for s in sims_full])
+    cov = coverage(train_w, sim_w.astype(np.float32), seed) if ckpt.config.plain else \
+        {"threshold": float("nan"), "outside_share": float("nan"), "median_distance": float("nan"),
+         "train_median_distance": float("nan")}
+    sig = [f for f in findings if f.significant][:top]
+    shrunk = shrink(ckpt, sig, train_logs, val_logs, confirm_l, metric, runs, seed) if retrain and sig else None
+    return Diagnosis(findings, gaps, horizon, residual_map(res), by_version(groups, metric), cov, shrunk,
+                     [lg.name for lg in choose], [lg.name for lg in confirm_l])

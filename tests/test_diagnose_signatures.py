@@ -1,0 +1,99 @@
+"""Each candidate-effect test on synthetic residuals with a known answer, and the Holm correction."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from envi_py.dataset import Normaliser
+from envi_py.diagnose.effects import CANDIDATES, holm, run_candidates
+from envi_py.diagnose.residuals import BEYOND, Residuals
+from envi_py.logs import LANE_KEEPING_SCHEMA
+from envi_py.model import Checkpoint, EnvModel, ModelConfig, TrainingRecord
+
+RUNS, ROWS, HIST = 30, 90, 10
+
+
+def ckpt() -> Checkpoint:
+    rec = TrainingRecord("bc", 0, period_ms=40.0)
+    norm = Normaliser(np.array([5.0, -30.0]), np.array([80.0, 30.0]))
+    return Checkpoint(EnvModel(ModelConfig(1, 1, hidden=(4,))), norm, LANE_KEEPING_SCHEMA, rec)
+
+
+def synthetic(r_extra=None, seed: int = 0, noise: float = 0.05) -> Residuals:
+    """Residuals of a well-fitting model (tiny white noise) on an oscillating closed loop."""
+    rng = np.random.default_rng(seed)
+    n = RUNS * ROWS
+    run = np.repeat(np.arange(RUNS), ROWS)
+    row = np.tile(np.arange(HIST, HIST + ROWS), RUNS)
+    state = 40 + 30 * np.sin(row / 3.0 + run)
+    action = np.sign(state - 40) * 30
+    pred = 40 + 30 * np.sin((row + 1) / 3.0 + run)
+    since = np.tile(np.arange(ROWS) % 8, RUNS).astype(float)
+    direction = np.tile(np.where((np.arange(ROWS) // 8) % 2 == 0, 1.0, -1.0), RUNS)
+    dt = 40 + rng.normal(0, 4, n)
+    window = rng.normal(size=(n, HIST * 2))
+    beyond = rng.normal(size=(n, BEYOND * 2))
+    res = Residuals(r=rng.normal(0, noise, n), pred_std=None, predicted=pred, real_next=pred + 0.3, state=state,
+                    action=action, run=run, row=row, dt=dt, window=window, beyond=beyond, since_change=since,
+                    change_dir=direction)
+    if r_extra is not None:
+        res.r = res.r + r_extra(res, rng)
+    res.real_next = res.predicted + res.r
+    return res
+
+
+CASES = {
+    "noise": lambda res, rng: rng.normal(0, 2.0, len(res)),
+    "drift": lambda res, rng: 0.05 * (res.row - 50),
+    "run_to_run": lambda res, rng: rng.normal(0, 1.0, RUNS)[res.run],
+    "memory_delay": lambda res, rng: 1.5 * res.beyond[:, 0],
+    "backlash": lambda res, rng: np.where(res.since_change <= 3, 2.0 * res.change_dir, 0.0),
+    "jitter": lambda res, rng: 0.8 * (res.dt / 40 - 1) * (res.predicted - res.state) * 10,
+}
+
+
+@pytest.mark.parametrize("effect", sorted(CASES))
+def test_injected_effect_is_ranked_first(effect):
+    res = synthetic(CASES[effect])
+    findings = run_candidates(res, ckpt())
+    assert findings[0].effect == effect and findings[0].significant, [(f.effect, f.p_holm, f.share) for f in findings]
+
+
+def test_clean_residuals_show_no_significant_effect():
+    for seed in range(5):
+        findings = run_candidates(synthetic(seed=seed), ckpt())
+        assert not any(f.significant for f in findings), [(f.effect, f.p_holm, f.share) for f in findings]
+
+
+def test_quantisation_seen_only_when_readings_are_integers_and_model_does_not_round():
+    res = synthetic(lambda res, rng: rng.normal(0, 0.3, len(res)))
+    res.real_next = np.round(res.real_next)
+    res.r = res.real_next - res.predicted
+    c = ckpt()
+    stat, p, share, _ = next(x for x in CANDIDATES if x.name == "quantisation").test(res, c)
+    assert stat == 1.0 and p < 1e-6 and share > 0.3
+    c.model.config.round_to = (1.0,)
+    assert next(x for x in CANDIDATES if x.name == "quantisation").test(res, c)[1] == 1.0
+
+
+def test_saturation_when_predictions_leave_the_observed_range():
+    res = synthetic()
+    res.real_next = np.clip(res.predicted, 20, 60)
+    res.r = res.real_next - res.predicted
+    finding = next(f for f in run_candidates(res, ckpt()) if f.effect == "saturation")
+    assert finding.significant and finding.fix == {"limits": ((20.0, 60.0),)}
+
+
+def test_gaussian_model_calibrated_noise_is_not_flagged():
+    res = synthetic(lambda res, rng: rng.normal(0, 2.0, len(res)))
+    res.pred_std = np.full(len(res), 2.0)
+    noise = next(f for f in run_candidates(res, ckpt()) if f.effect == "noise")
+    assert not noise.significant
+    res.pred_std = np.full(len(res), 0.5)  # under-dispersed model
+    noise = next(f for f in run_candidates(res, ckpt()) if f.effect == "noise")
+    assert noise.significant
+
+
+def test_holm():
+    np.testing.assert_allclose(holm([0.01, 0.04, 0.03, 0.5]), [0.04, 0.09, 0.09, 0.5])
