@@ -1,0 +1,1 @@
+"""The brick program: protocol codec, fixed-rate control loop and hardware layer (MicroPython-safe)."""

@@ -1,0 +1,1 @@
+"""The host side: records field and hardware-in-the-loop logs from a brick over any pyserial URL."""

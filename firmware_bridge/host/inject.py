@@ -1,0 +1,102 @@
+"""Environment models for hardware in the loop: anything that maps a window to the next colour.
+
+The host keeps the last ``history`` rows of (colour, angle) in physical units, exactly as the
+closed-loop simulator does, and asks the model for the colour of the next tick. Any callable
+``window (history, |s|+|a|) -> colour`` works (:class:`CallableModel`); :class:`CheckpointModel`
+runs an envi checkpoint the way ``envi_py.simulate.rollout`` does.
+"""
+
+from __future__ import annotations
+
+import importlib
+from pathlib import Path
+from typing import Callable, Protocol
+
+import numpy as np
+
+
+class EnvironmentModel(Protocol):
+    """What HIL needs: how many rows of history, and the next colour from them."""
+
+    history: int
+    description: str
+
+    def __call__(self, window: np.ndarray) -> float: ...
+
+
+def reset(model: EnvironmentModel) -> None:
+    """Start a model's run over, for models that keep per-run state (``reset()`` is optional)."""
+    fn = getattr(model, "reset", None)
+    if fn is not None:
+        fn()
+
+
+class CallableModel:
+    """A plain function ``window -> colour`` with the history length it wants."""
+
+    def __init__(self, fn: Callable[[np.ndarray], float], history: int = 1, description: str = "") -> None:
+        self.fn = fn
+        self.history = int(history)
+        self.description = description or getattr(fn, "__qualname__", repr(fn))
+
+    def __call__(self, window: np.ndarray) -> float:
+        return float(self.fn(window))
+
+
+class CheckpointModel:
+    """An envi checkpoint (``envi_py.model.Checkpoint``) stepped one window at a time.
+
+    Windows are normalised and extended by the same helpers ``rollout`` uses, and the output is
+    decoded and post-processed (clamp, round) identically, so a HIL run and a simulation of the
+    same model see the same environment. A context vector, when the model has one, comes from the
+    first window (sigma_0) as in ``rollout``.
+    """
+
+    def __init__(self, ckpt, description: str = "") -> None:
+        import torch
+
+        from envi_py.dataset import context_of
+        from envi_py.simulate import _model_rows, post_process
+
+        self.ckpt = ckpt
+        self.history = ckpt.config.history
+        self.description = description or f"envi checkpoint ({ckpt.record.algorithm})"
+        self._torch = torch
+        self._rows = _model_rows
+        self._post = post_process
+        self._context_of = context_of
+        self._context = None
+        self._step = 0
+
+    def reset(self) -> None:
+        """A new run: the next window is sigma_0 again (row index 0, fresh context)."""
+        self._context = None
+        self._step = 0
+
+    def __call__(self, window: np.ndarray) -> float:
+        torch = self._torch
+        cfg = self.ckpt.config
+        w = np.asarray(window, dtype=np.float64)[None]
+        rows = self._rows(self.ckpt, w, self._step)  # row index feeds the 'phase' channel
+        self._step += 1
+        x = torch.from_numpy(rows.reshape(1, -1))
+        if cfg.context:
+            if self._context is None:
+                self._context = torch.from_numpy(self._context_of(rows, cfg.n_state).astype(np.float32))
+            x = torch.cat([x, self._context], dim=1)
+        with torch.no_grad():
+            z = self.ckpt.model.eval().step(x, None).numpy().astype(np.float64)
+        chans = cfg.channels
+        s = self.ckpt.norm.decode(np.concatenate([z, np.zeros((1, chans - cfg.n_state))], axis=1))[:, :cfg.n_state]
+        return float(self._post(s, self.ckpt)[0, 0])
+
+
+def load_model(spec: str) -> EnvironmentModel:
+    """``path/to/model.pt`` (envi checkpoint) or ``package.module:function`` (a callable)."""
+    if ":" in spec and not Path(spec).exists():
+        module, _, attr = spec.partition(":")
+        obj = getattr(importlib.import_module(module), attr)
+        return obj if hasattr(obj, "history") else CallableModel(obj, description=spec)
+    from envi_py.model import Checkpoint
+
+    return CheckpointModel(Checkpoint.load(spec), description=str(spec))
