@@ -111,6 +111,7 @@ class Brick:
                 color = self.latest[1]
                 age = self._diff(self._ms(), self.latest[2])
                 flags = P.FLAG_INJECTED | (P.FLAG_STALE if self.latest[0] < tick else 0)
+            stamp = tk.since_t0(self._ms())  # when the colour was had
             if color is None:
                 timeouts += 1
                 flags |= P.FLAG_TIMEOUT
@@ -119,9 +120,8 @@ class Brick:
             else:
                 angle = int(round(self.ctrl(color / 100.0) * 100))
                 self.hw.steer(angle / 100.0)
-            stamp = tk.since_t0(self._ms())
             work = min(0xFFFF, self._diff(self._us(), begin))
-            if tk.advance(self._ms()):
+            if tk.advance(self._ms(), mode != P.MODE_LOCKSTEP):
                 flags |= P.FLAG_OVERRUN
             self.send(P.TELEMETRY, (tick, stamp & 0xFFFFFFFF, color, angle, work, flags, min(0xFFFF, max(0, age))))
         self.last_end = (run_id, P.END_STOPPED if self.stop_requested else P.END_DONE, min(tk.tick, n_ticks),

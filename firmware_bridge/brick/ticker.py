@@ -3,7 +3,8 @@
 Tick k is due at ``t0 + k * period``. Sleeping one period after each tick would add the work time
 and every late wake-up to all later ticks (drift); with absolute deadlines a late tick only delays
 itself. When a tick ends after the next one was due that is an overrun; when it ends a whole period
-or more late the missed ticks are skipped (and counted) so that the phase is kept.
+or more late the missed ticks are skipped (and counted) so that the phase is kept, except in
+lock-step where every tick is needed.
 """
 
 from .compat import ticks_add, ticks_diff
@@ -28,15 +29,19 @@ class Ticker:
         """Milliseconds since tick 0 was due: the time stamp of a reading."""
         return self._diff(now, self.t0)
 
-    def advance(self, now):
-        """The current tick's work ended at ``now``: move on; True when that was an overrun."""
+    def advance(self, now, skip=True):
+        """The current tick's work ended at ``now``: move on; True when that was an overrun.
+
+        ``skip=False`` never skips a tick (lock-step: tick k is the host's k-th colour, not a time
+        slot); late ticks then run back to back until the loop is on its deadlines again.
+        """
         self.tick += 1
         self.deadline = self._add(self.deadline, self.period)
         late = self._diff(now, self.deadline)
         if late <= 0:
             return False
         self.overruns += 1
-        missed = late // self.period
+        missed = late // self.period if skip else 0
         if missed:
             self.tick += missed
             self.skipped += missed
