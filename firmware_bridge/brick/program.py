@@ -29,6 +29,7 @@ class Brick:
         self._us = clock_us
         self._diff = diff
         self.pending_start = None
+        self.current_run = None
         self.stop_requested = False
         self.injects = {}  # tick -> (colour x100, receive time ms)
         self.latest = None  # (tick, colour x100, receive time ms), free-running mode
@@ -49,12 +50,14 @@ class Brick:
     def handle(self, msg):
         t = msg.type
         if t == P.HELLO:
+            self.current_run = None  # a new conversation may number its runs from 0 again
             self.send(P.HANDSHAKE, (P.VERSION, self.period, self.program_hash, self.runtime,
                                     self.ctrl.NAME, self.ctrl.params()))
         elif t == P.PING:
             self.send(P.PONG, msg.fields)
         elif t == P.START:
-            self.pending_start = msg.fields
+            if msg.fields[0] != self.current_run:  # a repeated START (lost STARTED) is not a new run
+                self.pending_start = msg.fields
         elif t == P.INJECT:
             tick, color = msg.fields
             now = self._ms()
@@ -82,6 +85,7 @@ class Brick:
     def run(self, run_id, mode, n_ticks, period_ms, timeout_ms):
         period = period_ms or self.period
         timeout = timeout_ms or 2 * period
+        self.current_run = run_id
         self.stop_requested = False
         self.injects = {}
         self.latest = None

@@ -172,23 +172,26 @@ class Run:
         started = False
         if self.model is not None:
             reset(self.model)
+        starts = 1
         while True:
-            got = self.link.recv(self.silence if started else 2.0)
+            got = self.link.recv(self.silence)
             if got is None:
-                if started and r.end is None:
+                if not started and starts < 3:  # the START or its answer was lost: ask again
+                    self.link.send(P.START, (r.run_id, r.mode, r.n_ticks, 0, 0))
+                    starts += 1
+                    continue
+                if started:
                     self._stop()  # maybe only the RUN_END got lost
-                    if r.end is None:
-                        r.end_reason = "silent"
-                    return
-                r.end_reason = "no start"
+                r.end_reason = "silent" if r.end is None else r.end_reason
                 return
             t, msg = got
-            if msg.type == P.STARTED and msg.fields[0] == r.run_id:
+            if msg.type == P.STARTED and msg.fields[0] == r.run_id and not started:
                 started = True
                 r.period_ms = msg.fields[2]
                 if self.model is not None:
                     self._inject(0)
-            elif msg.type == P.TELEMETRY and started:
+            elif msg.type == P.TELEMETRY:
+                started = True  # the STARTED frame itself may have been lost
                 self._telemetry(t, msg.fields)
             elif msg.type == P.RUN_END and msg.fields[0] == r.run_id:
                 r.end = msg.fields
