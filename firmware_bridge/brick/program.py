@@ -107,6 +107,7 @@ class Brick:
                 color = int(round(self.hw.read_color() * 100))
             elif mode == P.MODE_LOCKSTEP:
                 got = self._wait_inject(tick, tk.deadline, timeout)
+                begin = self._us()  # waiting for the host is not loop work
                 if got is not None:
                     color = got[0]
                     age = self._diff(self._ms(), got[1])
