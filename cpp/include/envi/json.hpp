@@ -1,0 +1,41 @@
+// A small JSON reader and writer: enough for the ONNX metadata, controller specs and log sidecars.
+// The runtime parses untrusted files, so the reader bounds-checks every access and limits nesting.
+#pragma once
+#include <map>
+#include <memory>
+#include <stdexcept>
+#include <string>
+#include <vector>
+
+namespace envi {
+
+struct Json {
+  enum class Type { Null, Bool, Number, String, Array, Object };
+  Type type = Type::Null;
+  bool boolean = false;
+  double number = 0.0;
+  bool integer = false;  // written without '.' or exponent, as Python's int
+  std::string string;
+  std::vector<Json> array;
+  std::vector<std::pair<std::string, Json>> object;  // insertion order, as Python's json keeps it
+
+  static Json parse(const std::string& text);  // throws std::runtime_error with the offset
+
+  bool is_null() const { return type == Type::Null; }
+  const Json* find(const std::string& key) const;
+  const Json& at(const std::string& key) const;  // throws when missing
+  double as_number() const;                      // numbers, and strings holding a number
+  const std::string& as_string() const;
+  const std::vector<Json>& as_array() const;
+  std::vector<double> as_numbers() const;
+};
+
+// json.dumps(value, indent=1) of Python, byte for byte (ints stay ints, floats as repr).
+std::string dump_indent1(const Json& v, int depth = 0);
+
+// Python's repr(float): shortest round-trip digits, exponent form outside 1e-4 <= |v| < 1e16.
+std::string py_float(double v);
+// JSON string literal with Python json.dumps escaping (ensure_ascii=True).
+std::string json_quote(const std::string& s);
+
+}  // namespace envi

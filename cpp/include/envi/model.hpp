@@ -1,0 +1,60 @@
+// An exported envi model compiled to a plain list of dense layers, plus what the closed loop needs
+// from the file's metadata (normalisation, history, post-processing, schema).
+#pragma once
+#include <Eigen/Core>
+#include <cstdint>
+#include <stdexcept>
+#include <string>
+#include <vector>
+
+namespace envi {
+
+// Any problem with a model file: unsupported op, foreign domain, external data, malformed bytes.
+struct ModelError : std::runtime_error {
+  using std::runtime_error::runtime_error;
+};
+
+enum class Act { None, Tanh, Relu, Sigmoid, Clip };
+
+// y = act(W x + b) on column vectors (one column per simulation).
+struct Dense {
+  Eigen::MatrixXf W;  // out x in
+  Eigen::VectorXf b;  // out
+  Act act = Act::None;
+  float clip_lo = 0.f, clip_hi = 0.f;
+};
+
+struct ChannelInfo {
+  std::string name, unit;
+  double low, high;
+};
+
+struct Model {
+  std::vector<Dense> trunk;    // shared layers
+  std::vector<Dense> mean;     // mean head (after the trunk)
+  std::vector<Dense> log_std;  // empty for a deterministic model
+
+  // From metadata_props.
+  std::vector<ChannelInfo> states, actions;
+  std::vector<double> norm_low, norm_high;  // per logged channel (states then actions)
+  int history = 0;
+  double period_ms = 0.0;  // 0 when unknown
+  bool clamp = true;
+  std::vector<double> limit_low, limit_high;  // per state
+  std::vector<double> round_to;               // per state; empty: no rounding
+  std::string algorithm;
+  std::vector<std::pair<std::string, std::string>> metadata;  // every key/value, as stored
+
+  int n_state() const { return int(states.size()); }
+  int n_action() const { return int(actions.size()); }
+  int channels() const { return n_state() + n_action(); }
+  int in_features() const { return history * channels(); }
+  bool gaussian() const { return !log_std.empty(); }
+  int max_width() const;
+};
+
+// Parse and compile an ONNX file's bytes; throws ModelError.
+Model load_model(const uint8_t* data, size_t size);
+Model load_model_file(const std::string& path);
+
+}  // namespace envi

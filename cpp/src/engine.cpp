@@ -1,0 +1,210 @@
+#include "envi/engine.hpp"
+
+#include <algorithm>
+#include <atomic>
+#include <cmath>
+#include <exception>
+#include <mutex>
+#include <stdexcept>
+#include <thread>
+#include <vector>
+
+#include "envi/rng.hpp"
+
+namespace envi {
+namespace {
+
+using MatF = Eigen::Matrix<float, Eigen::Dynamic, Eigen::Dynamic>;
+using InMap = Eigen::Map<const MatF, 0, Eigen::OuterStride<>>;
+using OutMap = Eigen::Map<MatF>;
+
+void activate(OutMap& y, const Dense& d) {
+  switch (d.act) {
+    case Act::None: break;
+    case Act::Tanh: y.array() = y.array().tanh(); break;
+    case Act::Relu: y.array() = y.array().max(0.f); break;
+    case Act::Sigmoid: y.array() = y.array().logistic(); break;
+    case Act::Clip: y.array() = y.array().max(d.clip_lo).min(d.clip_hi); break;
+  }
+}
+
+// Layers applied to `in` (rows x count, column stride `stride`), ping-ponging between two buffers.
+// The bias is written first and the product accumulated onto it: one pass fewer than adding it
+// after, and Eigen's GEMM accumulates at no extra cost.
+const float* forward(const std::vector<Dense>& layers, const float* in, long rows, long stride, long count,
+                     float* a, float* b) {
+  for (const Dense& d : layers) {
+    float* outp = (in == a) ? b : a;
+    if (d.W.size() == 0) {  // activation on its own
+      OutMap y(outp, rows, count);
+      y = InMap(in, rows, count, Eigen::OuterStride<>(stride));
+      activate(y, d);
+    } else {
+      OutMap y(outp, d.W.rows(), count);
+      y = d.b.replicate(1, count);
+      y.noalias() += d.W * InMap(in, rows, count, Eigen::OuterStride<>(stride));
+      activate(y, d);
+      rows = d.W.rows();
+    }
+    in = outp;
+    stride = rows;
+  }
+  return in;
+}
+
+struct Workspace {
+  MatF ring;                       // (2 l C) x block: each run's window rows, twice (see below)
+  std::vector<float> buf[4];       // hidden activations, ping-pong pairs for trunk and heads
+  MatF mean;                       // n_state x block
+  std::vector<double> rows, states, actions, memory;
+
+  Workspace(const Model& m, int block) {
+    long c = m.channels();
+    ring.resize(2 * m.history * c, block);
+    for (auto& v : buf) v.resize(size_t(m.max_width()) * size_t(block));
+    mean.resize(m.n_state(), block);
+    rows.resize(size_t(block) * size_t(c));
+    states.resize(size_t(block) * size_t(m.n_state()));
+    actions.resize(size_t(block) * size_t(m.n_action()));
+    memory.resize(size_t(block) * ControllerSpec::kStateSize);
+  }
+};
+
+struct Runner {
+  const Model& m;
+  const ControllerSpec& ctrl;
+  const Job& job;
+  Sink& sink;
+  std::vector<double> centre, half;
+  long trunk_out;  // width of the trunk's output (the window itself without a trunk)
+
+  Runner(const Model& model, const ControllerSpec& c, const Job& j, Sink& s) : m(model), ctrl(c), job(j), sink(s) {
+    trunk_out = m.in_features();
+    for (const Dense& d : m.trunk)
+      if (d.W.size()) trunk_out = d.W.rows();
+    for (int i = 0; i < m.channels(); ++i) {
+      centre.push_back((m.norm_high[size_t(i)] + m.norm_low[size_t(i)]) / 2);  // as Normaliser.centre/half
+      half.push_back((m.norm_high[size_t(i)] - m.norm_low[size_t(i)]) / 2);
+    }
+  }
+
+  // The window of each run is kept twice over in a ring of 2l rows: row i and row i+l always hold
+  // the same values, so the l rows starting at any p < l are contiguous and the model reads them in
+  // place. A step writes one new row (at p and p+l) instead of shifting l-1 rows.
+  void put_row(Workspace& w, int b, long pos, const double* v) {
+    const long c = m.channels(), l = m.history;
+    float* col = w.ring.col(b).data();
+    for (long k = 0; k < c; ++k) {
+      float z = float((v[k] - centre[size_t(k)]) / half[size_t(k)]);
+      col[pos * c + k] = z;
+      col[(pos + l) * c + k] = z;
+    }
+  }
+
+  void block(int thread, Workspace& w, long first, int count) {
+    const int ns = m.n_state(), na = m.n_action(), c = m.channels();
+    const long l = m.history;
+    sink.begin(thread, first, count);
+    for (long t = 0; t < l; ++t) {
+      for (int b = 0; b < count; ++b) {
+        const double* src = job.init + (size_t((first + b) / job.runs) * size_t(l) + size_t(t)) * size_t(c);
+        std::copy(src, src + c, w.rows.data() + size_t(b) * size_t(c));
+        put_row(w, b, t, src);
+      }
+      sink.rows(thread, t, w.rows.data());
+    }
+    std::fill(w.memory.begin(), w.memory.end(), 0.0);
+    const long in = m.in_features(), stride = w.ring.rows();
+    long p = 0;
+    for (long t = 0; t < job.steps; ++t) {
+      const float* x = w.ring.data() + p * c;
+      const float* h = m.trunk.empty() ? x : forward(m.trunk, x, in, stride, count, w.buf[0].data(), w.buf[1].data());
+      const long hstride = m.trunk.empty() ? stride : trunk_out;
+      const float* mu = forward(m.mean, h, trunk_out, hstride, count, w.buf[2].data(), w.buf[3].data());
+      if (m.gaussian()) {
+        OutMap(w.mean.data(), ns, count) = Eigen::Map<const MatF>(mu, ns, count);
+        const float* ls = forward(m.log_std, h, trunk_out, hstride, count, w.buf[2].data(), w.buf[3].data());
+        for (int b = 0; b < count; ++b)
+          for (int i = 0; i < ns; ++i) {
+            size_t k = size_t(b) * size_t(ns) + size_t(i);
+            float eps = float(normal(job.seed, uint64_t(first + b), uint32_t(t), uint32_t(i)));
+            w.mean.data()[k] += std::exp(ls[k]) * eps;
+          }
+        mu = w.mean.data();
+      }
+      for (int b = 0; b < count; ++b)
+        for (int i = 0; i < ns; ++i) {
+          size_t k = size_t(b) * size_t(ns) + size_t(i);
+          double v = double(mu[k]) * half[size_t(i)] + centre[size_t(i)];
+          if (m.clamp) v = std::min(std::max(v, m.limit_low[size_t(i)]), m.limit_high[size_t(i)]);
+          if (!m.round_to.empty()) v = std::nearbyint(v / m.round_to[size_t(i)]) * m.round_to[size_t(i)];  // half to even, as np.round
+          w.states[k] = v;
+        }
+      ctrl.act(w.states.data(), ns, w.actions.data(), na, count, w.memory.data(), t == 0);
+      for (int b = 0; b < count; ++b) {
+        double* row = w.rows.data() + size_t(b) * size_t(c);
+        std::copy_n(w.states.data() + size_t(b) * size_t(ns), ns, row);
+        std::copy_n(w.actions.data() + size_t(b) * size_t(na), na, row + ns);
+        put_row(w, b, p, row);
+      }
+      sink.rows(thread, l + t, w.rows.data());
+      p = (p + 1 == l) ? 0 : p + 1;
+    }
+    sink.end(thread);
+  }
+};
+
+long total_runs(const Job& job) { return job.n_runs > 0 ? job.n_runs : job.windows * job.runs; }
+
+int block_size(const Job& job, int threads) {
+  long n = total_runs(job);
+  long per_thread = (n + threads - 1) / std::max(threads, 1);
+  return int(std::max<long>(1, std::min<long>(job.block, per_thread)));
+}
+
+}  // namespace
+
+Plan plan(const Job& job) {
+  int t = job.threads > 0 ? job.threads : int(std::max(1u, std::thread::hardware_concurrency()));
+  t = int(std::max<long>(1, std::min<long>(t, total_runs(job))));
+  return {t, block_size(job, t)};
+}
+
+void simulate(const Model& model, const ControllerSpec& controller, const Job& job, Sink& sink) {
+  if (!job.init || job.windows < 1) throw std::invalid_argument("no initial windows");
+  if (job.runs < 1) throw std::invalid_argument("runs must be at least 1");
+  if (job.steps < 0 || job.steps > (long(1) << 32)) throw std::invalid_argument("steps out of range");
+  if (job.block < 1) throw std::invalid_argument("block must be at least 1");
+  long n = total_runs(job);
+  if (job.first_run < 0 || job.first_run + n > job.windows * job.runs)
+    throw std::invalid_argument("run range exceeds windows x runs");
+  const auto [threads, block] = plan(job);
+  const long blocks = (n + block - 1) / block;
+  Runner runner(model, controller, job, sink);
+  std::atomic<long> next{0};
+  std::exception_ptr error;
+  std::mutex error_mutex;
+  auto work = [&](int thread) {
+    try {
+      Workspace w(model, block);  // every buffer of this thread, allocated once
+      for (long k; (k = next.fetch_add(1)) < blocks;) {
+        long first = job.first_run + k * block;
+        runner.block(thread, w, first, int(std::min<long>(block, job.first_run + n - first)));
+      }
+    } catch (...) {
+      std::lock_guard<std::mutex> lock(error_mutex);
+      if (!error) error = std::current_exception();
+      next = blocks;  // stop the other workers at their next block
+    }
+  };
+  if (threads == 1) {
+    work(0);
+  } else {
+    std::vector<std::thread> pool;
+    for (int i = 0; i < threads; ++i) pool.emplace_back(work, i);
+    for (auto& th : pool) th.join();
+  }
+  if (error) std::rethrow_exception(error);
+}
+
+}  // namespace envi

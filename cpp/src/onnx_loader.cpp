@@ -1,0 +1,587 @@
+// ONNX -> Model. The file is read with a small protobuf wire-format decoder (see cpp/README.md for
+// why not libprotobuf): every length is checked against the bytes that remain, every field of
+// interest against its expected wire type, and only the handful of ONNX messages the model needs
+// are decoded; unknown fields are skipped by their wire type, as protobuf itself does.
+#include <cmath>
+#include <cstring>
+#include <fstream>
+#include <iterator>
+#include <map>
+#include <set>
+
+#include "envi/json.hpp"
+#include "envi/model.hpp"
+
+namespace envi {
+namespace {
+
+constexpr int kMaxMessageDepth = 16;
+
+// ---------------------------------------------------------------- wire format
+
+struct Reader {
+  const uint8_t* p;
+  const uint8_t* end;
+
+  bool done() const { return p >= end; }
+  [[noreturn]] static void fail(const std::string& why) { throw ModelError("malformed ONNX file: " + why); }
+
+  uint64_t varint() {
+    uint64_t v = 0;
+    for (int shift = 0; shift < 64; shift += 7) {
+      if (p >= end) fail("truncated varint");
+      uint8_t b = *p++;
+      v |= uint64_t(b & 0x7F) << shift;
+      if (!(b & 0x80)) return v;
+    }
+    fail("varint longer than 10 bytes");
+  }
+  Reader bytes() {
+    uint64_t n = varint();
+    if (n > uint64_t(end - p)) fail("length-delimited field runs past the end");
+    Reader r{p, p + n};
+    p += n;
+    return r;
+  }
+  uint32_t fixed32() {
+    if (end - p < 4) fail("truncated fixed32");
+    uint32_t v;
+    std::memcpy(&v, p, 4);
+    p += 4;
+    return v;
+  }
+  void skip(uint32_t wire) {
+    switch (wire) {
+      case 0: varint(); break;
+      case 1: if (end - p < 8) fail("truncated fixed64"); p += 8; break;
+      case 2: bytes(); break;
+      case 5: fixed32(); break;
+      default: fail("unsupported wire type " + std::to_string(wire));
+    }
+  }
+  // Next field: returns false at the end; number and wire type out.
+  bool next(uint32_t& field, uint32_t& wire) {
+    if (done()) return false;
+    uint64_t key = varint();
+    field = uint32_t(key >> 3);
+    wire = uint32_t(key & 7);
+    if (field == 0 || (key >> 3) > 0x1FFFFFFF) fail("invalid field number");
+    return true;
+  }
+  std::string str() {
+    Reader r = bytes();
+    return std::string(reinterpret_cast<const char*>(r.p), size_t(r.end - r.p));
+  }
+};
+
+void expect(uint32_t wire, uint32_t want, const char* what) {
+  if (wire != want) Reader::fail(std::string("field ") + what + " has the wrong wire type");
+}
+
+// ---------------------------------------------------------------- the ONNX messages we read
+
+struct Tensor {
+  std::string name;
+  std::vector<int64_t> dims;
+  int32_t data_type = 0;
+  std::vector<float> data;
+  bool external = false;
+};
+
+struct Attribute {
+  std::string name;
+  int64_t i = 0;
+  float f = 0.f;
+  bool has_i = false, has_f = false, other = false;
+};
+
+struct Node {
+  std::vector<std::string> inputs, outputs;
+  std::string op, domain, name;
+  std::vector<Attribute> attrs;
+};
+
+struct Graph {
+  std::vector<Node> nodes;
+  std::vector<Tensor> inits;
+  std::vector<std::string> inputs, outputs;
+  bool sparse = false;
+};
+
+void read_packed_or_single_int64(Reader& r, uint32_t wire, std::vector<int64_t>& out) {
+  if (wire == 0) { out.push_back(int64_t(r.varint())); return; }
+  expect(wire, 2, "dims");
+  Reader pr = r.bytes();
+  while (!pr.done()) out.push_back(int64_t(pr.varint()));
+}
+
+Tensor read_tensor(Reader r) {
+  Tensor t;
+  std::vector<uint8_t> raw;
+  bool has_raw = false;
+  uint32_t f, w;
+  while (r.next(f, w)) {
+    switch (f) {
+      case 1: read_packed_or_single_int64(r, w, t.dims); break;
+      case 2: expect(w, 0, "data_type"); t.data_type = int32_t(r.varint()); break;
+      case 4:  // float_data, packed or not
+        if (w == 5) { uint32_t u = r.fixed32(); float v; std::memcpy(&v, &u, 4); t.data.push_back(v); }
+        else {
+          expect(w, 2, "float_data");
+          Reader pr = r.bytes();
+          if ((pr.end - pr.p) % 4) Reader::fail("float_data length is not a multiple of 4");
+          while (!pr.done()) { uint32_t u = pr.fixed32(); float v; std::memcpy(&v, &u, 4); t.data.push_back(v); }
+        }
+        break;
+      case 8: expect(w, 2, "tensor name"); t.name = r.str(); break;
+      case 9: { expect(w, 2, "raw_data"); Reader b = r.bytes(); raw.assign(b.p, b.end); has_raw = true; break; }
+      case 13: t.external = true; r.skip(w); break;
+      case 14: expect(w, 0, "data_location"); if (r.varint() != 0) t.external = true; break;
+      default: r.skip(w);
+    }
+  }
+  if (t.external) throw ModelError("initializer '" + t.name + "' uses external data; export with all weights inline");
+  if (t.data_type != 1) throw ModelError("initializer '" + t.name + "' is not float32 (data_type " + std::to_string(t.data_type) + ")");
+  uint64_t count = 1;
+  for (int64_t d : t.dims) {
+    if (d < 0 || d > (int64_t(1) << 31)) Reader::fail("initializer '" + t.name + "' has an invalid dimension");
+    count *= uint64_t(d);
+    if (count > (uint64_t(1) << 31)) Reader::fail("initializer '" + t.name + "' is too large");
+  }
+  if (has_raw) {
+    if (!t.data.empty()) Reader::fail("initializer '" + t.name + "' has both raw and float data");
+    if (raw.size() != count * 4) Reader::fail("initializer '" + t.name + "' raw_data size does not match its shape");
+    t.data.resize(count);
+    if (count) std::memcpy(t.data.data(), raw.data(), raw.size());  // little-endian, as ONNX specifies
+  } else if (t.data.size() != count) {
+    Reader::fail("initializer '" + t.name + "' has " + std::to_string(t.data.size()) + " values, shape needs " + std::to_string(count));
+  }
+  return t;
+}
+
+Attribute read_attribute(Reader r) {
+  Attribute a;
+  uint32_t f, w;
+  while (r.next(f, w)) {
+    switch (f) {
+      case 1: expect(w, 2, "attribute name"); a.name = r.str(); break;
+      case 2: expect(w, 5, "attribute f"); { uint32_t u = r.fixed32(); std::memcpy(&a.f, &u, 4); a.has_f = true; } break;
+      case 3: expect(w, 0, "attribute i"); a.i = int64_t(r.varint()); a.has_i = true; break;
+      case 20: r.skip(w); break;  // type
+      default: a.other = true; r.skip(w);  // strings, tensors, graphs, lists: no supported op needs them
+    }
+  }
+  return a;
+}
+
+Node read_node(Reader r) {
+  Node n;
+  uint32_t f, w;
+  while (r.next(f, w)) {
+    switch (f) {
+      case 1: expect(w, 2, "node input"); n.inputs.push_back(r.str()); break;
+      case 2: expect(w, 2, "node output"); n.outputs.push_back(r.str()); break;
+      case 3: expect(w, 2, "node name"); n.name = r.str(); break;
+      case 4: expect(w, 2, "op_type"); n.op = r.str(); break;
+      case 5: expect(w, 2, "attribute"); n.attrs.push_back(read_attribute(r.bytes())); break;
+      case 7: expect(w, 2, "node domain"); n.domain = r.str(); break;
+      default: r.skip(w);
+    }
+  }
+  return n;
+}
+
+std::string value_info_name(Reader r) {
+  std::string name;
+  uint32_t f, w;
+  while (r.next(f, w)) {
+    if (f == 1) { expect(w, 2, "value name"); name = r.str(); }
+    else r.skip(w);
+  }
+  return name;
+}
+
+Graph read_graph(Reader r) {
+  Graph g;
+  uint32_t f, w;
+  while (r.next(f, w)) {
+    switch (f) {
+      case 1: expect(w, 2, "node"); g.nodes.push_back(read_node(r.bytes())); break;
+      case 5: expect(w, 2, "initializer"); g.inits.push_back(read_tensor(r.bytes())); break;
+      case 11: expect(w, 2, "graph input"); g.inputs.push_back(value_info_name(r.bytes())); break;
+      case 12: expect(w, 2, "graph output"); g.outputs.push_back(value_info_name(r.bytes())); break;
+      case 15: g.sparse = true; r.skip(w); break;
+      default: r.skip(w);
+    }
+  }
+  return g;
+}
+
+// ---------------------------------------------------------------- graph -> dense layers
+
+const Attribute* attr(const Node& n, const char* name) {
+  for (const auto& a : n.attrs)
+    if (a.name == name) return &a;
+  return nullptr;
+}
+
+// Each value of the graph is the input, or a chain of layers applied to another value.
+struct Value {
+  std::string parent;  // empty for the graph input
+  std::vector<Dense> layers;
+};
+
+class Compiler {
+ public:
+  explicit Compiler(const Graph& g) : g_(g) {
+    for (const auto& t : g.inits) {
+      if (inits_.count(t.name)) throw ModelError("initializer '" + t.name + "' is defined twice");
+      inits_[t.name] = &t;
+    }
+  }
+
+  Model compile() {
+    if (g_.sparse) throw ModelError("sparse initializers are not supported");
+    std::vector<std::string> real_inputs;
+    for (const auto& in : g_.inputs)
+      if (!inits_.count(in)) real_inputs.push_back(in);
+    if (real_inputs.size() != 1) throw ModelError("the model must have exactly one input, it has " + std::to_string(real_inputs.size()));
+    values_[real_inputs[0]] = Value{};
+    input_ = real_inputs[0];
+    for (const auto& n : g_.nodes) node(n);
+    if (g_.outputs.empty() || g_.outputs.size() > 2)
+      throw ModelError("the model must have one output (mean) or two (mean, log_std), it has " + std::to_string(g_.outputs.size()));
+    Model m;
+    auto mean = chain(g_.outputs[0]);
+    if (g_.outputs.size() == 1) {
+      m.mean = std::move(mean);
+    } else {
+      auto ls = chain(g_.outputs[1]);
+      size_t k = 0;  // shared prefix: the trunk (both heads start from the same value)
+      while (k < mean.size() && k < ls.size() && prefix_[0][k] == prefix_[1][k]) ++k;
+      m.trunk.assign(mean.begin(), mean.begin() + long(k));
+      m.mean.assign(mean.begin() + long(k), mean.end());
+      m.log_std.assign(ls.begin() + long(k), ls.end());
+      if (m.mean.empty() || m.log_std.empty()) throw ModelError("the two outputs must be different heads");
+    }
+    return m;
+  }
+
+ private:
+  const Graph& g_;
+  std::map<std::string, const Tensor*> inits_;
+  std::map<std::string, Value> values_;
+  std::string input_;
+  std::vector<std::vector<const Dense*>> prefix_;
+
+  const Value& value(const std::string& name, const Node& n) {
+    auto it = values_.find(name);
+    if (it == values_.end()) throw ModelError(n.op + " node '" + n.name + "' reads '" + name + "', which no earlier node produces");
+    return it->second;
+  }
+  const Tensor& init(const std::string& name, const Node& n) {
+    auto it = inits_.find(name);
+    if (it == inits_.end()) throw ModelError(n.op + " node '" + n.name + "': '" + name + "' must be a constant initializer");
+    return *it->second;
+  }
+  static void check_attrs(const Node& n, std::set<std::string> allowed) {
+    for (const auto& a : n.attrs)
+      if (!allowed.count(a.name) || a.other)
+        throw ModelError(n.op + " node '" + n.name + "': attribute '" + a.name + "' is not supported");
+  }
+  void define(const Node& n, Value v) {
+    if (n.outputs.size() != 1 || n.outputs[0].empty()) throw ModelError(n.op + " node '" + n.name + "' must have exactly one output");
+    if (values_.count(n.outputs[0]) || inits_.count(n.outputs[0])) throw ModelError("value '" + n.outputs[0] + "' is defined twice");
+    values_[n.outputs[0]] = std::move(v);
+  }
+  // A new value applying `d` to `in`: extend the chain when `in` is a fresh value.
+  Value apply(const std::string& in, Dense d) {
+    Value v{in, {}};
+    v.layers.push_back(std::move(d));
+    return v;
+  }
+
+  void node(const Node& n) {
+    if (!n.domain.empty() && n.domain != "ai.onnx")
+      throw ModelError("op '" + n.op + "' is from the foreign domain '" + n.domain + "'");
+    if (n.op == "Gemm") gemm(n);
+    else if (n.op == "MatMul") matmul(n);
+    else if (n.op == "Add") add(n);
+    else if (n.op == "Tanh" || n.op == "Relu" || n.op == "Sigmoid") activation(n);
+    else if (n.op == "Clip") clip(n);
+    else if (n.op == "Identity") { one_input(n); check_attrs(n, {}); define(n, Value{n.inputs[0], {}}); value(n.inputs[0], n); }
+    else throw ModelError("op '" + n.op + "' (node '" + n.name + "') is not supported; the runtime runs Gemm, MatMul+Add, Tanh, Relu, Sigmoid, Clip");
+  }
+  static void one_input(const Node& n) {
+    if (n.inputs.size() != 1) throw ModelError(n.op + " node '" + n.name + "' must have one input");
+  }
+  static Eigen::MatrixXf weight(const Tensor& t, bool trans, const Node& n) {
+    if (t.dims.size() != 2) throw ModelError(n.op + " node '" + n.name + "': weight '" + t.name + "' is not a matrix");
+    long rows = long(t.dims[0]), cols = long(t.dims[1]);
+    if (rows < 1 || cols < 1) throw ModelError(n.op + " node '" + n.name + "': weight '" + t.name + "' is empty");
+    // ONNX stores row-major (rows x cols); we keep W as out x in.
+    Eigen::Map<const Eigen::Matrix<float, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>> m(t.data.data(), rows, cols);
+    if (trans) return m;  // B is (out x in) already
+    return m.transpose();
+  }
+  static Eigen::VectorXf bias(const Tensor& t, long out, const Node& n) {
+    size_t count = t.data.size();
+    if (!(t.dims.size() == 1 || (t.dims.size() == 2 && t.dims[0] == 1)) || (long(count) != out && count != 1))
+      throw ModelError(n.op + " node '" + n.name + "': bias '" + t.name + "' does not match the layer's " + std::to_string(out) + " outputs");
+    Eigen::VectorXf b(out);
+    for (long i = 0; i < out; ++i) b[i] = t.data[count == 1 ? 0 : size_t(i)];
+    return b;
+  }
+  void gemm(const Node& n) {
+    if (n.inputs.size() < 2 || n.inputs.size() > 3) throw ModelError("Gemm node '" + n.name + "' needs 2 or 3 inputs");
+    check_attrs(n, {"alpha", "beta", "transA", "transB"});
+    auto ai = [&](const char* k, int64_t d) { const Attribute* a = attr(n, k); return a && a->has_i ? a->i : d; };
+    auto af = [&](const char* k, float d) { const Attribute* a = attr(n, k); return a && a->has_f ? a->f : d; };
+    if (ai("transA", 0) != 0) throw ModelError("Gemm node '" + n.name + "': transA is not supported");
+    value(n.inputs[0], n);
+    Dense d;
+    d.W = weight(init(n.inputs[1], n), ai("transB", 0) != 0, n) * af("alpha", 1.f);
+    d.b = Eigen::VectorXf::Zero(d.W.rows());
+    if (n.inputs.size() == 3 && !n.inputs[2].empty()) d.b = bias(init(n.inputs[2], n), d.W.rows(), n) * af("beta", 1.f);
+    define(n, apply(n.inputs[0], std::move(d)));
+  }
+  void matmul(const Node& n) {
+    if (n.inputs.size() != 2) throw ModelError("MatMul node '" + n.name + "' needs 2 inputs");
+    check_attrs(n, {});
+    value(n.inputs[0], n);
+    Dense d;
+    d.W = weight(init(n.inputs[1], n), false, n);
+    d.b = Eigen::VectorXf::Zero(d.W.rows());
+    define(n, apply(n.inputs[0], std::move(d)));
+  }
+  void add(const Node& n) {
+    if (n.inputs.size() != 2) throw ModelError("Add node '" + n.name + "' needs 2 inputs");
+    check_attrs(n, {});
+    bool first_const = inits_.count(n.inputs[0]) > 0;
+    const std::string& x = n.inputs[first_const ? 1 : 0];
+    const Value& v = value(x, n);
+    // Only as the bias of a MatMul/Gemm whose result nothing else reads.
+    if (v.layers.size() != 1 || v.layers[0].act != Act::None)
+      throw ModelError("Add node '" + n.name + "' must add a constant bias to a MatMul or Gemm output");
+    Value out = v;
+    out.layers[0].b += bias(init(n.inputs[first_const ? 0 : 1], n), out.layers[0].W.rows(), n);
+    define(n, std::move(out));
+  }
+  void set_act(const Node& n, Act act, float lo = 0.f, float hi = 0.f) {
+    one_input(n);
+    const Value& v = value(n.inputs[0], n);
+    Dense d;
+    d.act = act;
+    d.clip_lo = lo;
+    d.clip_hi = hi;
+    Value out;
+    if (v.layers.size() == 1 && v.layers[0].act == Act::None && v.layers[0].W.size()) {
+      out = v;  // fuse into the preceding dense layer
+      out.layers[0].act = act;
+      out.layers[0].clip_lo = lo;
+      out.layers[0].clip_hi = hi;
+    } else {
+      out = apply(n.inputs[0], std::move(d));  // activation alone: W stays empty
+    }
+    define(n, std::move(out));
+  }
+  void activation(const Node& n) {
+    check_attrs(n, {});
+    set_act(n, n.op == "Tanh" ? Act::Tanh : n.op == "Relu" ? Act::Relu : Act::Sigmoid);
+  }
+  float scalar(const std::string& name, const Node& n) {
+    const Tensor& t = init(name, n);
+    if (t.data.size() != 1) throw ModelError("Clip node '" + n.name + "': bound '" + name + "' is not a scalar");
+    return t.data[0];
+  }
+  void clip(const Node& n) {
+    if (n.inputs.empty() || n.inputs.size() > 3) throw ModelError("Clip node '" + n.name + "' needs 1 to 3 inputs");
+    check_attrs(n, {});
+    float lo = -INFINITY, hi = INFINITY;
+    if (n.inputs.size() > 1 && !n.inputs[1].empty()) lo = scalar(n.inputs[1], n);
+    if (n.inputs.size() > 2 && !n.inputs[2].empty()) hi = scalar(n.inputs[2], n);
+    Node single = n;
+    single.inputs.resize(1);
+    set_act(single, Act::Clip, lo, hi);
+  }
+
+  // Layers from the input to `name`, remembering each layer's identity to find the shared trunk.
+  std::vector<Dense> chain(const std::string& name) {
+    std::vector<std::pair<const Value*, size_t>> order;
+    std::string cur = name;
+    size_t guard = 0;
+    while (cur != input_) {
+      auto it = values_.find(cur);
+      if (it == values_.end()) throw ModelError("output '" + name + "' is not computed by the graph");
+      order.push_back({&it->second, 0});
+      cur = it->second.parent;
+      if (++guard > values_.size()) throw ModelError("the graph has a cycle");
+    }
+    std::vector<Dense> out;
+    std::vector<const Dense*> ids;
+    for (auto r = order.rbegin(); r != order.rend(); ++r)
+      for (const auto& d : r->first->layers) { out.push_back(d); ids.push_back(&d); }
+    prefix_.push_back(std::move(ids));
+    return out;
+  }
+};
+
+// ---------------------------------------------------------------- metadata
+
+std::vector<ChannelInfo> channels(const Json& list) {
+  std::vector<ChannelInfo> out;
+  for (const auto& c : list.as_array()) {
+    auto range = c.find("range") ? c.at("range").as_numbers() : std::vector<double>{-INFINITY, INFINITY};
+    if (range.size() != 2) throw ModelError("channel range must be [low, high]");
+    const Json* unit = c.find("unit");
+    out.push_back({c.at("name").as_string(), unit ? unit->as_string() : "", range[0], range[1]});
+  }
+  return out;
+}
+
+void read_metadata(Model& m) {
+  std::map<std::string, Json> md;
+  for (const auto& kv : m.metadata) {
+    if (kv.first.rfind("envi.", 0) != 0) continue;
+    try {
+      md[kv.first] = Json::parse(kv.second);
+    } catch (const std::exception& e) {
+      throw ModelError("metadata '" + kv.first + "': " + e.what());
+    }
+  }
+  auto get = [&](const char* k) -> const Json& {
+    auto it = md.find(k);
+    if (it == md.end()) throw ModelError(std::string("not an envi model: metadata '") + k + "' is missing (export with envi-export)");
+    return it->second;
+  };
+  try {
+    if (get("envi.format").as_string() != "envi-onnx") throw ModelError("metadata 'envi.format' is not 'envi-onnx'");
+    const Json& schema = get("envi.schema");
+    m.states = channels(schema.at("states"));
+    m.actions = channels(schema.at("actions"));
+    const Json& norm = get("envi.normaliser");
+    m.norm_low = norm.at("low").as_numbers();
+    m.norm_high = norm.at("high").as_numbers();
+    double h = get("envi.history").as_number();
+    if (!(h >= 1 && h <= 100000)) throw ModelError("metadata 'envi.history' is out of range");
+    m.history = int(h);
+    const Json& period = get("envi.period_ms");
+    m.period_ms = period.is_null() ? 0.0 : period.as_number();
+    const Json& post = get("envi.post");
+    m.clamp = post.at("clamp").type == Json::Type::Bool && post.at("clamp").boolean;
+    for (const auto& lim : post.at("limits").as_array()) {
+      auto lh = lim.as_numbers();
+      if (lh.size() != 2) throw ModelError("metadata 'envi.post' limits must be [low, high] pairs");
+      m.limit_low.push_back(lh[0]);
+      m.limit_high.push_back(lh[1]);
+    }
+    if (!post.at("round_to").is_null()) m.round_to = post.at("round_to").as_numbers();
+    if (const Json* alg = md.count("envi.algorithm") ? &md["envi.algorithm"] : nullptr)
+      if (alg->type == Json::Type::String) m.algorithm = alg->string;
+  } catch (const ModelError&) {
+    throw;
+  } catch (const std::exception& e) {
+    throw ModelError(std::string("envi metadata: ") + e.what());
+  }
+  size_t ns = m.states.size(), nc = ns + m.actions.size();
+  if (ns == 0) throw ModelError("envi metadata: the schema has no states");
+  if (m.norm_low.size() != nc || m.norm_high.size() != nc) throw ModelError("envi metadata: normaliser does not match the schema");
+  for (size_t i = 0; i < nc; ++i)
+    if (!(std::isfinite(m.norm_low[i]) && std::isfinite(m.norm_high[i]) && m.norm_high[i] > m.norm_low[i]))
+      throw ModelError("envi metadata: normaliser range of channel " + std::to_string(i) + " is empty or not finite");
+  if (m.limit_low.size() != ns) throw ModelError("envi metadata: post-processing limits do not match the states");
+  if (!m.round_to.empty() && m.round_to.size() != ns) throw ModelError("envi metadata: round_to does not match the states");
+  for (double r : m.round_to)
+    if (!(r > 0 && std::isfinite(r))) throw ModelError("envi metadata: round_to must be positive");
+}
+
+void check_shapes(const Model& m) {
+  long width = m.in_features();
+  auto walk = [&](const std::vector<Dense>& layers, long w, const char* what) {
+    for (const auto& d : layers) {
+      if (d.W.size() == 0) continue;
+      if (d.W.cols() != w)
+        throw ModelError(std::string(what) + ": a layer expects " + std::to_string(d.W.cols()) + " inputs but gets " + std::to_string(w));
+      w = d.W.rows();
+    }
+    return w;
+  };
+  long t = walk(m.trunk, width, "trunk");
+  if (walk(m.mean, t, "mean head") != m.n_state()) throw ModelError("the mean output does not have one value per state");
+  if (m.gaussian() && walk(m.log_std, t, "log-std head") != m.n_state())
+    throw ModelError("the log-std output does not have one value per state");
+  if (m.trunk.empty() && m.mean.empty()) throw ModelError("the model has no layers");
+}
+
+}  // namespace
+
+int Model::max_width() const {
+  long w = in_features();
+  for (const auto* layers : {&trunk, &mean, &log_std})
+    for (const auto& d : *layers) w = std::max<long>(w, d.W.rows());
+  return int(w);
+}
+
+Model load_model(const uint8_t* data, size_t size) {
+  Reader r{data, data + size};
+  Graph graph;
+  bool has_graph = false;
+  int64_t opset = -1;
+  std::vector<std::pair<std::string, std::string>> metadata;
+  uint32_t f, w;
+  while (r.next(f, w)) {
+    switch (f) {
+      case 7: expect(w, 2, "graph"); graph = read_graph(r.bytes()); has_graph = true; break;
+      case 8: {  // opset_import
+        expect(w, 2, "opset_import");
+        Reader o = r.bytes();
+        std::string domain;
+        int64_t version = 0;
+        uint32_t of, ow;
+        while (o.next(of, ow)) {
+          if (of == 1) { expect(ow, 2, "opset domain"); domain = o.str(); }
+          else if (of == 2) { expect(ow, 0, "opset version"); version = int64_t(o.varint()); }
+          else o.skip(ow);
+        }
+        if (!domain.empty() && domain != "ai.onnx") throw ModelError("the model imports the foreign operator set '" + domain + "'");
+        opset = version;
+        break;
+      }
+      case 14: {  // metadata_props
+        expect(w, 2, "metadata_props");
+        Reader e = r.bytes();
+        std::string k, v;
+        uint32_t ef, ew;
+        while (e.next(ef, ew)) {
+          if (ef == 1) { expect(ew, 2, "metadata key"); k = e.str(); }
+          else if (ef == 2) { expect(ew, 2, "metadata value"); v = e.str(); }
+          else e.skip(ew);
+        }
+        metadata.emplace_back(std::move(k), std::move(v));
+        break;
+      }
+      case 25: throw ModelError("the model defines local functions, which are not supported");
+      default: r.skip(w);
+    }
+  }
+  if (!has_graph) throw ModelError("not an ONNX model: no graph");
+  if (opset < 7 || opset > 21) throw ModelError("unsupported or missing default opset version " + std::to_string(opset));
+  Model m = Compiler(graph).compile();
+  m.metadata = std::move(metadata);
+  read_metadata(m);
+  check_shapes(m);
+  return m;
+}
+
+Model load_model_file(const std::string& path) {
+  std::ifstream in(path, std::ios::binary);
+  if (!in) throw ModelError(path + ": cannot open");
+  std::vector<uint8_t> bytes((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  try {
+    return load_model(bytes.data(), bytes.size());
+  } catch (const ModelError& e) {
+    throw ModelError(path + ": " + e.what());
+  }
+}
+
+}  // namespace envi

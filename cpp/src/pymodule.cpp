@@ -1,0 +1,158 @@
+// envi_py._native: the engine for Python. Arrays come in and go out without copies (float64,
+// C order; anything else is converted once), and the GIL is released while the engine runs.
+#include <pybind11/numpy.h>
+#include <pybind11/pybind11.h>
+#include <pybind11/stl.h>
+
+#include <cstring>
+#include <mutex>
+
+#include "envi/controller.hpp"
+#include "envi/engine.hpp"
+#include "envi/metrics.hpp"
+#include "envi/model.hpp"
+
+namespace py = pybind11;
+using namespace envi;
+
+namespace {
+
+using ArrayD = py::array_t<double, py::array::c_style | py::array::forcecast>;
+
+// Writes every row straight into the (runs, history + steps, channels) output array.
+class TraceSink : public Sink {
+ public:
+  TraceSink(double* out, long length, int channels, long first_run, int threads)
+      : out_(out), length_(length), channels_(channels), first_run_(first_run), blocks_(size_t(threads)) {}
+  void begin(int thread, long first, int count) override { blocks_[size_t(thread)] = {first - first_run_, count}; }
+  void rows(int thread, long t, const double* values) override {
+    auto [first, count] = blocks_[size_t(thread)];
+    for (int b = 0; b < count; ++b)
+      std::memcpy(out_ + ((first + b) * length_ + t) * channels_, values + size_t(b) * size_t(channels_),
+                  sizeof(double) * size_t(channels_));
+  }
+  void end(int) override {}
+
+ private:
+  double* out_;
+  long length_;
+  int channels_;
+  long first_run_;
+  std::vector<std::pair<long, int>> blocks_;
+};
+
+Job make_job(const Model& m, const ArrayD& init, long steps, long runs, uint64_t seed, int threads, int block) {
+  if (init.ndim() != 3 || init.shape(1) != m.history || init.shape(2) != m.channels())
+    throw std::invalid_argument("initial windows must be (K, " + std::to_string(m.history) + ", " +
+                                std::to_string(m.channels()) + ") for this model");
+  if (steps < 0) throw std::invalid_argument("steps must not be negative");
+  Job job;
+  job.init = init.data();
+  job.windows = long(init.shape(0));
+  job.runs = runs;
+  job.steps = steps;
+  job.seed = seed;
+  job.threads = threads;
+  job.block = block;
+  return job;
+}
+
+py::array_t<double> rollout(const Model& m, const std::string& controller, const ArrayD& init, long steps, long runs,
+                            uint64_t seed, int threads, int block) {
+  ControllerSpec ctrl = ControllerSpec::parse(controller);
+  Job job = make_job(m, init, steps, runs, seed, threads, block);
+  long total = job.windows * runs, length = m.history + steps;
+  py::array_t<double> out({py::ssize_t(total), py::ssize_t(length), py::ssize_t(m.channels())});
+  if (total == 0) return out;
+  double* dst = out.mutable_data();
+  {
+    py::gil_scoped_release nogil;
+    TraceSink sink(dst, length, m.channels(), 0, plan(job).threads);
+    simulate(m, ctrl, job, sink);
+  }
+  return out;
+}
+
+py::array_t<double> rollout_metrics(const Model& m, const std::string& controller, const ArrayD& init, long steps,
+                                    long runs, uint64_t seed, int threads, int block, double centre, double band,
+                                    long skip, int channel) {
+  ControllerSpec ctrl = ControllerSpec::parse(controller);
+  Job job = make_job(m, init, steps, runs, seed, threads, block);
+  MetricConfig cfg{centre, band, skip, channel};
+  if (m.history + steps - skip <= 0) throw std::invalid_argument("nothing left to score after skipping " + std::to_string(skip) + " rows");
+  long total = job.windows * runs;
+  py::array_t<double> out({py::ssize_t(total), py::ssize_t(8)});
+  double* dst = out.mutable_data();
+  {
+    py::gil_scoped_release nogil;
+    Plan p = plan(job);
+    auto emit = [](void* ctx, long first, int count, const double* metrics) {
+      std::memcpy(static_cast<double*>(ctx) + first * 8, metrics, sizeof(double) * 8 * size_t(count));
+    };
+    MetricsSink sink(cfg, m.channels(), p.threads, p.block, emit, dst);
+    simulate(m, ctrl, job, sink);
+  }
+  return out;
+}
+
+}  // namespace
+
+#ifndef ENVI_MODULE_NAME
+#define ENVI_MODULE_NAME _native
+#endif
+PYBIND11_MODULE(ENVI_MODULE_NAME, mod) {
+  mod.doc() = "envi native runtime: ONNX environment models in closed loop with controllers";
+  py::register_exception<ModelError>(mod, "ModelError", PyExc_ValueError);
+
+  py::class_<Model>(mod, "Model")
+      .def(py::init([](py::bytes data) {
+             std::string s = data;  // one copy of the file; the weights are compiled out of it
+             py::gil_scoped_release nogil;
+             return load_model(reinterpret_cast<const uint8_t*>(s.data()), s.size());
+           }),
+           py::arg("onnx_bytes"))
+      .def_readonly("history", &Model::history)
+      .def_property_readonly("n_state", &Model::n_state)
+      .def_property_readonly("n_action", &Model::n_action)
+      .def_property_readonly("gaussian", &Model::gaussian)
+      .def_readonly("metadata", &Model::metadata)
+      .def_property_readonly("layers", [](const Model& m) {
+        py::list out;
+        for (const auto* part : {&m.trunk, &m.mean, &m.log_std})
+          for (const Dense& d : *part) out.append(py::make_tuple(d.W.rows(), d.W.cols(), int(d.act)));
+        return out;
+      });
+
+  mod.def("rollout", &rollout, py::arg("model"), py::arg("controller"), py::arg("init"), py::arg("steps"),
+          py::arg("runs") = 1, py::arg("seed") = 0, py::arg("threads") = 0, py::arg("block") = 256,
+          "Closed-loop runs: init (K, l, C) physical -> (K*runs, l+steps, C).");
+  mod.def("rollout_metrics", &rollout_metrics, py::arg("model"), py::arg("controller"), py::arg("init"),
+          py::arg("steps"), py::arg("runs") = 1, py::arg("seed") = 0, py::arg("threads") = 0, py::arg("block") = 256,
+          py::arg("centre") = 40.0, py::arg("band") = 10.0, py::arg("skip") = 10, py::arg("channel") = 0,
+          "Closed-loop runs scored on the fly: (K*runs, 8) driving metrics, no traces kept.");
+  mod.def("controller_sequence",
+          [](const std::string& spec, const ArrayD& states, int n_action) {
+            // states (T, N, ns): T successive calls on N runs after one reset -> actions (T, N, n_action)
+            if (states.ndim() != 3) throw std::invalid_argument("states must be (T, N, n_state)");
+            ControllerSpec c = ControllerSpec::parse(spec);
+            long T = long(states.shape(0)), N = long(states.shape(1));
+            int ns = int(states.shape(2));
+            py::array_t<double> out({py::ssize_t(T), py::ssize_t(N), py::ssize_t(n_action)});
+            std::vector<double> memory(size_t(N) * ControllerSpec::kStateSize, 0.0);
+            for (long t = 0; t < T; ++t)
+              c.act(states.data() + t * N * ns, ns, out.mutable_data() + t * N * n_action, n_action, int(N), memory.data(), t == 0);
+            return out;
+          },
+          py::arg("spec"), py::arg("states"), py::arg("n_action") = 1);
+  mod.def("driving_metrics",
+          [](const ArrayD& traces, double centre, double band, long skip) {
+            if (traces.ndim() != 2) throw std::invalid_argument("traces must be (runs, T)");
+            py::array_t<double> out({traces.shape(0), py::ssize_t(8)});
+            driving_metrics(traces.data(), long(traces.shape(0)), long(traces.shape(1)), MetricConfig{centre, band, skip, 0},
+                            out.mutable_data());
+            return out;
+          },
+          py::arg("traces"), py::arg("centre") = 40.0, py::arg("band") = 10.0, py::arg("skip") = 10);
+  mod.def("simd", [] { return std::string(Eigen::SimdInstructionSetsInUse()); },
+          "Vector instruction sets this build of the engine uses.");
+}

@@ -1,0 +1,175 @@
+"""``envi-export MODEL -o model.onnx``: a checkpoint as one self-describing ONNX file.
+
+The graph is built directly with ``onnx.helper`` from the checkpoint's weights rather than traced:
+the model is a plain chain of ``Gemm`` and ``Tanh`` (the Gaussian head adds a second ``Gemm`` and
+a ``Clip`` for the log-std), which is exactly what the native runtime's loader accepts, and tracing
+would pull in torch's dynamo exporter and onnxscript for no gain. Everything a runtime needs to
+close the loop without the checkpoint (schema, normalisation, history, post-processing) and
+everything needed to trace the model back to its data goes into ``metadata_props`` as JSON.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import onnx
+from onnx import TensorProto, helper, numpy_helper
+
+from . import __version__
+from .model import LOG_STD_MAX, LOG_STD_MIN, Checkpoint
+
+OPSET = 17
+FORMAT = "envi-onnx"
+FORMAT_VERSION = 1
+INPUT = "window"
+PARITY_TOL = 1e-5
+
+
+def post_processing(ckpt: Checkpoint) -> dict[str, Any]:
+    """The simulator's output post-processing with the limits resolved, as ``simulate.post_process`` does."""
+    cfg = ckpt.config
+    limits = cfg.limits or [(c.low, c.high) for c in ckpt.schema.states]
+    return {"clamp": bool(cfg.clamp), "limits": [[float(lo), float(hi)] for lo, hi in limits],
+            "round_to": None if cfg.round_to is None else list(cfg.round_to)}
+
+
+def metadata(ckpt: Checkpoint) -> dict[str, str]:
+    """``metadata_props``: every value is JSON so any runtime parses it the same way."""
+    cfg, rec = ckpt.config, ckpt.record
+    items: dict[str, Any] = {
+        "envi.format": FORMAT,
+        "envi.format_version": FORMAT_VERSION,
+        "envi.version": __version__,
+        "envi.schema": ckpt.schema.to_json(),
+        "envi.normaliser": ckpt.norm.to_json(),
+        "envi.history": cfg.history,
+        "envi.period_ms": rec.period_ms,
+        "envi.head": cfg.head,
+        "envi.log_std_range": [LOG_STD_MIN, LOG_STD_MAX],
+        "envi.post": post_processing(ckpt),
+        "envi.config": asdict(cfg),
+        "envi.algorithm": rec.algorithm,
+        "envi.seed": rec.seed,
+        "envi.hyper": rec.hyper,
+        "envi.data": rec.data,
+        "envi.validation": rec.validation,
+        "envi.controllers": rec.controllers,
+        "envi.selection": rec.selection,
+        "envi.versions": rec.versions,
+    }
+    return {k: json.dumps(v, allow_nan=True) for k, v in items.items()}
+
+
+def _dense(nodes: list, inits: list, x: str, weight: np.ndarray, bias: np.ndarray, name: str) -> str:
+    """``Gemm(x, W, b, transB=1)``: torch's Linear layout, no transpose copy of the weights."""
+    inits += [numpy_helper.from_array(np.ascontiguousarray(weight, dtype=np.float32), f"{name}.weight"),
+              numpy_helper.from_array(np.ascontiguousarray(bias, dtype=np.float32), f"{name}.bias")]
+    nodes.append(helper.make_node("Gemm", [x, f"{name}.weight", f"{name}.bias"], [f"{name}.out"],
+                                  name=f"{name}.gemm", transB=1))
+    return f"{name}.out"
+
+
+def to_onnx(ckpt: Checkpoint) -> onnx.ModelProto:
+    """The model as an opset-17 graph: ``window`` (N, l*C) normalised -> ``mean`` [and ``log_std``] (N, |s|)."""
+    cfg = ckpt.config
+    if cfg.kind != "mlp":
+        raise ValueError(f"only MLP models can be exported, this one is {cfg.kind!r}")
+    if not cfg.plain:
+        raise ValueError("models with derived channels or a run context cannot be exported yet "
+                         "(the runtimes only feed the window)")
+    sd = {k: v.detach().cpu().numpy() for k, v in ckpt.model.state_dict().items()}
+    nodes: list = []
+    inits: list = []
+    h = INPUT
+    for i in range(len(cfg.hidden)):
+        h = _dense(nodes, inits, h, sd[f"body.{2 * i}.weight"], sd[f"body.{2 * i}.bias"], f"body{i}")
+        nodes.append(helper.make_node("Tanh", [h], [f"body{i}.tanh"], name=f"body{i}.act"))
+        h = f"body{i}.tanh"
+    m = _dense(nodes, inits, h, sd["mean.weight"], sd["mean.bias"], "mean_head")
+    nodes.append(helper.make_node("Tanh", [m], ["mean"], name="mean_head.act"))
+    outputs = [helper.make_tensor_value_info("mean", TensorProto.FLOAT, ["N", cfg.n_state])]
+    if cfg.head == "gaussian":
+        s = _dense(nodes, inits, h, sd["log_std.weight"], sd["log_std.bias"], "log_std_head")
+        inits += [numpy_helper.from_array(np.array(LOG_STD_MIN, np.float32), "log_std_min"),
+                  numpy_helper.from_array(np.array(LOG_STD_MAX, np.float32), "log_std_max")]
+        nodes.append(helper.make_node("Clip", [s, "log_std_min", "log_std_max"], ["log_std"], name="log_std_head.clip"))
+        outputs.append(helper.make_tensor_value_info("log_std", TensorProto.FLOAT, ["N", cfg.n_state]))
+    graph = helper.make_graph(nodes, "envi_env_model",
+                              [helper.make_tensor_value_info(INPUT, TensorProto.FLOAT, ["N", cfg.in_features])],
+                              outputs, inits)
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", OPSET)],
+                              producer_name="envi", producer_version=__version__)
+    model.ir_version = 8  # the newest IR that opset 17 runtimes of 2022 onwards all read
+    helper.set_model_props(model, metadata(ckpt))
+    onnx.checker.check_model(model, full_check=True)
+    return model
+
+
+def parity_inputs(in_features: int, n: int = 4096, seed: int = 0) -> np.ndarray:
+    """Seeded windows: in-range, slightly beyond, and large (saturating tanh) values."""
+    rng = np.random.default_rng(seed)
+    parts = [rng.uniform(-1, 1, (n // 2, in_features)), rng.normal(0, 2, (n // 4, in_features)),
+             rng.normal(0, 50, (n - n // 2 - n // 4, in_features))]
+    return np.concatenate(parts).astype(np.float32)
+
+
+def parity(ckpt: Checkpoint, model: onnx.ModelProto, n: int = 4096, seed: int = 0) -> float:
+    """Max abs difference between onnxruntime and the PyTorch model over every output."""
+    import onnxruntime as ort
+    import torch
+
+    x = parity_inputs(ckpt.config.in_features, n, seed)
+    sess = ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"])
+    got = sess.run(None, {INPUT: x})
+    with torch.no_grad():
+        want = [t for t in ckpt.model(torch.from_numpy(x)) if t is not None]
+    return max(float(np.max(np.abs(g - w.numpy()))) for g, w in zip(got, want))
+
+
+def export(ckpt: Checkpoint, path: str | Path, check: bool = True) -> Path:
+    """Write ``ckpt`` as ONNX; with ``check`` refuse a file whose onnxruntime output drifts from PyTorch."""
+    model = to_onnx(ckpt)
+    if check:
+        err = parity(ckpt, model)
+        if not err <= PARITY_TOL:
+            raise ValueError(f"onnxruntime differs from PyTorch by {err:.3g} (> {PARITY_TOL:g}); not written")
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name("." + path.name + ".tmp")
+    tmp.write_bytes(model.SerializeToString())
+    tmp.replace(path)
+    return path
+
+
+def read_metadata(path: str | Path) -> dict[str, Any]:
+    """The ``envi.*`` metadata of an exported file, JSON-decoded."""
+    model = onnx.load(str(path), load_external_data=False)
+    return {p.key: json.loads(p.value) for p in model.metadata_props if p.key.startswith("envi.")}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="envi-export", description=__doc__.splitlines()[0])
+    ap.add_argument("model", help="envi checkpoint (.pt)")
+    ap.add_argument("-o", "--output", required=True, help="ONNX file to write")
+    ap.add_argument("--no-check", action="store_true", help="skip the onnxruntime parity check")
+    args = ap.parse_args(argv)
+    try:
+        ckpt = Checkpoint.load(args.model)
+        path = export(ckpt, args.output, check=not args.no_check)
+    except ValueError as exc:
+        print(f"envi-export: {exc}", file=sys.stderr)
+        return 1
+    size = path.stat().st_size
+    print(f"wrote {path} ({size / 1024:.1f} KiB, opset {OPSET}, {ckpt.config.head} head"
+          + ("" if args.no_check else f", onnxruntime parity <= {PARITY_TOL:g}") + ")")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,127 @@
+"""The native engine (``cpp/``) behind the same call as :func:`envi_py.simulate.rollout`.
+
+On x86-64 the build carries the engine three times, compiled for the baseline instruction set,
+AVX2+FMA and AVX-512; the best one this CPU runs is imported (``ENVI_NATIVE_ISA=portable|avx2|
+avx512`` forces one). Each is a separate shared object, so Eigen compiled for different
+instruction sets never meets in one link.
+"""
+
+from __future__ import annotations
+
+import importlib
+import os
+from functools import lru_cache
+from pathlib import Path
+from types import ModuleType
+from typing import Any
+
+import numpy as np
+
+from .controllers import ControllerSpec
+from .metrics import MetricConfig
+from .model import Checkpoint
+
+#: variant -> CPU features it needs (numpy's names), best first
+_VARIANTS: dict[str, tuple[str, ...]] = {
+    "avx512": ("AVX512F", "AVX512VL", "AVX512DQ", "AVX512BW", "AVX2", "FMA3", "F16C"),
+    "avx2": ("AVX2", "FMA3", "F16C"),
+    "portable": (),
+}
+
+
+def _cpu_features() -> dict[str, bool]:
+    try:
+        from numpy._core._multiarray_umath import __cpu_features__  # numpy >= 2
+    except ImportError:  # pragma: no cover - numpy 1.x
+        from numpy.core._multiarray_umath import __cpu_features__
+    return dict(__cpu_features__)
+
+
+@lru_cache(maxsize=None)
+def _module() -> ModuleType | None:
+    forced = os.environ.get("ENVI_NATIVE_ISA")
+    feats = _cpu_features()
+    for name, needs in _VARIANTS.items():
+        if forced and name != forced:
+            continue
+        if not all(feats.get(f, False) for f in needs):
+            continue
+        try:
+            return importlib.import_module("envi_py._native" + ("" if name == "portable" else f"_{name}"))
+        except ImportError:
+            continue
+    return None
+
+
+def available() -> bool:
+    """True when the compiled engine can be imported (it is built by ``pip install``)."""
+    return _module() is not None
+
+
+def variant() -> str:
+    """Which build is in use and the vector instructions it was compiled with."""
+    mod = _module()
+    if mod is None:
+        return "unavailable"
+    return f"{mod.__name__.rsplit('.', 1)[-1]} ({mod.simd()})"
+
+
+def _native() -> ModuleType:
+    mod = _module()
+    if mod is None:
+        raise RuntimeError("the native engine is not built; run 'pip install -e .' (or ./dev.sh setup)")
+    return mod
+
+
+def onnx_bytes(model: str | os.PathLike | Checkpoint | bytes) -> bytes:
+    """An exported model's bytes: an ``.onnx`` file as is, a checkpoint exported on the fly."""
+    if isinstance(model, bytes):
+        return model
+    if not isinstance(model, Checkpoint):
+        path = Path(model)
+        if path.suffix == ".onnx":
+            try:
+                return path.read_bytes()
+            except OSError as exc:
+                raise ValueError(f"{path}: cannot read ({exc.strerror})") from None
+        model = Checkpoint.load(path)
+    from .export import to_onnx
+
+    return to_onnx(model).SerializeToString()
+
+
+def load(model: str | os.PathLike | Checkpoint | bytes) -> Any:
+    """The compiled model (``envi_py._native.Model``); ValueError on anything it cannot run."""
+    return _native().Model(onnx_bytes(model))
+
+
+def _compiled(model: Any) -> Any:
+    return model if type(model).__name__ == "Model" and hasattr(model, "history") else load(model)
+
+
+def _spec_json(controller: ControllerSpec) -> str:
+    import json
+
+    return json.dumps(controller.to_json())
+
+
+def rollout(model: str | os.PathLike | Checkpoint | bytes | Any, controller: ControllerSpec, init: np.ndarray,
+            steps: int, runs: int = 1, seed: int = 0, threads: int = 0) -> np.ndarray:
+    """Same contract as :func:`envi_py.simulate.rollout`: ``init`` (K, l, C) physical ->
+    (K*runs, l+steps, C), run ``k*runs + r`` from window k. Stochastic draws are keyed by
+    (seed, run, step), so the result does not depend on ``threads`` (0 = one per core)."""
+    init = np.ascontiguousarray(init, dtype=np.float64)
+    return _native().rollout(_compiled(model), _spec_json(controller), init, int(steps), int(runs), int(seed),
+                             int(threads))
+
+
+def rollout_metrics(model: str | os.PathLike | Checkpoint | bytes | Any, controller: ControllerSpec,
+                    init: np.ndarray, steps: int, runs: int = 1, seed: int = 0, threads: int = 0,
+                    metric: MetricConfig = MetricConfig()) -> np.ndarray:
+    """The eight driving metrics of every run, (K*runs, 8), scored while simulating: no traces kept."""
+    if metric.channel != 0:
+        raise ValueError("the native engine scores the first state channel")
+    init = np.ascontiguousarray(init, dtype=np.float64)
+    return _native().rollout_metrics(_compiled(model), _spec_json(controller), init, int(steps), int(runs),
+                                     int(seed), int(threads), centre=metric.centre, band=metric.band,
+                                     skip=metric.skip)
