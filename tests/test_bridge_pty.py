@@ -4,7 +4,6 @@ program) and envi-collect. Timing is only sanity-checked here; figures belong in
 from __future__ import annotations
 
 import json
-import os
 import select
 import signal
 import subprocess
@@ -50,9 +49,8 @@ class BrickSim:
 
 
 @pytest.fixture
-def sim(tmp_path: Path, request: pytest.FixtureRequest):
-    args = getattr(request, "param", ())
-    s = BrickSim(tmp_path, *args)
+def sim(tmp_path: Path):
+    s = BrickSim(tmp_path)
     yield s
     s.stop()
 

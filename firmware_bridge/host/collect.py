@@ -206,8 +206,8 @@ def main(argv: list[str] | None = None) -> int:
 
 def _write(r: RunResult, info: BrickInfo, args: argparse.Namespace, prefix: str, i: int,
            clock: dict[str, Any], model: EnvironmentModel | None, bar: tqdm) -> bool:
-    name = f"{prefix}_{info.params.get('x', 'x'):g}_{i}" if isinstance(info.params.get("x"), float) \
-        else f"{prefix}_{i}"
+    x = info.params.get("x")
+    name = f"{prefix}_{x:g}_{i}" if isinstance(x, float) else f"{prefix}_{i}"  # as the real logs are named
     log = to_log(r, info, args.port, clock, name, model)
     prov = log.meta.provenance if log is not None else {}
     lost = prov.get("lost_frames", {}).get("brick_to_host")

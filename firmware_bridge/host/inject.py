@@ -9,6 +9,7 @@ runs an envi checkpoint the way ``envi_py.simulate.rollout`` does.
 from __future__ import annotations
 
 import importlib
+import inspect
 from pathlib import Path
 from typing import Callable, Protocol
 
@@ -91,11 +92,39 @@ class CheckpointModel:
         return float(self._post(s, self.ckpt)[0, 0])
 
 
+class WorldModel:
+    """A world of the simulated brick (the stand-in, or the twin) used as the environment model.
+
+    HIL then needs no trained model: the world turns by the brick's last angle for one period and
+    is read. Useful to check the HIL path itself, and to compare a model against its ground truth.
+    """
+
+    history = 1
+
+    def __init__(self, world=None, period_s: float = 0.04, seed: int = 0) -> None:
+        from .world import EdgeWorld
+
+        self.world = world if world is not None else EdgeWorld(seed=seed)
+        self.period_s = period_s
+        self.seed = seed
+        self.description = f"world {type(self.world).__name__} (seed {seed})"
+
+    def reset(self) -> None:
+        self.world.reset(self.seed)
+
+    def __call__(self, window: np.ndarray) -> float:
+        self.world.apply(float(window[-1, 1]), self.period_s)
+        return self.world.read_color()
+
+
 def load_model(spec: str) -> EnvironmentModel:
-    """``path/to/model.pt`` (envi checkpoint) or ``package.module:function`` (a callable)."""
+    """``path/to/model.pt`` (envi checkpoint), or ``package.module:name`` naming a model class
+    (instantiated without arguments), a model object, or a plain function ``window -> colour``."""
     if ":" in spec and not Path(spec).exists():
         module, _, attr = spec.partition(":")
         obj = getattr(importlib.import_module(module), attr)
+        if inspect.isclass(obj):
+            obj = obj()
         return obj if hasattr(obj, "history") else CallableModel(obj, description=spec)
     from envi_py.model import Checkpoint
 

@@ -56,13 +56,14 @@ class Link:
     def decoder(self) -> P.Decoder:
         return self.protocol.decoder
 
-    def host_ms(self) -> int:
-        return int((time.perf_counter() - self._t0) * 1000)
+    def host_ms(self, t: float | None = None) -> float:
+        """Host time in ms since the link opened, of ``t`` (a ``perf_counter`` value) or now."""
+        return ((time.perf_counter() if t is None else t) - self._t0) * 1000
 
     def send(self, mtype: int, fields: tuple[Any, ...]) -> float:
         """Send one message; returns the send time (``time.perf_counter``)."""
         with self._lock:
-            frame = self.encoder.encode(mtype, fields, self.host_ms())
+            frame = self.encoder.encode(mtype, fields, int(self.host_ms()))
         try:
             self.thread.write(frame)
         except (serial.SerialException, OSError) as exc:

@@ -79,7 +79,7 @@ def ping(link: Link, count: int = 10, timeout: float = 0.5) -> dict[str, Any]:
             if msg.type == P.PONG and msg.fields[0] == nonce:
                 rtt = (t - sent) * 1000
                 rtts.append(rtt)
-                mid_host_ms = ((sent + t) / 2 - link._t0) * 1000
+                mid_host_ms = link.host_ms((sent + t) / 2)
                 if best is None or rtt < best[0]:
                     best = (rtt, msg.time - mid_host_ms)
                 break
