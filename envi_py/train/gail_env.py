@@ -1,0 +1,135 @@
+"""The environment of GAIL's policy: the controller under test and the sliding window.
+
+With the roles of imitation learning inverted (paper, Section 4.3), the environment model is the
+policy: its observation is the window of the last l (state, action) rows, its action the next
+state. The "environment" then asks each log's own controller for its answer to that state and
+slides the window. All start windows of all training logs are simulated at once as one batch, so a
+rollout is a loop over time steps only, with the controller (numpy, batched) in the loop.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from ..dataset import context_of, extra_channels
+from ..logs import Log
+from ..model import Checkpoint
+from ..verify import controller_of, group_by_controller
+from .common import dataset_for
+
+
+@dataclass
+class Rollout:
+    """H steps of B simulations: what PPO and the discriminator need, all normalised, float32."""
+
+    obs: torch.Tensor  # (B, H, in_features): the model's input at each step
+    action: torch.Tensor  # (B, H, |s|): the sampled next state, before clamping (what log_prob scores)
+    log_prob: torch.Tensor  # (B, H)
+    next_state: torch.Tensor  # (B, H, |s|): the state that entered the window (clamped, rounded)
+    to_go: torch.Tensor  # (B, H): remaining fraction of the horizon, 1 at the first step
+    last_obs: torch.Tensor  # (B, in_features): the window after the last step, for bootstrapping
+    last_to_go: torch.Tensor  # (B,)
+
+    @property
+    def pairs(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """(window, next state) pairs flattened over batch and time, as the discriminator sees them."""
+        return self.obs.reshape(-1, self.obs.shape[-1]), self.next_state.reshape(-1, self.next_state.shape[-1])
+
+
+class WindowEnv:
+    """Fixed-horizon closed-loop rollouts from windows of the training logs.
+
+    Start windows are taken every ``stride`` rows of each log (sigma_0 included) as long as
+    ``horizon`` real rows follow, so the model is trained on the states the robot actually visits,
+    not only on the first second of each run. Simulated rows get the derived channels they would
+    have in simulation (nominal ``dt``, ``phase`` by row index), as :mod:`envi_py.simulate` does.
+    """
+
+    def __init__(self, ckpt: Checkpoint, logs: list[Log], horizon: int = 40, stride: int = 10) -> None:
+        cfg = ckpt.config
+        self.ckpt, self.horizon = ckpt, horizon
+        hist, ns = cfg.history, cfg.n_state
+        data = dataset_for(ckpt, logs)
+        period = ckpt.record.period_ms or 40.0
+        windows, contexts, extras, log_idx = [], [], [], []
+        for i, z in enumerate(data.z):
+            last = len(z) - hist - horizon
+            if last < 0:
+                raise ValueError(f"{logs[i].name}: {len(z)} rows, need history {hist} + horizon {horizon}")
+            for o in range(0, last + 1, stride):
+                windows.append(z[o:o + hist])
+                contexts.append(context_of(z[:hist], ns))
+                extras.append(extra_channels(period * np.arange(horizon), cfg.extras, period, cfg.phase_rows,
+                                             o + hist))
+                log_idx.append(i)
+        self.window0 = torch.from_numpy(np.stack(windows).astype(np.float32))
+        self.context = torch.from_numpy(np.stack(contexts).astype(np.float32)) if cfg.context else None
+        self.extras = torch.from_numpy(np.stack(extras).astype(np.float32))
+        log_idx_np = np.array(log_idx)
+        pos = {id(lg): i for i, lg in enumerate(logs)}
+        self.groups = [(controller_of(g[0]), np.flatnonzero(np.isin(log_idx_np, [pos[id(lg)] for lg in g])))
+                       for g in group_by_controller(logs).values()]
+        norm = ckpt.norm
+        self.centre = torch.tensor(norm.centre, dtype=torch.float32)
+        self.half = torch.tensor(norm.half, dtype=torch.float32)
+        limits = cfg.limits or [(c.low, c.high) for c in ckpt.schema.states]
+        self.low = torch.tensor([lo for lo, _ in limits], dtype=torch.float64)
+        self.high = torch.tensor([hi for _, hi in limits], dtype=torch.float64)
+
+    @property
+    def batch(self) -> int:
+        return self.window0.shape[0]
+
+    def _obs(self, window: torch.Tensor) -> torch.Tensor:
+        x = window.reshape(window.shape[0], -1)
+        return x if self.context is None else torch.cat([x, self.context], dim=1)
+
+    def _physical_state(self, z: torch.Tensor) -> torch.Tensor:
+        """Normalised sampled state -> physical state after the model's clamp and rounding."""
+        cfg = self.ckpt.config
+        ns = cfg.n_state
+        s = z.double() * self.half[:ns].double() + self.centre[:ns].double()
+        if cfg.clamp:
+            s = torch.maximum(torch.minimum(s, self.high), self.low)
+        if cfg.round_to is not None:
+            res = torch.tensor(cfg.round_to, dtype=torch.float64)
+            s = torch.round(s / res) * res
+        return s
+
+    @torch.no_grad()
+    def rollout(self, generator: torch.Generator) -> Rollout:
+        """Sample H steps of every start window from the (Gaussian) model, controller in the loop."""
+        cfg = self.ckpt.config
+        ns, b, h = cfg.n_state, self.batch, self.horizon
+        model = self.ckpt.model
+        controllers = []
+        for spec, idx in self.groups:
+            ctrl = spec.build()
+            ctrl.reset(len(idx))
+            controllers.append((ctrl, idx))
+        window = self.window0.clone()
+        obs, acts, logps, nexts = [], [], [], []
+        for t in range(h):
+            x = self._obs(window)
+            mean, log_std = model(x)
+            if log_std is None:
+                raise ValueError("GAIL needs a stochastic policy: build the model with head='gaussian'")
+            std = log_std.exp()
+            a = mean + std * torch.randn(mean.shape, generator=generator)
+            logp = torch.distributions.Normal(mean, std).log_prob(a).sum(-1)
+            s = self._physical_state(a)
+            act = np.empty((b, cfg.n_action))
+            s_np = s.numpy()
+            for ctrl, idx in controllers:
+                act[idx] = ctrl(s_np[idx])
+            phys = torch.cat([s, torch.from_numpy(act)], dim=1)
+            z_row = ((phys - self.centre.double()) / self.half.double()).float()
+            row = torch.cat([z_row, self.extras[:, t]], dim=1)
+            obs.append(x), acts.append(a), logps.append(logp), nexts.append(z_row[:, :ns])
+            window = torch.cat([window[:, 1:], row.unsqueeze(1)], dim=1)
+        to_go = 1.0 - torch.arange(h, dtype=torch.float32) / h
+        return Rollout(torch.stack(obs, 1), torch.stack(acts, 1), torch.stack(logps, 1), torch.stack(nexts, 1),
+                       to_go.expand(b, h).contiguous(), self._obs(window), torch.zeros(b))
