@@ -1,0 +1,93 @@
+"""``envi twin generate | effects | calibrate``; hooked into ``envi`` by :func:`register`."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from envi_py.controllers import ControllerSpec, parse_params
+from envi_py.logs import DatasetSpec, LogError, load_logs
+
+from .effects import describe, parse_effects
+from .generate import generate, write_logs
+from .profile import TwinProfile, default_profile
+
+
+def _profile(args: argparse.Namespace) -> TwinProfile:
+    return TwinProfile.load(args.profile) if args.profile else default_profile()
+
+
+def cmd_generate(args: argparse.Namespace) -> int:
+    try:
+        spec = ControllerSpec(args.controller, parse_params(args.param))
+        spec.build()  # fail on a bad controller before any work
+        logs = generate(spec, args.runs, args.steps, parse_effects(args.effects), args.seed, _profile(args))
+    except (ValueError, OSError) as exc:
+        print(f"envi twin generate: {exc}", file=sys.stderr)
+        return 2
+    paths = write_logs(logs, args.out)
+    print(f"wrote {len(paths)} twin logs to {args.out} (effects: {', '.join(logs[0].meta.provenance['effects'])})")
+    return 0
+
+
+def cmd_effects(args: argparse.Namespace) -> int:
+    print(describe())
+    prof = _profile(args)
+    print("\nprofile effects (on by default): " + ", ".join(f"{k}={v}" for k, v in prof.effects.items()))
+    return 0
+
+
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    from .calibrate import calibrate
+    from .report import headline, write_report
+
+    try:
+        logs = load_logs(args.logs, DatasetSpec(pattern=args.pattern))
+    except LogError as exc:
+        print(f"envi twin calibrate: {exc}", file=sys.stderr)
+        return 2
+    budget = 25.0 if args.quick else args.budget
+    prof = calibrate(logs, key=args.key, budget_s=budget, runs=60 if args.quick else 160, seed=args.seed,
+                     progress=None if args.quiet else print)
+    out = Path(args.out)
+    summary = write_report(prof, logs, out, key=args.key)
+    prof.fit = {"seed": summary["seed"], "key": args.key, "headline": headline(summary)}
+    path = prof.save(out / "profile.json")
+    for x, h in prof.fit["headline"].items():
+        print(f"{args.key}={x}: {h['within_2x']}/8 metrics within 2x floor, median W1 ratio {h['median_w1_ratio']:.2f}")
+    print(f"profile: {path}\nreport: {out / 'report.md'} {out / 'report.json'} {out / 'traces.png'}")
+    return 0
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add ``twin`` with its sub-commands to the ``envi`` parser."""
+    twin = subparsers.add_parser("twin", help="physics twin: generate logs, list effects, calibrate to real logs")
+    sub = twin.add_subparsers(dest="twin_command", required=True)
+
+    p = sub.add_parser("generate", help="write twin logs with sidecars")
+    p.add_argument("--controller", default="lane-keeping", help="registered name or package.module:function")
+    p.add_argument("--param", nargs="*", default=None, help="controller parameters, e.g. x=30")
+    p.add_argument("--runs", type=int, default=30)
+    p.add_argument("--steps", type=int, default=100)
+    p.add_argument("--effects", default=None,
+                   help="on top of the profile's: delay=2,noise=1.5,jitter.pause_prob=0.01,glitch; =0 turns one off")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--profile", default=None, help="profile JSON (default: the shipped calibrated one)")
+    p.add_argument("--out", required=True)
+    p.set_defaults(func=cmd_generate)
+
+    p = sub.add_parser("effects", help="list the effects, their parameters and units")
+    p.add_argument("--profile", default=None)
+    p.set_defaults(func=cmd_effects)
+
+    p = sub.add_parser("calibrate", help="fit a profile to real logs; writes profile.json and a report")
+    p.add_argument("--logs", required=True, help="folder of real logs")
+    p.add_argument("--pattern", default="log_{x}_{run}.csv")
+    p.add_argument("--key", default="x", help="controller parameter that tells the versions apart")
+    p.add_argument("--budget", type=float, default=420.0, help="search time in seconds")
+    p.add_argument("--quick", action="store_true", help="a 25 s search (for tests and smoke runs)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--quiet", action="store_true")
+    p.add_argument("--out", required=True)
+    p.set_defaults(func=cmd_calibrate)

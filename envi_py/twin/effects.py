@@ -1,0 +1,140 @@
+"""The registry of real-world effects the twin can switch on, with parameters and units.
+
+Each effect is recorded, with all its parameters, in every log's metadata when it is on: the twin is
+the ground truth against which the sim-to-real diagnosis is scored, so the log must say exactly
+which effects made it. Names follow the diagnosis candidates (``envi_py.diagnose.effects``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Mapping
+
+
+@dataclass(frozen=True)
+class Param:
+    """One effect parameter: default value, unit and meaning."""
+
+    default: float
+    unit: str
+    doc: str
+
+
+@dataclass(frozen=True)
+class Effect:
+    """An effect: what it models and its parameters; ``primary`` takes a bare number (``noise=1.5``)."""
+
+    name: str
+    description: str
+    params: dict[str, Param]
+    primary: str
+
+
+EFFECTS: dict[str, Effect] = {e.name: e for e in (
+    Effect("delay", "actuation delay: the commanded angle reaches the steering k ticks later",
+           {"ticks": Param(1, "ticks", "delay in control periods")}, "ticks"),
+    Effect("lag", "steering actuator lag: the angle follows the command as a first-order system",
+           {"tau_ms": Param(60.0, "ms", "time constant")}, "tau_ms"),
+    Effect("rate_limit", "steering rate limit: the angle moves at most this fast toward the command",
+           {"deg_per_s": Param(600.0, "deg/s", "maximum steering speed")}, "deg_per_s"),
+    Effect("backlash", "steering backlash: the angle does not move until the command leaves a play band",
+           {"width_deg": Param(6.0, "deg", "full width of the play")}, "width_deg"),
+    Effect("deadzone", "steering dead zone: commands within +-width give no angle, larger ones lose width",
+           {"width_deg": Param(5.0, "deg", "half width of the dead zone")}, "width_deg"),
+    Effect("noise", "Gaussian sensor noise on the colour reading",
+           {"sigma": Param(1.5, "colour units", "standard deviation")}, "sigma"),
+    Effect("quantise", "sensor quantisation: the reading is rounded to a multiple of step",
+           {"step": Param(1.0, "colour units", "quantisation step")}, "step"),
+    Effect("lowpass", "sensor low-pass response: the reading follows the surface as a first-order system",
+           {"tau_ms": Param(40.0, "ms", "time constant")}, "tau_ms"),
+    Effect("saturation", "the sensor clips readings to its range",
+           {"low": Param(0.0, "colour units", "lowest reading"), "high": Param(100.0, "colour units", "highest reading")},
+           "high"),
+    Effect("battery", "battery sag: speed falls linearly over the run",
+           {"sag": Param(0.2, "fraction", "speed lost by the end of the run")}, "sag"),
+    Effect("run_variation", "run-to-run differences of speed, steering grip and white reflectance",
+           {"speed_sd": Param(0.05, "fraction", "relative sd of speed"),
+            "grip_sd": Param(0.05, "fraction", "relative sd of steering grip"),
+            "white_sd": Param(0.0, "colour units", "sd of the white reflectance")}, "speed_sd"),
+    Effect("patches", "slippery patches along the track reduce the steering grip",
+           {"per_m": Param(2.0, "1/m", "patches per metre travelled"),
+            "length_mm": Param(100.0, "mm", "patch length"),
+            "grip": Param(0.5, "fraction", "steering grip on a patch")}, "per_m"),
+    Effect("curvature", "curved lane: the edge turns under the robot",
+           {"mean_per_m": Param(0.0, "1/m", "mean curvature"),
+            "amp_per_m": Param(2.0, "1/m", "amplitude of the sinusoidal curvature"),
+            "wavelength_m": Param(1.0, "m", "wavelength of the curvature")}, "amp_per_m"),
+    Effect("jitter", "sampling jitter and rare long pauses (the robot stands still during a pause)",
+           {"extra_ms": Param(2.0, "ms", "mean of the exponential extra delay per period (floored to ms)"),
+            "pause_prob": Param(0.0, "1/tick", "probability of a long pause per period"),
+            "pause_ms": Param(11000.0, "ms", "mean pause length (uniform within +-25%)")}, "extra_ms"),
+    Effect("glitch", "rare sensor glitches: a reading replaced by a uniform random value in 0..100",
+           {"prob": Param(0.01, "1/sample", "glitch probability per sample")}, "prob"),
+)}
+
+
+def effect_params(name: str, value: Mapping[str, Any] | float | int | bool | None) -> dict[str, float] | None:
+    """Full parameters of one effect from a user value; ``None``/``False``/``0`` switches it off.
+
+    A bare number sets the primary parameter; a dict overrides any parameters; unknown names fail
+    loudly, because a typo would otherwise silently generate logs without the intended effect.
+    """
+    if name not in EFFECTS:
+        raise ValueError(f"unknown twin effect {name!r}; known: {', '.join(EFFECTS)}")
+    eff = EFFECTS[name]
+    if value is None or value is False:
+        return None
+    if isinstance(value, Mapping):
+        unknown = set(value) - set(eff.params)
+        if unknown:
+            raise ValueError(f"effect {name!r}: unknown parameter(s) {', '.join(sorted(unknown))}; "
+                             f"known: {', '.join(eff.params)}")
+        return {k: float(value.get(k, p.default)) for k, p in eff.params.items()}
+    if value is True:
+        return {k: float(p.default) for k, p in eff.params.items()}
+    v = float(value)
+    if v == 0 and name != "saturation":
+        return None
+    out = {k: float(p.default) for k, p in eff.params.items()}
+    out[eff.primary] = v
+    return out
+
+
+def resolve(base: Mapping[str, Any], overrides: Mapping[str, Any] | None) -> dict[str, dict[str, float]]:
+    """The active effects: a profile's effects with the caller's on top (``None``/0 turns one off)."""
+    merged: dict[str, Any] = dict(base)
+    merged.update(overrides or {})
+    out = {}
+    for name, value in merged.items():
+        params = effect_params(name, value)
+        if params is not None:
+            out[name] = params
+    return dict(sorted(out.items()))
+
+
+def parse_effects(text: str | None) -> dict[str, Any]:
+    """``"delay=2,noise=1.5,jitter.pause_prob=0.01,glitch"`` -> effects dict for :func:`resolve`."""
+    out: dict[str, Any] = {}
+    for item in filter(None, (s.strip() for s in (text or "").split(","))):
+        key, sep, value = item.partition("=")
+        name, dot, param = key.strip().partition(".")
+        if dot:
+            entry = out.get(name)
+            entry = dict(entry) if isinstance(entry, dict) else {}
+            entry[param] = float(value)
+            out[name] = entry
+        else:
+            out[name] = float(value) if sep else True
+        effect_params(name, out[name])  # validate now, with the user's spelling in the message
+    return out
+
+
+def describe() -> str:
+    """Human-readable table of all effects for ``envi twin effects``."""
+    lines = []
+    for e in EFFECTS.values():
+        lines.append(f"{e.name}: {e.description}")
+        for k, p in e.params.items():
+            star = " (primary)" if k == e.primary else ""
+            lines.append(f"    {k} [{p.unit}] default {p.default:g}{star}: {p.doc}")
+    return "\n".join(lines)

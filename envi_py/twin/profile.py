@@ -1,0 +1,67 @@
+"""A twin profile: the robot's physical parameters plus the effects that are on by default.
+
+The shipped profile (``profiles/default.json``) is the one calibrated to the real field logs, so
+``generate`` without a profile produces logs that look like the real robot's.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+from typing import Any
+
+PROFILE_DIR = Path(__file__).resolve().parent / "profiles"
+DEFAULT_PROFILE = PROFILE_DIR / "default.json"
+
+
+@dataclass
+class TwinProfile:
+    """Physics of the robot and the track. Lengths in mm, speeds in mm/s, reflectance in colour units.
+
+    Colour logs identify only ratios (speed/spot, speed/wheelbase, ahead/spot), so the wheelbase
+    is fixed at a nominal LEGO value and speed, spot and sensor lead are fitted.
+    """
+
+    speed: float = 150.0  # forward speed, mm/s
+    wheelbase: float = 120.0  # mm; yaw rate = speed / wheelbase * tan(steering angle) * grip
+    spot: float = 10.0  # width of the black-to-white blend under the sensor, mm
+    ahead: float = 40.0  # sensor distance ahead of the rear axle, mm
+    black: float = 5.0
+    white: float = 75.0
+    period_ms: float = 40.0  # nominal control period, before jitter
+    warmup: int = 40  # unlogged ticks before a run, so a log starts inside the limit cycle
+    effects: dict[str, Any] = field(default_factory=dict)
+    fit: dict[str, Any] = field(default_factory=dict)  # calibration summary (for reproduction tests)
+
+    def to_json(self) -> dict[str, Any]:
+        return asdict(self)
+
+    @staticmethod
+    def from_json(d: dict[str, Any]) -> "TwinProfile":
+        known = {f.name for f in fields(TwinProfile)}
+        unknown = set(d) - known
+        if unknown:
+            raise ValueError(f"twin profile: unknown field(s) {', '.join(sorted(unknown))}")
+        return TwinProfile(**d)
+
+    def save(self, path: str | os.PathLike) -> Path:
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(self.to_json(), indent=1) + "\n")
+        return path
+
+    @staticmethod
+    def load(path: str | os.PathLike) -> "TwinProfile":
+        return TwinProfile.from_json(json.loads(Path(path).read_text()))
+
+    def replace(self, **changes: Any) -> "TwinProfile":
+        d = self.to_json()
+        d.update(changes)
+        return TwinProfile.from_json(d)
+
+
+def default_profile() -> TwinProfile:
+    """The shipped profile calibrated to the real lane-keeping logs (a plain one if none is shipped)."""
+    return TwinProfile.load(DEFAULT_PROFILE) if DEFAULT_PROFILE.exists() else TwinProfile()
