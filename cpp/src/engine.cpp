@@ -156,10 +156,12 @@ struct Runner {
 
 long total_runs(const Job& job) { return job.n_runs > 0 ? job.n_runs : job.windows * job.runs; }
 
-int block_size(const Job& job, int threads) {
-  long n = total_runs(job);
-  long per_thread = (n + threads - 1) / std::max(threads, 1);
-  return int(std::max<long>(1, std::min<long>(job.block, per_thread)));
+// Runs per block from the job's size only, never from the thread count: a run's arithmetic then
+// does not depend on how many threads share the work (GEMM rounding can depend on the block).
+int block_size(const Job& job) {
+  long n = job.windows * job.runs;
+  long quarter = ((n + 3) / 4 + 7) / 8 * 8;  // at least four blocks for small jobs, so threads have work
+  return int(std::max<long>(1, std::min<long>({long(job.block), std::max<long>(32, quarter), n})));
 }
 
 }  // namespace
@@ -167,7 +169,7 @@ int block_size(const Job& job, int threads) {
 Plan plan(const Job& job) {
   int t = job.threads > 0 ? job.threads : int(std::max(1u, std::thread::hardware_concurrency()));
   t = int(std::max<long>(1, std::min<long>(t, total_runs(job))));
-  return {t, block_size(job, t)};
+  return {t, block_size(job)};
 }
 
 void simulate(const Model& model, const ControllerSpec& controller, const Job& job, Sink& sink) {

@@ -190,9 +190,11 @@ int run(const Args& a) {
   job.threads = a.threads;
   job.block = a.block;
   const Plan full = plan(job);
-  // Chunk: enough blocks to keep every thread busy; logs bound it by memory (~64 MB of traces).
-  long chunk = long(full.threads) * full.block * 8;
-  if (want_logs) chunk = std::max<long>(full.threads * full.block, std::min<long>(chunk, (long(8) << 20) / std::max<long>(1, length * c)));
+  // Chunk: a whole number of blocks (so block boundaries, hence results, do not depend on it),
+  // enough to keep every thread busy; logs bound it by memory (~64 MB of traces).
+  long blocks_per_chunk = 16;
+  if (want_logs) blocks_per_chunk = std::max<long>(1, std::min<long>(16, (long(8) << 20) / std::max<long>(1, length * c * full.block)));
+  const long chunk = blocks_per_chunk * full.block;
 
   std::ofstream metrics_file;
   std::ostream* mout = nullptr;

@@ -1,0 +1,256 @@
+"""The native engine against the Python reference: rollout, controllers, metrics, errors, envi_sim."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import onnx
+import pytest
+import torch
+
+from envi_py import native
+from envi_py.controllers import ControllerSpec
+from envi_py.export import export, to_onnx
+from envi_py.logs import DatasetSpec, load_logs, read_log, sidecar_path, write_log
+from envi_py.metrics import MetricConfig, driving_metrics
+from envi_py.simulate import initial_windows, rollout
+
+from .conftest import make_log
+from .test_export import paper_ckpt
+
+pytestmark = pytest.mark.skipif(not native.available(), reason="native engine not built")
+
+LANE = ControllerSpec("lane-keeping", {"x": 30})
+PID = ControllerSpec("pid", {"kp": 2.0, "ki": 5.0, "kd": 0.05, "setpoint": 45.0, "out_min": -40, "out_max": 40})
+
+
+def windows(n: int = 4, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    out = []
+    for _ in range(n):
+        log = make_log(np.clip(40 + np.cumsum(rng.normal(0, 8, 10)), 0, 100), x=30)
+        out.append(log.values)
+    return np.stack(out)
+
+
+@pytest.fixture(scope="module")
+def trained(real_dir):
+    """A model briefly trained by BC on the real x=30 logs, and those logs."""
+    from envi_py.train.bc import train_bc
+
+    logs = load_logs(real_dir, DatasetSpec(pattern="log_{x}_{run}.csv"), where={"x": [30]}, min_length=11)
+    return train_bc(logs[:40], epochs=15, lr=1e-3, seed=0), logs
+
+
+@pytest.mark.parametrize("spec", [LANE, PID], ids=["lane-keeping", "pid"])
+def test_deterministic_rollout_matches_pytorch(spec):
+    ck = paper_ckpt()
+    init = windows(5)
+    want = rollout(ck, spec, init, 120, runs=3)
+    got = native.rollout(ck, spec, init, 120, runs=3, threads=2)
+    assert got.shape == want.shape == (15, 130, 2)
+    np.testing.assert_array_equal(got[:, :10], want[:, :10])
+    np.testing.assert_allclose(got, want, atol=1e-4, rtol=0)
+
+
+def test_trained_model_matches_pytorch_on_real_windows(trained):
+    ck, logs = trained
+    from envi_py.dataset import windows as sliding
+
+    # one step from every window of the held-out logs: float32 agreement
+    every = np.concatenate([sliding(lg.values, 10) for lg in logs[40:]])
+    one = native.rollout(ck, LANE, every, 1)
+    np.testing.assert_allclose(one, rollout(ck, LANE, every, 1), atol=1e-4, rtol=0)
+    # closed loop: float32 rounding differences grow slowly along the run but never flip an action
+    init = initial_windows(logs[40:], ck.config.history)
+    want = rollout(ck, LANE, init, 90, runs=2)
+    got = native.rollout(ck, LANE, init, 90, runs=2)
+    assert np.ptp(want[:, 10:, 0]) > 10  # the model actually moves the robot through the lane
+    np.testing.assert_allclose(got[:, :30], want[:, :30], atol=1e-4, rtol=0)
+    np.testing.assert_allclose(got, want, atol=0.05, rtol=0)
+    np.testing.assert_array_equal(got[..., 1], want[..., 1])
+
+
+def test_post_processing_rounds_and_clamps_like_python():
+    ck = paper_ckpt(round_to=(1.0,), limits=((20.0, 70.0),))
+    init = windows(6, seed=1)
+    want = rollout(ck, LANE, init, 60)
+    got = native.rollout(ck, LANE, init, 60)
+    np.testing.assert_array_equal(got[:, 10:, 0], np.round(got[:, 10:, 0]))
+    assert got[:, 10:, 0].min() >= 20 and got[:, 10:, 0].max() <= 70
+    assert np.mean(got == want) > 0.999  # rounding may flip only where float32 sums land on .5
+
+
+def test_onnx_file_and_checkpoint_give_the_same_runs(tmp_path):
+    ck = paper_ckpt()
+    path = export(ck, tmp_path / "m.onnx")
+    a = native.rollout(path, LANE, windows(2), 30)
+    b = native.rollout(ck.save(tmp_path / "m.pt"), LANE, windows(2), 30)
+    np.testing.assert_array_equal(a, b)
+
+
+def test_gaussian_draws_do_not_depend_on_threads_or_blocks():
+    ck = paper_ckpt("gaussian")
+    model = native.load(ck)
+    mod = native._native()
+    init = windows(3)
+    spec = json.dumps(LANE.to_json())
+    ref = mod.rollout(model, spec, init, 40, 7, 11, 1, 5)
+    for threads in (2, 3):  # threads take whole blocks: bit-identical
+        np.testing.assert_array_equal(mod.rollout(model, spec, init, 40, 7, 11, threads, 5), ref)
+    # other blocks or another batch: the same draws; GEMM rounding may differ in the last bits
+    for block, first in [(256, 3), (1, 3), (3, 1)]:
+        got = mod.rollout(model, spec, init[:first], 40, 7, 11, 2, block)
+        np.testing.assert_allclose(got, ref[:7 * first], atol=1e-4, rtol=0)
+    assert not np.array_equal(mod.rollout(model, spec, init, 40, 7, 12, 1, 256), ref)
+    assert not np.array_equal(ref[0], ref[1])
+
+
+def test_gaussian_one_step_distribution_matches_the_head():
+    ck = paper_ckpt("gaussian", clamp=False)
+    init = windows(1)
+    n = 40000
+    got = native.rollout(ck, LANE, init, 1, runs=n, seed=3)[:, 10, 0]
+    x = torch.from_numpy(ck.norm.encode(init[0]).astype(np.float32).reshape(1, -1))
+    with torch.no_grad():
+        mean, log_std = ck.model(x)
+    mu = float(mean) * ck.norm.half[0] + ck.norm.centre[0]
+    sd = float(log_std.exp()) * ck.norm.half[0]
+    assert abs(got.mean() - mu) < 4 * sd / np.sqrt(n)
+    assert abs(got.std() / sd - 1) < 0.02
+    z = (got - mu) / sd  # standard normal tails, not uniform or clipped ones
+    assert 0.04 < np.mean(np.abs(z) > 2) < 0.052
+
+
+def test_controllers_agree_with_python():
+    rng = np.random.default_rng(0)
+    states = np.concatenate([rng.uniform(0, 100, (60, 50, 1)), np.full((5, 50, 1), 40.0)])
+    specs = [LANE, ControllerSpec("lane-keeping", {"x": 10, "threshold": 55}), PID,
+             ControllerSpec("pid", {"kp": 0.3, "ki": 40.0, "out_min": -5, "out_max": 20, "dt": 0.1})]
+    for spec in specs:
+        ctrl = spec.build()
+        ctrl.reset(50)
+        want = np.stack([ctrl(s) for s in states])
+        got = native._native().controller_sequence(json.dumps(spec.to_json()), states, 1)
+        np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12, err_msg=spec.name)
+    sat = np.mean(np.abs(got) >= 5)
+    assert sat > 0.2  # the last PID saturates often, so anti-windup is exercised
+
+
+def test_metrics_match_python():
+    rng = np.random.default_rng(1)
+    traces = np.concatenate([rng.uniform(0, 100, (30, 80)), np.clip(40 + np.cumsum(rng.normal(0, 6, (30, 80)), 1), 0, 100),
+                             np.full((2, 80), 50.0), np.full((2, 80), 30.0)])
+    traces[0, 20:30] = [50, 50.0000001, 29.9999, 30, 70, 10, 10, 40, 50, 51]
+    for cfg in [MetricConfig(), MetricConfig(centre=45, band=5, skip=3)]:
+        got = native._native().driving_metrics(traces, cfg.centre, cfg.band, cfg.skip)
+        np.testing.assert_array_equal(got, driving_metrics(traces, cfg))
+
+
+def test_streamed_metrics_equal_metrics_of_the_traces():
+    ck = paper_ckpt()
+    init = windows(4)
+    traces = native.rollout(ck, PID, init, 200, runs=3)
+    got = native.rollout_metrics(ck, PID, init, 200, runs=3, threads=2)
+    np.testing.assert_array_equal(got, driving_metrics(traces[..., 0]))
+
+
+@pytest.mark.parametrize("mutate, match", [
+    (lambda m: m.graph.node[1].__setattr__("op_type", "Softmax"), "Softmax"),
+    (lambda m: m.graph.node[1].__setattr__("domain", "com.example"), "foreign domain"),
+    (lambda m: m.graph.initializer[0].__setattr__("data_location", onnx.TensorProto.EXTERNAL), "external data"),
+    (lambda m: m.metadata_props.pop(), None),
+    (lambda m: m.graph.initializer[1].dims.__setitem__(0, 7), "bias"),
+])
+def test_unsupported_models_are_clear_errors(mutate, match):
+    model = to_onnx(paper_ckpt())
+    if match is None:  # drop every envi metadata entry
+        del model.metadata_props[:]
+        match = "not an envi model"
+    else:
+        mutate(model)
+    with pytest.raises(ValueError, match=match):
+        native.load(model.SerializeToString())
+
+
+def test_malformed_bytes_and_bad_arguments_are_value_errors():
+    good = to_onnx(paper_ckpt()).SerializeToString()
+    for bad in [b"", b"\xff" * 20, good[: len(good) // 2], good[:-3]]:
+        with pytest.raises(ValueError):
+            native.load(bad)
+    with pytest.raises(ValueError, match="not available in the native runtime"):
+        native.rollout(good, ControllerSpec("mypkg.ctl:f"), windows(1), 5)
+    with pytest.raises(ValueError, match="unknown parameter"):
+        native.rollout(good, ControllerSpec("pid", {"kq": 1}), windows(1), 5)
+    with pytest.raises(ValueError, match="initial windows"):
+        native.rollout(good, LANE, windows(1)[:, :5], 5)
+
+
+def test_gil_is_released_while_simulating():
+    import threading
+    import time
+
+    model = native.load(paper_ckpt())
+    ticks = []
+    stop = threading.Event()
+
+    def tick():
+        while not stop.is_set():
+            ticks.append(time.perf_counter())
+            time.sleep(0.001)
+
+    th = threading.Thread(target=tick)
+    th.start()
+    t0 = time.perf_counter()
+    native.rollout(model, LANE, windows(1), 3000, runs=64, threads=1)
+    t1 = time.perf_counter()
+    stop.set()
+    th.join()
+    inside = [t for t in ticks if t0 < t < t1]
+    assert t1 - t0 > 0.05 and len(inside) > 0.3 * (t1 - t0) / 0.0011
+
+
+def envi_sim() -> str | None:
+    root = Path(__file__).resolve().parents[1]
+    found = shutil.which("envi_sim")
+    if found:
+        return found
+    for cand in sorted(root.glob("build/**/envi_sim")):
+        if os.access(cand, os.X_OK) and cand.is_file():
+            return str(cand)
+    return None
+
+
+@pytest.mark.skipif(envi_sim() is None, reason="envi_sim binary not built")
+def test_envi_sim_writes_logs_and_metrics_like_python(tmp_path, real_dir):
+    ck = paper_ckpt()
+    model = export(ck, tmp_path / "m.onnx")
+    files = [real_dir / "log_30_0.csv", real_dir / "log_30_1.csv"]
+    spec = json.dumps(LANE.to_json())
+    cmd = [envi_sim(), "--model", str(model), "--init", *map(str, files), "--controller", spec, "--steps", "50",
+           "--runs", "2", "--threads", "2", "--seed", "4"]
+    subprocess.run(cmd + ["--out", str(tmp_path / "sim"), "--metrics", str(tmp_path / "m.json")], check=True)
+    logs = [read_log(tmp_path / "sim" / f"log_30_{i}-sim{r}.csv") for i in (0, 1) for r in (0, 1)]
+    real = load_logs(files, DatasetSpec(pattern="log_{x}_{run}.csv"))
+    traces = native.rollout(ck, LANE, initial_windows(real, 10), 50, runs=2)
+    for lg, tr in zip(logs, traces):
+        assert lg.meta.source == "sim" and lg.meta.controller == LANE.to_json() and len(lg) == 60
+        np.testing.assert_allclose(lg.values, tr, atol=1e-4, rtol=0)  # the binary may use another ISA build
+        np.testing.assert_array_equal(lg.time[:10], real[0 if "30_0" in lg.name else 1].time[:10])
+    for lg in logs:  # byte for byte what envi_py.logs.write_log makes of the same log
+        again = write_log(lg, tmp_path / "py" / lg.name)
+        assert again.read_bytes() == lg.path.read_bytes()
+        assert sidecar_path(again).read_bytes() == sidecar_path(lg.path).read_bytes()
+    assert logs[1].meta.provenance == {"init_log": "log_30_0.csv", "model_algorithm": "bc", "seed": 4, "replicate": 1}
+    out = json.loads((tmp_path / "m.json").read_text())
+    np.testing.assert_array_equal(out["per_run"], driving_metrics(np.stack([lg.states[:, 0] for lg in logs])))
+    assert out["mean"] == pytest.approx(np.mean(out["per_run"], axis=0))
+    subprocess.run(cmd + ["--metrics-only", "--metrics", str(tmp_path / "m2.json")], check=True)
+    assert json.loads((tmp_path / "m2.json").read_text())["per_run"] == out["per_run"]
+    bad = subprocess.run(cmd[:2] + [str(tmp_path / "nope.onnx")] + cmd[3:] + ["--metrics", "-"], capture_output=True, text=True)
+    assert bad.returncode == 1 and "nope.onnx" in bad.stderr
