@@ -56,15 +56,17 @@ class SimHardware:
     The steering angle set by ``steer`` acts until the next call, as a motor would hold it.
     """
 
-    def __init__(self, world, clock_ms=ticks_ms, diff=ticks_diff):
+    def __init__(self, world, seed=0, clock_ms=ticks_ms, diff=ticks_diff):
         self.world = world
+        self.seed = seed
         self.angle = 0.0
         self._clock = clock_ms
         self._diff = diff
         self._last = clock_ms()
 
     def reset(self, seed):
-        self.world.reset(seed)
+        """Each run starts the world afresh, seeded by the simulator's seed and the run id."""
+        self.world.reset(self.seed * 65536 + seed)
         self.angle = 0.0
         self._last = self._clock()
 

@@ -9,12 +9,13 @@ from __future__ import annotations
 
 import argparse
 import fcntl
+import importlib
 import os
 import signal
 import sys
 import tty
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable
 
 from ..brick.control import LaneKeeping
 from ..brick.hardware import SimHardware
@@ -25,6 +26,7 @@ from .faults import FaultSpec, FaultyPort
 from .world import EdgeWorld
 
 BRICK_DIR = Path(__file__).resolve().parents[1] / "brick"
+DEFAULT_WORLD = "firmware_bridge.host.world:EdgeWorld"
 
 
 def _open_pty() -> tuple[int, int, str]:
@@ -43,11 +45,24 @@ def _point(link: Path, target: str) -> None:
     os.replace(tmp, link)
 
 
+def make_world(spec: str) -> Any:
+    """``package.module:Class`` -> an instance: any world with ``reset``, ``read_color``, ``apply``."""
+    module, _, attr = spec.partition(":")
+    try:
+        world = getattr(importlib.import_module(module), attr)()
+    except (ImportError, AttributeError, TypeError) as exc:
+        raise SystemExit(f"brick-sim: cannot make world {spec!r} ({exc})") from None
+    missing = [m for m in ("reset", "read_color", "apply") if not callable(getattr(world, m, None))]
+    if missing:
+        raise SystemExit(f"brick-sim: world {spec} has no {', '.join(missing)}")
+    return world
+
+
 def serve(period_ms: int = 40, x: float = 30.0, threshold: float = 40.0, link: Path | None = None,
           faults: FaultSpec | None = None, journal: Path | None = None, seed: int = 0,
-          announce: Callable[[str], None] = print) -> None:
+          announce: Callable[[str], None] = print, world: Any = None) -> None:
     """Run the simulated brick until interrupted; a disconnect starts it over on a new pty."""
-    world = EdgeWorld(seed=seed)
+    world = world if world is not None else EdgeWorld(seed=seed)
     log = open(journal, "a") if journal else None
     disconnected = False
     try:
@@ -59,7 +74,7 @@ def serve(period_ms: int = 40, x: float = 30.0, threshold: float = 40.0, link: P
             port: FdPort | FaultyPort = FdPort(master)
             if faults is not None:
                 port = FaultyPort(port, faults, log, disconnected)
-            brick = Brick(port, SimHardware(world), LaneKeeping(x, threshold), period_ms,
+            brick = Brick(port, SimHardware(world, seed), LaneKeeping(x, threshold), period_ms,
                           program_hash(str(BRICK_DIR)), runtime() + " (simulated brick)")
             try:
                 brick.serve_forever()
@@ -84,7 +99,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--faults", type=FaultSpec.parse, help="inject faults, e.g. 'garbage=0.02,flip=0.01,"
                    "drop=0.01,dup=0.01,rx_drop=0.01,disconnect=300,seed=1'")
     p.add_argument("--journal", type=Path, help="with --faults: write one line per frame sent (for tests)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the simulated world")
+    p.add_argument("--seed", type=int, default=0, help="seed of the simulated world (run r uses seed*65536+r)")
+    p.add_argument("--world", default=DEFAULT_WORLD, help="the world as package.module:Class "
+                   f"(default {DEFAULT_WORLD}, the stand-in until the physics twin lands)")
 
 
 def run_args(args: argparse.Namespace) -> int:
@@ -93,7 +110,8 @@ def run_args(args: argparse.Namespace) -> int:
 
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))  # clean up the symlink on kill too
     try:
-        serve(args.period, args.x, args.threshold, args.link, args.faults, args.journal, args.seed, announce)
+        serve(args.period, args.x, args.threshold, args.link, args.faults, args.journal, args.seed, announce,
+              make_world(args.world))
     except KeyboardInterrupt:
         return 0
     return 0

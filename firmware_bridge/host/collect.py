@@ -52,6 +52,19 @@ def open_link(url: str, wait: float) -> Link:
             time.sleep(0.2)
 
 
+def connect(link: Link | None, url: str, wait: float, pings: int) -> tuple[Link, BrickInfo, dict[str, Any]]:
+    """(Re)open the link if needed, handshake and ping; a link lost on the way is opened again."""
+    for attempt in range(3):
+        try:
+            if link is None:
+                link = open_link(url, wait)
+            return link, handshake(link), ping(link, pings)
+        except LinkLost:
+            link.close()
+            link = None
+    raise BrickError(f"{url}: the link keeps dropping during the handshake")
+
+
 def initial_window(model: EnvironmentModel, init_log: Path | None, info: BrickInfo) -> np.ndarray:
     """sigma_0: the first ``history`` rows of ``init_log``, or the robot resting on white."""
     if init_log is not None:
@@ -93,7 +106,7 @@ def provenance(r: RunResult, info: BrickInfo, url: str, clock: dict[str, Any], m
         "link": url,
         "mode": P.MODE_NAMES[r.mode],
         "complete": r.complete,
-        "end_reason": r.end_reason if r.end_reason != "done" or end is not None else "run_end_missing",
+        "end_reason": r.end_reason,
         "brick": {"program_hash": info.program_hash, "runtime": info.runtime, "protocol": info.protocol,
                   "period_ms": info.period_ms},
         "ticks_requested": r.n_ticks,
@@ -167,10 +180,7 @@ def main(argv: list[str] | None = None) -> int:
     bar = tqdm(total=args.runs, unit="run", disable=args.quiet, dynamic_ncols=True)
     try:
         for i in range(args.first_run, args.first_run + args.runs):
-            if link is None:
-                link = open_link(args.port, args.reconnect)
-            info = handshake(link)
-            clock = ping(link, args.pings)
+            link, info, clock = connect(link, args.port, args.reconnect, args.pings)
             n_ticks = max(1, int(round(args.duration * 1000 / info.period_ms)))
             init = initial_window(model, args.init_log, info) if model is not None else None
             run = Run(link, info, i & 0xFFFF, mode, n_ticks, model, init,

@@ -45,7 +45,7 @@ class FaultyPort:
     def __init__(self, port, spec: FaultSpec, journal: IO[str] | None = None, disconnected: bool = False) -> None:
         self.port = port
         self.spec = spec
-        self.rng = random.Random(spec.seed)
+        self.rng = random.Random(spec.seed + disconnected)  # after the reboot, other faults
         self.journal = journal
         self.written = 0
         self.disconnected = disconnected
