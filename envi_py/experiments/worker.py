@@ -23,6 +23,19 @@ def geometric_mean_kld(klds: list[float]) -> float:
     return float(np.exp(np.mean(np.log(np.maximum(klds, 1e-12)))))
 
 
+def trainer_kwargs(algorithm: str, kwargs: dict[str, Any]) -> dict[str, Any]:
+    """The grid's training keywords an algorithm accepts: GAIL's own hyper-parameters (horizon,
+    discriminator size...) go to gail and bcxgail only; shared ones (epochs, lr, hidden...) to all."""
+    from dataclasses import fields
+
+    from ..train.gail import GailConfig
+
+    if algorithm in ("gail", "bcxgail"):
+        return dict(kwargs)
+    gail_only = {f.name for f in fields(GailConfig)} - {"lr", "eval_every"}
+    return {k: v for k, v in kwargs.items() if k not in gail_only}
+
+
 def run_job(job: Job) -> dict[str, Any]:
     import torch
 
@@ -32,7 +45,8 @@ def run_job(job: Job) -> dict[str, Any]:
     torch.set_num_threads(1)
     metric = MetricConfig(skip=job.train_kwargs.get("history", 10))
     t0 = time.perf_counter()
-    ckpt = train(job.algorithm, job.train, job.val, seed=job.seed, metric=metric, **job.train_kwargs)
+    ckpt = train(job.algorithm, job.train, job.val, seed=job.seed, metric=metric,
+                 **trainer_kwargs(job.algorithm, job.train_kwargs))
     seconds = time.perf_counter() - t0
     evals: dict[str, Any] = {}
     for uc, logs in job.evals.items():
