@@ -68,6 +68,8 @@ def test_tiny_grid_repeats_and_writes_the_report(real_logs, tmp_path) -> None:
     assert "TOVK, x=30: accuracy (%)" in md and "FOT vs FOT floor" in md
     assert (tmp_path / "a" / "accuracy_tovk.png").stat().st_size > 0
     assert (tmp_path / "a" / "traces_tovk.png").stat().st_size > 0
+    again = run_experiment(logs, ["tovk"], tmp_path / "a", executor=LocalExecutor(0), **kw)
+    assert again["meta"]["jobs_reused"] == 8 and again["results"] == a["results"]
 
 
 def test_dask_executor_gives_the_local_numbers(real_logs, tmp_path) -> None:

@@ -17,7 +17,7 @@ def _cmd(args: argparse.Namespace) -> int:
         res = run_experiment(logs, args.use_cases, args.out, algorithms=args.algorithms, ns=args.n, reps=args.reps,
                              seed=args.seed, protocol=args.protocol, epochs=args.epochs, n_val=args.n_val,
                              n_test=args.n_test, runs=args.runs, executor=executor, progress=not args.quiet,
-                             train_kwargs={"history": args.history})
+                             train_kwargs={"history": args.history}, resume=not args.fresh)
     finally:
         executor.close()
     print(f"{res['meta']['jobs']} trainings in {res['meta']['wall_seconds']:.0f} s; report: {res['report']}")
@@ -47,6 +47,8 @@ def register(sub: Any) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--workers", type=int, default=None, help="local worker processes (default: all cores)")
     p.add_argument("--dask", default=None, metavar="ADDRESS", help="run on a Dask scheduler, e.g. tcp://host:8786")
+    p.add_argument("--fresh", action="store_true",
+                   help="retrain every job (default: reuse finished jobs recorded in the output folder)")
     p.add_argument("--quiet", action="store_true")
     p.add_argument("--out", default="experiment", help="output folder")
     p.set_defaults(func=_cmd)

@@ -19,6 +19,8 @@ test; no validation logs (they kept the last epoch).
 
 from __future__ import annotations
 
+import hashlib
+import json
 from dataclasses import dataclass, field
 from typing import Any, Sequence
 
@@ -63,6 +65,14 @@ class Job:
     @property
     def key(self) -> tuple[str, str, int, int]:
         return (self.family, self.algorithm, self.n, self.rep)
+
+    def fingerprint(self) -> str:
+        """Everything that determines the job's result; a finished job with the same one is reused."""
+        blob = json.dumps({"key": self.key, "seed": self.seed, "train": [lg.sha256() for lg in self.train],
+                           "val": [lg.sha256() for lg in self.val],
+                           "evals": {k: [lg.sha256() for lg in v] for k, v in sorted(self.evals.items())},
+                           "kwargs": self.train_kwargs, "runs": self.runs}, sort_keys=True, default=str)
+        return hashlib.sha256(blob.encode()).hexdigest()
 
 
 def _split_random(pool: dict[float, list[Log]], xs: Sequence[float], n: int, rep: int, seed: int,
@@ -117,9 +127,9 @@ def make_jobs(logs: Sequence[Log], use_cases: Sequence[str], algorithms: Sequenc
         families.setdefault(FAMILY[uc], []).append(uc)
     jobs = []
     max_n = max(ns)
-    for family, ucs in families.items():
-        xs = TRAIN_X[ucs[0]]
-        for rep in range(reps):
+    for rep in range(reps):  # repetition-major: an interrupted grid still holds whole repetitions
+        for family, ucs in families.items():
+            xs = TRAIN_X[ucs[0]]
             for n in ns:
                 if protocol == "authors":
                     train, val, test = _split_authors(pool, xs, n, rep)
