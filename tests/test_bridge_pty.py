@@ -214,7 +214,15 @@ def test_hil_actions_are_the_controller_on_injected_colours(sim: BrickSim, tmp_p
         assert np.ptp(lg.states) > 0  # the model did not just emit one constant
 
 
-def test_ctrl_c_leaves_only_complete_files(sim: BrickSim, tmp_path: Path) -> None:
+def test_ctrl_c_leaves_only_complete_files(tmp_path: Path) -> None:
+    sim = BrickSim(tmp_path, "--world", "firmware_bridge.host.world:EdgeWorld")  # the stand-in world
+    try:
+        ctrl_c(sim, tmp_path)
+    finally:
+        sim.stop()
+
+
+def ctrl_c(sim: BrickSim, tmp_path: Path) -> None:
     out = tmp_path / "logs"
     proc = subprocess.Popen([sys.executable, "-m", "firmware_bridge.host.collect", "--port", str(sim.link),
                              "--runs", "5", "--duration", "4s", "--out", str(out), "--quiet"],

@@ -23,10 +23,9 @@ from ..brick.identity import program_hash, runtime
 from ..brick.port import FdPort, LinkDown
 from ..brick.program import Brick
 from .faults import FaultSpec, FaultyPort
-from .world import EdgeWorld
 
 BRICK_DIR = Path(__file__).resolve().parents[1] / "brick"
-DEFAULT_WORLD = "firmware_bridge.host.world:EdgeWorld"
+DEFAULT_WORLD = "envi_py.twin:TwinWorld"
 
 
 def _open_pty() -> tuple[int, int, str]:
@@ -58,11 +57,10 @@ def make_world(spec: str) -> Any:
     return world
 
 
-def serve(period_ms: int = 40, x: float = 30.0, threshold: float = 40.0, link: Path | None = None,
+def serve(world: Any, period_ms: int = 40, x: float = 30.0, threshold: float = 40.0, link: Path | None = None,
           faults: FaultSpec | None = None, journal: Path | None = None, seed: int = 0,
-          announce: Callable[[str], None] = print, world: Any = None) -> None:
-    """Run the simulated brick until interrupted; a disconnect starts it over on a new pty."""
-    world = world if world is not None else EdgeWorld(seed=seed)
+          announce: Callable[[str], None] = print) -> None:
+    """Run the simulated brick in ``world`` until interrupted; a disconnect starts it over on a new pty."""
     log = open(journal, "a") if journal else None
     disconnected = False
     try:
@@ -101,7 +99,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--journal", type=Path, help="with --faults: write one line per frame sent (for tests)")
     p.add_argument("--seed", type=int, default=0, help="seed of the simulated world (run r uses seed*65536+r)")
     p.add_argument("--world", default=DEFAULT_WORLD, help="the world as package.module:Class "
-                   f"(default {DEFAULT_WORLD}, the stand-in until the physics twin lands)")
+                   f"(default {DEFAULT_WORLD}, the physics twin; firmware_bridge.host.world:EdgeWorld "
+                   "is a small stand-in)")
 
 
 def run_args(args: argparse.Namespace) -> int:
@@ -110,8 +109,8 @@ def run_args(args: argparse.Namespace) -> int:
 
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))  # clean up the symlink on kill too
     try:
-        serve(args.period, args.x, args.threshold, args.link, args.faults, args.journal, args.seed, announce,
-              make_world(args.world))
+        serve(make_world(args.world), args.period, args.x, args.threshold, args.link, args.faults, args.journal,
+              args.seed, announce)
     except KeyboardInterrupt:
         return 0
     return 0

@@ -1,10 +1,11 @@
-"""A stand-in world for the simulated brick until the physics twin (``envi_py.twin``) lands.
+"""A small stand-in world for the simulated brick (the default is the physics twin, ``envi_py.twin``).
 
 A robot drives at constant speed across a black (5) / white (75) edge. The state is its lateral
 offset ``y`` (mm, positive over white) and heading ``psi`` (rad, positive towards white); the
 steering angle turns the heading like a bicycle model, and the colour is the blend of black and
 white under the sensor's spot plus a little noise, rounded as the real sensor reports integers.
-Any object with ``reset(seed)``, ``read_color()`` and ``apply(angle_deg, dt_s)`` can replace it.
+Any object with ``reset(seed)``, ``read_color()`` and ``apply(angle_deg, dt_s)`` is a world; this
+one has no dependencies and is what ``WorldModel`` uses for HIL without a trained model.
 """
 
 from __future__ import annotations
