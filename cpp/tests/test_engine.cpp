@@ -1,0 +1,140 @@
+// The engine against a naive reference loop (copies, no batching) for both controllers; Gaussian
+// draws independent of threads; controllers and metrics on hand-computed cases.
+#include <cmath>
+#include <vector>
+
+#include "check.hpp"
+#include "envi/controller.hpp"
+#include "envi/engine.hpp"
+#include "envi/metrics.hpp"
+#include "envi/rng.hpp"
+#include "onnx_builder.hpp"
+
+using namespace envi;
+
+struct Collect : Sink {
+  std::vector<double> out;  // runs x length x channels
+  long length;
+  int channels;
+  std::vector<std::pair<long, int>> blk;
+  Collect(long runs, long len, int c, int threads) : out(size_t(runs * len * c)), length(len), channels(c), blk(size_t(threads)) {}
+  void begin(int th, long first, int count) override { blk[size_t(th)] = {first, count}; }
+  void rows(int th, long t, const double* v) override {
+    for (int b = 0; b < blk[size_t(th)].second; ++b)
+      for (int k = 0; k < channels; ++k) out[size_t(((blk[size_t(th)].first + b) * length + t) * channels + k)] = v[b * channels + k];
+  }
+  void end(int) override {}
+};
+
+static Model load(const pb::Bytes& b) { return load_model(reinterpret_cast<const uint8_t*>(b.data()), b.size()); }
+
+static std::vector<double> run(const Model& m, const ControllerSpec& c, const std::vector<double>& init, long K, long runs,
+                               long steps, int threads, int block, uint64_t seed = 0) {
+  Job job;
+  job.init = init.data();
+  job.windows = K;
+  job.runs = runs;
+  job.steps = steps;
+  job.threads = threads;
+  job.block = block;
+  job.seed = seed;
+  Collect sink(K * runs, m.history + steps, m.channels(), plan(job).threads);
+  simulate(m, c, job, sink);
+  return sink.out;
+}
+
+// One run the slow, obvious way: window as a vector, shifted by copying; double-precision layers.
+static std::vector<double> reference(const Model& m, const ControllerSpec& c, const double* init, long steps) {
+  const int C = m.channels(), l = m.history;
+  std::vector<double> rows(init, init + l * C), memory(2, 0.0);
+  for (long t = 0; t < steps; ++t) {
+    std::vector<double> x;
+    for (int r = 0; r < l; ++r)
+      for (int k = 0; k < C; ++k) {
+        double v = rows[size_t((rows.size() / C - l + r) * C + k)];
+        x.push_back(double(float((v - (m.norm_high[k] + m.norm_low[k]) / 2) / ((m.norm_high[k] - m.norm_low[k]) / 2))));
+      }
+    for (const auto* part : {&m.trunk, &m.mean})
+      for (const Dense& d : *part) {
+        std::vector<double> y(size_t(d.W.rows()));
+        for (long i = 0; i < d.W.rows(); ++i) {
+          double s = d.b[i];
+          for (long j = 0; j < d.W.cols(); ++j) s += double(d.W(i, j)) * x[size_t(j)];
+          y[size_t(i)] = d.act == Act::Tanh ? std::tanh(s) : s;
+        }
+        x = y;
+      }
+    double v = double(float(x[0])) * (m.norm_high[0] - m.norm_low[0]) / 2 + (m.norm_high[0] + m.norm_low[0]) / 2;
+    v = std::min(std::max(v, m.limit_low[0]), m.limit_high[0]);
+    double a;
+    c.act(&v, 1, &a, 1, 1, memory.data(), t == 0);
+    rows.push_back(v);
+    rows.push_back(a);
+  }
+  return rows;
+}
+
+int main() {
+  pb::Spec spec;
+  spec.history = 4;
+  spec.hidden = 16;
+  Model m = load(pb::model(spec));
+  const long K = 3, runs = 2, steps = 60;
+  std::vector<double> init;
+  for (long k = 0; k < K; ++k)
+    for (int r = 0; r < 4; ++r) { init.push_back(20.0 + 15 * k + 5 * r); init.push_back(r % 2 ? 30 : -30); }
+  for (const char* js : {R"({"name": "lane-keeping", "params": {"x": 30}})",
+                         R"({"name": "pid", "params": {"kp": 2, "ki": 8, "kd": 0.1, "out_min": -30, "out_max": 30}})"}) {
+    ControllerSpec c = ControllerSpec::parse(js);
+    std::vector<double> got = run(m, c, init, K, runs, steps, 2, 256);
+    double worst = 0;
+    for (long g = 0; g < K * runs; ++g) {
+      std::vector<double> want = reference(m, c, init.data() + (g / runs) * 8, steps);
+      for (size_t i = 0; i < want.size(); ++i) worst = std::max(worst, std::fabs(want[i] - got[size_t(g) * want.size() + i]));
+    }
+    CHECK(worst < 1e-2);  // float32 engine vs double reference; a logic error would be O(1)
+    std::printf("%s: max |engine - reference| = %.2e\n", c.name().c_str(), worst);
+  }
+
+  // Gaussian: the same draws whatever the thread count; different seeds differ.
+  spec.gaussian = true;
+  Model g = load(pb::model(spec));
+  ControllerSpec lk = ControllerSpec::parse(R"({"name": "lane-keeping"})");
+  auto a = run(g, lk, init, K, 5, 30, 1, 4, 7), b = run(g, lk, init, K, 5, 30, 3, 4, 7), c = run(g, lk, init, K, 5, 30, 1, 4, 8);
+  CHECK(a == b);
+  CHECK(a != c);
+
+  // Philox: a known-answer vector from the Random123 distribution (philox4x32-10, zero key and counter).
+  uint32_t ctr[4] = {0, 0, 0, 0};
+  philox4x32(ctr, 0, 0);
+  CHECK(ctr[0] == 0x6627e8d5u && ctr[1] == 0xe169c58du && ctr[2] == 0xbc57ac4cu && ctr[3] == 0x9b00dbd8u);
+  double s1 = 0, s2 = 0;
+  for (uint32_t i = 0; i < 200000; ++i) { double z = normal(1, i, 0, 0); s1 += z; s2 += z * z; }
+  CHECK(std::fabs(s1 / 200000) < 0.01 && std::fabs(s2 / 200000 - 1) < 0.02);
+
+  // Controllers: lane-keeping sign; PID anti-windup freezes the integral while saturated.
+  double st[3] = {50, 40, 10}, act[3], mem[6] = {0};
+  lk.act(st, 1, act, 1, 3, mem, true);
+  CHECK(act[0] == 30 && act[1] == 0 && act[2] == -30);
+  ControllerSpec pid = ControllerSpec::parse(R"({"name": "pid", "params": {"kp": 1, "ki": 10, "dt": 0.5, "setpoint": 0, "out_max": 4}})");
+  double s = 2, u, pm[2] = {0, 0};
+  pid.act(&s, 1, &u, 1, 1, pm, true);  // raw = 2 + 10 * 1 = 12 -> 4, integral stays 0
+  CHECK(u == 4 && pm[0] == 0);
+  s = -1;
+  pid.act(&s, 1, &u, 1, 1, pm, false);  // raw = -1 + 10 * -0.5 = -6 (in range) -> integral -0.5
+  CHECK(u == -6 && pm[0] == -0.5);
+  CHECK_THROWS(std::invalid_argument, ControllerSpec::parse(R"({"name": "pid", "params": {"kq": 1}})"), "unknown parameter");
+  CHECK_THROWS(std::invalid_argument, ControllerSpec::parse(R"({"name": "pkg.mod:f"})"), "not available");
+  CHECK_THROWS(std::invalid_argument, ControllerSpec::parse(R"({"name": "pid", "params": {"dt": 0}})"), "dt");
+
+  // Metrics: skip 2, band 30..50: samples 45 60 70 45 20 20 45 -> steady 3 episodes/3 samples,
+  // over 1 episode (amplitude 20, 2 samples), under 1 episode (amplitude 10, 2 samples).
+  const double tr[9] = {99, 99, 45, 60, 70, 45, 20, 20, 45};
+  double out[8];
+  driving_metrics(tr, 1, 9, MetricConfig{40, 10, 2, 0}, out);
+  const double want[8] = {3, 3, 1, 20, 2, 1, 10, 2};
+  for (int i = 0; i < 8; ++i) CHECK(out[i] == want[i]);
+  CHECK_THROWS(std::invalid_argument, driving_metrics(tr, 1, 9, MetricConfig{40, 10, 9, 0}, out), "nothing to score");
+  std::printf("test_engine: %d failure(s)\n", failures());
+  return failures() ? 1 : 0;
+}

@@ -1,0 +1,63 @@
+// The ONNX loader: what it accepts, and a clear ModelError for everything else, including every
+// truncation of a valid file.
+#include "check.hpp"
+#include "envi/model.hpp"
+#include "onnx_builder.hpp"
+
+using envi::ModelError;
+
+static envi::Model load(const pb::Bytes& b) { return envi::load_model(reinterpret_cast<const uint8_t*>(b.data()), b.size()); }
+
+int main() {
+  pb::Spec spec;
+  envi::Model m = load(pb::model(spec));
+  CHECK(m.history == 3 && m.n_state() == 1 && m.n_action() == 1 && !m.gaussian());
+  CHECK(m.trunk.empty() && m.mean.size() == 2);
+  CHECK(m.mean[0].W.rows() == 8 && m.mean[0].W.cols() == 6 && m.mean[0].act == envi::Act::Tanh);
+  CHECK(m.mean[1].W.rows() == 1 && m.mean[1].act == envi::Act::Tanh);
+  CHECK(m.states[0].name == "color" && m.actions[0].unit == "deg" && m.algorithm == "bc");
+
+  spec.gaussian = true;
+  envi::Model g = load(pb::model(spec));
+  CHECK(g.gaussian() && g.trunk.size() == 1 && g.mean.size() == 1 && g.log_std.size() == 1);
+  CHECK(g.log_std[0].act == envi::Act::Clip && g.log_std[0].clip_lo == -7.f && g.log_std[0].clip_hi == 1.f);
+  CHECK(g.log_std[0].b[0] == -1.5f);  // MatMul + Add fused into one dense layer
+
+  spec.gaussian = false;
+  CHECK_THROWS(ModelError, load(pb::model(spec, {pb::node("Softmax", {"mean"}, "z")})), "Softmax");
+  CHECK_THROWS(ModelError, load(pb::model(spec, {pb::node("Tanh", {"mean"}, "z", {}, "com.example")})), "foreign domain");
+  CHECK_THROWS(ModelError, load(pb::model(spec, {pb::node("Tanh", {"nowhere"}, "z")})), "no earlier node");
+  CHECK_THROWS(ModelError, load(pb::model(spec, {pb::node("Tanh", {"mean"}, "a0")})), "defined twice");
+  spec.post = R"({"clamp": true, "limits": [], "round_to": null})";
+  CHECK_THROWS(ModelError, load(pb::model(spec)), "limits");
+  spec.post = R"({"clamp": true, "limits": [[0, 100]], "round_to": [0]})";
+  CHECK_THROWS(ModelError, load(pb::model(spec)), "round_to");
+  spec.post = R"({"clamp": tru)";
+  CHECK_THROWS(ModelError, load(pb::model(spec)), "envi.post");
+  spec = pb::Spec{};
+
+  // external data: data_location = EXTERNAL on an initializer
+  pb::Bytes ext = pb::model(spec);
+  pb::Bytes t = pb::tensor("w9", {1}, {1.f});
+  pb::field_int(t, 14, 1);
+  pb::Bytes graph;
+  pb::field_bytes(graph, 5, t);
+  pb::Bytes wrapper;
+  pb::field_bytes(wrapper, 7, graph);  // a second graph field: the loader reads it too
+  CHECK_THROWS(ModelError, load(ext + wrapper), "external data");
+
+  CHECK_THROWS(ModelError, load(""), "no graph");
+  CHECK_THROWS(ModelError, load(pb::Bytes(16, '\xff')), "malformed");
+  const pb::Bytes good = pb::model(spec);
+  int clear = 0;
+  for (size_t n = 0; n < good.size(); ++n) {
+    try {
+      load(good.substr(0, n));
+    } catch (const ModelError&) {
+      ++clear;
+    }
+  }
+  CHECK(clear == int(good.size()));  // every proper prefix is rejected with a ModelError
+  std::printf("test_loader: %d failure(s)\n", failures());
+  return failures() ? 1 : 0;
+}
