@@ -187,6 +187,7 @@ def write_curves(rows: list[dict[str, float]], out: Path, title: str) -> tuple[P
                 ax.plot(np.array(ep)[ok], ys[ok], marker="." if k == "val_error" else None, label=k)
         ax.set_xlabel("epoch")
         ax.legend(fontsize=8)
+    axes[0, 0].set_yscale("symlog", linthresh=1e-2)  # critic loss and policy loss differ by orders
     axes[1, 1].set_ylabel("closed-loop mean normalised W1")
     fig.suptitle(title)
     fig.tight_layout()
