@@ -62,7 +62,7 @@ class GailConfig:
     bc_weight: float = 0.0  # 0: pure GAIL; BCxGAIL uses 1
     disc_hidden: tuple[int, ...] = (256, 256)  # paper Table 4
     value_hidden: tuple[int, ...] = (256, 256)
-    minibatch: int = 512  # samples per discriminator / policy iteration (each side, for the discriminator)
+    minibatch: int = 256  # samples per discriminator / policy iteration (each side, for the discriminator)
     eval_every: int = 10  # epochs between closed-loop validation scores
 
 
