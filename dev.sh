@@ -48,7 +48,7 @@ case "${1:-}" in
     setup; shift
     if [ -d build/ctest ]; then rm -rf build/ctest; fi
     if [ -f cpp/CMakeLists.txt ]; then
-      cmake -S . -B build/ctest -DENVI_BUILD_TESTS=ON -DCMAKE_BUILD_TYPE=Release \
+      cmake -S . -B build/ctest -DENVI_BUILD_TESTS=ON -DENVI_ISA_VARIANTS=OFF -DCMAKE_BUILD_TYPE=Release \
         -Dpybind11_DIR="$("$PY" -m pybind11 --cmakedir)" -DPython_EXECUTABLE="$PY" >/dev/null
       cmake --build build/ctest -j"$(nproc)"
       (cd build/ctest && ctest --output-on-failure)

@@ -6,6 +6,7 @@ import json
 import os
 import shutil
 import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -217,7 +218,7 @@ def test_gil_is_released_while_simulating():
 
 def envi_sim() -> str | None:
     root = Path(__file__).resolve().parents[1]
-    found = shutil.which("envi_sim")
+    found = shutil.which("envi_sim") or shutil.which("envi_sim", path=str(Path(sys.executable).parent))
     if found:
         return found
     for cand in sorted(root.glob("build/**/envi_sim")):

@@ -1,0 +1,182 @@
+"""Closed-loop steps per second of the paper's model (20 -> 256 -> 256 -> 1) with lane-keeping.
+
+Engines: the native engine on 1 and 2 threads, onnxruntime and PyTorch batched (one call per time
+step for all runs), onnxruntime and PyTorch batch-1 loops (one call per run per step), against the
+machine's ceiling: a large float32 GEMM measured in the same run, converted to steps/s at the
+model's ~141,800 FLOP per step. Every engine does the whole loop (model, decode, controller,
+encode, slide the window). Long cases are measured on fewer steps or runs and the rate reported
+(``measured`` says how many run-steps were timed), so the whole run takes a few minutes.
+
+    python benchmarks/bench_native.py [--out bench_out/bench_native.json] [--quick]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import time
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+
+from envi_py import native
+from envi_py.controllers import ControllerSpec
+from envi_py.dataset import Normaliser
+from envi_py.export import INPUT, to_onnx
+from envi_py.logs import LANE_KEEPING_SCHEMA
+from envi_py.model import Checkpoint, EnvModel, ModelConfig, TrainingRecord
+
+FLOP_PER_STEP = 2 * (20 * 256 + 256 * 256 + 256 * 1)  # multiply-adds of the three layers: 141,824
+THREADS = 2
+SPEC = ControllerSpec("lane-keeping", {"x": 30})
+
+
+def paper_model(seed: int = 0) -> Checkpoint:
+    torch.manual_seed(seed)
+    return Checkpoint(EnvModel(ModelConfig(1, 1)).eval(), Normaliser.from_schema(LANE_KEEPING_SCHEMA),
+                      LANE_KEEPING_SCHEMA, TrainingRecord("bc", seed))
+
+
+def init_windows(n: int, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    color = rng.uniform(5, 80, (n, 10))
+    return np.stack([color, np.sign(color - 40) * 30], axis=2)
+
+
+class Loop:
+    """The closed loop around any batched ``predict(x float32 (B, 20)) -> z (B, 1)``, as numpy."""
+
+    def __init__(self, ck: Checkpoint, predict: Callable[[np.ndarray], np.ndarray]) -> None:
+        self.norm, self.predict = ck.norm, predict
+
+    def run(self, init: np.ndarray, steps: int) -> None:
+        w = self.norm.encode(init).astype(np.float32)
+        for _ in range(steps):
+            z = self.predict(w.reshape(w.shape[0], -1))[:, 0].astype(np.float64)
+            s = np.clip(z * self.norm.half[0] + self.norm.centre[0], 0, 100)
+            a = np.sign(s - 40) * 30
+            row = self.norm.encode(np.stack([s, a], axis=1)).astype(np.float32)
+            w = np.concatenate([w[:, 1:], row[:, None]], axis=1)
+
+
+def timed(fn: Callable[[], None], repeat: int = 1) -> float:
+    best = float("inf")
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t0)
+    return best
+
+
+def gemm_ceiling(n: int = 4096) -> dict[str, float]:
+    """Best float32 GEMM rate of numpy's BLAS and of PyTorch on all threads, in FLOP/s."""
+    a = np.random.default_rng(0).random((n, n), dtype=np.float32)
+    a @ a
+    np_rate = 2 * n**3 / timed(lambda: a @ a, 3)
+    t = torch.from_numpy(a)
+    torch.mm(t, t)
+    torch_rate = 2 * n**3 / timed(lambda: torch.mm(t, t), 3)
+    return {"numpy_flops": np_rate, "torch_flops": torch_rate, "flops": max(np_rate, torch_rate)}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", default="bench_out/bench_native.json")
+    ap.add_argument("--quick", action="store_true", help="smaller budgets (a smoke run, not the figures)")
+    args = ap.parse_args(argv)
+    if not native.available():
+        raise SystemExit("the native engine is not built (pip install -e .)")
+    budget = 2e5 if args.quick else 2e6  # run-steps timed per native case
+    slow_budget = 2e4 if args.quick else 2e5  # per batched Python case
+    loop_budget = 300 if args.quick else 3000  # calls per batch-1 loop case
+
+    import onnxruntime as ort
+
+    ck = paper_model()
+    onnx_bytes = to_onnx(ck).SerializeToString()
+    compiled = native.load(onnx_bytes)
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = THREADS
+    sess = ort.InferenceSession(onnx_bytes, opts, providers=["CPUExecutionProvider"])
+    opts1 = ort.SessionOptions()
+    opts1.intra_op_num_threads = 1
+    sess1 = ort.InferenceSession(onnx_bytes, opts1, providers=["CPUExecutionProvider"])
+    torch.set_num_threads(THREADS)
+
+    def torch_predict(x: np.ndarray) -> np.ndarray:
+        with torch.no_grad():
+            return ck.model(torch.from_numpy(x))[0].numpy()
+
+    engines: dict[str, Callable[[np.ndarray, int], None]] = {
+        "native 1 thread": lambda init, t: native.rollout_metrics(compiled, SPEC, init, t, threads=1),
+        "native 2 threads": lambda init, t: native.rollout_metrics(compiled, SPEC, init, t, threads=2),
+        "onnxruntime batched": Loop(ck, lambda x: sess.run(None, {INPUT: x})[0]).run,
+        "pytorch batched": Loop(ck, torch_predict).run,
+        "onnxruntime batch-1 loop": None,
+        "pytorch batch-1 loop": None,
+    }
+    loops = {"onnxruntime batch-1 loop": Loop(ck, lambda x: sess1.run(None, {INPUT: x})[0]),
+             "pytorch batch-1 loop": Loop(ck, torch_predict)}
+
+    ceiling = gemm_ceiling()
+    ceiling_steps = ceiling["flops"] / FLOP_PER_STEP
+    rows = []
+    for n in (1, 100, 10_000):
+        for steps in (25, 1000):
+            init = init_windows(n)
+            for name in engines:
+                if name in loops:  # one run at a time: time enough calls, the rate does not depend on N
+                    runs = max(1, min(n, int(loop_budget // steps)))
+                    t = max(1, min(steps, int(loop_budget)))
+                    sec = timed(lambda: [loops[name].run(init[i:i + 1], t) for i in range(runs)])
+                    measured = runs * t
+                else:
+                    cap = budget if name.startswith("native") else slow_budget
+                    t = max(1, min(steps, int(cap // n)))
+                    sec = timed(lambda: engines[name](init, t), repeat=2 if n * t < cap / 4 else 1)
+                    measured = n * t
+                rate = measured / sec
+                rows.append({"engine": name, "N": n, "T": steps, "steps_per_s": rate, "measured_run_steps": measured})
+                print(f"  N={n:>5} T={steps:>4} {name:<26} {rate:>14,.0f} steps/s", flush=True)
+
+    def rate(engine: str, n: int, t: int) -> float:
+        return next(r["steps_per_s"] for r in rows if r["engine"] == engine and r["N"] == n and r["T"] == t)
+
+    ratios = {
+        "native2/ort_batched@N=10000,T=1000": rate("native 2 threads", 10_000, 1000) / rate("onnxruntime batched", 10_000, 1000),
+        "native2/ceiling@N=10000,T=1000": rate("native 2 threads", 10_000, 1000) / ceiling_steps,
+        "native1_batch1/ort_batch1_loop@N=1,T=1000": rate("native 1 thread", 1, 1000) / rate("onnxruntime batch-1 loop", 1, 1000),
+    }
+    targets = {"native2/ort_batched@N=10000,T=1000": 1.2, "native2/ceiling@N=10000,T=1000": 0.75,
+               "native1_batch1/ort_batch1_loop@N=1,T=1000": 4.0}
+
+    engines_order = list(engines)
+    print(f"\nclosed-loop steps/s, paper model 20-256-256-1 + lane-keeping ({native.variant()})")
+    print(f"GEMM ceiling: {ceiling['flops'] / 1e9:.1f} GFLOP/s = {ceiling_steps:,.0f} steps/s "
+          f"at {FLOP_PER_STEP:,} FLOP/step")
+    head = f"{'N':>6} {'T':>5} " + " ".join(f"{e:>16.16}" for e in engines_order)
+    print(head)
+    for n in (1, 100, 10_000):
+        for steps in (25, 1000):
+            print(f"{n:>6} {steps:>5} " + " ".join(f"{rate(e, n, steps):>16,.0f}" for e in engines_order))
+    print()
+    for k, v in ratios.items():
+        print(f"{k:<45} {v:6.2f}  (target >= {targets[k]:g}: {'met' if v >= targets[k] else 'NOT met'})")
+
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps({
+        "model": "20-256-256-1 tanh, lane-keeping x=30", "flop_per_step": FLOP_PER_STEP,
+        "native_variant": native.variant(), "threads": THREADS, "cpu": platform.processor() or platform.machine(),
+        "cores": os.cpu_count(), "ceiling": {**ceiling, "steps_per_s": ceiling_steps},
+        "results": rows, "ratios": ratios, "targets": targets, "quick": args.quick}, indent=1) + "\n")
+    print(f"wrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
