@@ -189,3 +189,17 @@ def test_brick_controller_matches_envi(color: float, angle: float) -> None:
     from envi_py.controllers import LaneKeeping as EnviLK
 
     assert LaneKeeping(30)(color) == angle == EnviLK(30)(np.array([[color]]))[0, 0]
+
+
+def test_catching_up_never_repeats_a_time_stamp() -> None:
+    """After a lock-step timeout the late ticks run back to back; with an instant host and no work
+    time they would all happen in one millisecond, and a log's time must strictly increase."""
+    clock = Clock()
+    host = ScriptedHost(clock, delay=0, withhold=frozenset({5}))
+    brick = make(host, clock, Hardware(clock))
+    brick.run(4, P.MODE_LOCKSTEP, 12, 0, 0)
+    tel = host.of(P.TELEMETRY)
+    stamps = [t[1] for t in tel]
+    assert [t[0] for t in tel] == list(range(12))
+    assert all(b > a for a, b in zip(stamps, stamps[1:])), stamps
+    assert stamps[6] - stamps[5] == 1  # caught up as fast as the stamps allow

@@ -242,3 +242,26 @@ def ctrl_c(sim: BrickSim, tmp_path: Path) -> None:
     assert not second.meta.provenance["complete"] and second.meta.provenance["end_reason"] == "interrupted"
     assert 0 < len(second) < 100
     check_rows_follow_controller(second)
+
+
+def test_hil_over_a_faulty_link_reports_every_timeout(tmp_path: Path) -> None:
+    sim = BrickSim(tmp_path, "--world", "firmware_bridge.host.world:EdgeWorld",
+                   "--faults", "drop=0.05,flip=0.03,rx_drop=0.05,seed=2")
+    out = tmp_path / "hil"
+    try:
+        collect_ok("--port", str(sim.link), "--duration", "4s", "--out", str(out),
+                   "--inject", "firmware_bridge.host.inject:WorldModel")
+    finally:
+        sim.stop()
+    lg = read_log(out / "hil_30_0.csv")
+    prov = lg.meta.provenance
+    check_rows_follow_controller(lg)
+    hil = prov["hil"]
+    # a lost colour (host->brick) or a lost answer (brick->host, so no next colour) leaves the brick
+    # waiting in vain: it says so for that tick instead of making a value up
+    assert hil["timeouts"] > 0 and prov["lost_frames"]["host_to_brick"] > 0
+    assert prov["brick_report"]["timeouts"] == hil["timeouts"]
+    missing = {k for a, b in prov["gaps"] for k in range(a, b + 1)}
+    assert set(hil["timeout_ticks"]) <= missing
+    assert len(lg) + len(missing) == 100
+    assert len(missing) <= hil["timeouts"] + prov["lost_frames"]["brick_to_host"]

@@ -95,9 +95,12 @@ class Brick:
         self.send(P.STARTED, (run_id, mode, period))
         tk = Ticker(period, self._ms() + period, self._diff)  # one period for the host to get ready
         timeouts = 0
+        last = None  # when the previous tick's colour was had (its time stamp)
         while tk.tick < n_ticks and not self.stop_requested:
             while tk.wait_ms(self._ms()) > 0:
                 self.service(tk.wait_ms(self._ms()))
+            while last is not None and self._diff(self._ms(), last) <= 0:
+                self.service(1)  # late ticks catch up, but two readings never share a ms time stamp
             tick = tk.tick
             begin = self._us()
             flags = 0
@@ -116,7 +119,8 @@ class Brick:
                 color = self.latest[1]
                 age = self._diff(self._ms(), self.latest[2])
                 flags = P.FLAG_INJECTED | (P.FLAG_STALE if self.latest[0] < tick else 0)
-            stamp = tk.since_t0(self._ms())  # when the colour was had
+            last = self._ms()
+            stamp = tk.since_t0(last)  # when the colour was had
             if color is None:
                 timeouts += 1
                 flags |= P.FLAG_TIMEOUT

@@ -177,14 +177,17 @@ def main(argv: list[str] | None = None) -> int:
     prefix = args.prefix or ("log" if model is None else "hil")
     link: Link | None = None
     written = incomplete = 0
-    bar = tqdm(total=args.runs, unit="run", disable=args.quiet, dynamic_ncols=True)
+    bar = tqdm(unit="row", disable=args.quiet, dynamic_ncols=True)  # total known after the first handshake
     try:
         for i in range(args.first_run, args.first_run + args.runs):
             link, info, clock = connect(link, args.port, args.reconnect, args.pings)
             n_ticks = max(1, int(round(args.duration * 1000 / info.period_ms)))
+            if bar.total is None:
+                bar.reset(total=n_ticks * args.runs)
+            bar.set_description(f"run {i - args.first_run + 1}/{args.runs}")
             init = initial_window(model, args.init_log, info) if model is not None else None
             run = Run(link, info, i & 0xFFFF, mode, n_ticks, model, init,
-                      silence=max(1.0, 10 * info.period_ms / 1000))
+                      silence=max(1.0, 10 * info.period_ms / 1000), on_row=lambda _tick: bar.update(1))
             try:
                 r = run.execute()
             except KeyboardInterrupt:
@@ -197,7 +200,7 @@ def main(argv: list[str] | None = None) -> int:
             if r.end_reason == "disconnect":
                 link.close()
                 link = None
-            bar.update(1)
+            bar.update(n_ticks * (i - args.first_run + 1) - bar.n)  # missing rows still count as done
     except KeyboardInterrupt:
         bar.close()
         print("envi-collect: interrupted; the logs written so far are complete files", file=sys.stderr)
