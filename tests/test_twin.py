@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import argparse
 import json
-from pathlib import Path
-
 import numpy as np
 import pytest
 
@@ -14,7 +12,6 @@ from envi_py.logs import DatasetSpec, load_logs, read_log
 from envi_py.twin import EFFECTS, TwinProfile, TwinWorld, default_profile, generate, parse_effects, resolve, write_logs
 from envi_py.twin.cli import register
 
-REAL = Path("/work/shared/data/lane-keeping-fot")
 BARE = TwinProfile()  # no effects: every test switches on exactly what it checks
 LOOP = TwinProfile(effects={"delay": 1, "rate_limit": 800})  # a realistic limit cycle to change
 LK = ControllerSpec("lane-keeping", {"x": 30})
@@ -228,9 +225,8 @@ def test_cli_generate_and_effects(tmp_path, capsys):
     assert bad.func(bad) == 2
 
 
-@pytest.mark.skipif(not REAL.is_dir(), reason="real logs not available")
-def test_cli_calibrate_runs_end_to_end(tmp_path):
-    args = _parser().parse_args(["twin", "calibrate", "--logs", str(REAL), "--pattern", "log_{x}_1{run}.csv",
+def test_cli_calibrate_runs_end_to_end(tmp_path, real_dir):
+    args = _parser().parse_args(["twin", "calibrate", "--logs", str(real_dir), "--pattern", "log_{x}_1{run}.csv",
                                  "--budget", "2", "--quiet", "--out", str(tmp_path)])
     assert args.func(args) == 0
     prof = TwinProfile.load(tmp_path / "profile.json")
@@ -240,14 +236,12 @@ def test_cli_calibrate_runs_end_to_end(tmp_path):
     assert (tmp_path / "traces.png").stat().st_size > 10000 and "30" in summary["versions"]
 
 
-@pytest.mark.skipif(not REAL.is_dir(), reason="real logs not available")
-def test_shipped_profile_reproduces_its_reported_fit():
+def test_shipped_profile_reproduces_its_reported_fit(real_logs):
     from envi_py.twin.report import fit_summary, headline
 
     prof = default_profile()
     assert prof.fit, "the shipped profile carries its calibration summary"
-    logs = load_logs(REAL, DatasetSpec(pattern="log_{x}_{run}.csv"))
-    again = headline(fit_summary(prof, logs, prof.fit["key"], seed=prof.fit["seed"])[0])
+    again = headline(fit_summary(prof, real_logs, prof.fit["key"], seed=prof.fit["seed"])[0])
     for x, h in prof.fit["headline"].items():
         assert again[x]["within_2x"] == h["within_2x"]
         for k in ("median_w1_ratio", "period_twin", "amplitude_twin"):

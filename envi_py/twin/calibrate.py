@@ -1,8 +1,8 @@
 """Fit the twin's profile to real logs of several controller versions at once, and report the fit.
 
 The loss is what the project verifies against: per controller version, the Wasserstein-1 distance
-of each of the eight goal metrics and of four oscillation statistics (period, amplitude, mean and
-spread of the colour), each divided by its real-vs-real floor (same distance between two random
+of each of the eight goal metrics and of six run statistics (oscillation period and amplitude, mean
+and spread of the colour, the safety/comfort pair), each divided by its real-vs-real floor (same distance between two random
 halves of the real runs). A loss of 1 means "as close to reality as reality is to itself".
 Sampling jitter and quantisation are estimated directly from the logs, not searched.
 """
@@ -19,27 +19,29 @@ from scipy import stats
 
 from envi_py.controllers import ControllerSpec
 from envi_py.logs import Log, group_by_param
-from envi_py.metrics import METRIC_NAMES, MetricConfig, driving_metrics, metric_bounds
+from envi_py.metrics import METRIC_NAMES, MetricConfig, driving_metrics, metric_bounds, safety_comfort
 
 from .effects import resolve
 from .generate import simulate
 from .profile import TwinProfile
 
-STAT_NAMES: tuple[str, ...] = ("period", "amplitude", "colour_mean", "colour_sd")
+STAT_NAMES: tuple[str, ...] = ("period", "amplitude", "colour_mean", "colour_sd", "safety", "comfort")
 
 
 def run_stats(color: np.ndarray, threshold: float = 40.0) -> np.ndarray:
-    """Per run (R, T) -> (R, 4): oscillation period (ticks, from crossings of the threshold),
-    amplitude (half the 5..95 percentile range), colour mean and colour sd."""
+    """Per run (R, T) -> (R, 6): oscillation period (ticks, from crossings of the threshold),
+    amplitude (half the 5..95 percentile range), colour mean and sd, and the safety/comfort pair
+    of :func:`envi_py.metrics.safety_comfort` (so their Gaussian KL divergence is fitted too)."""
     above = color > threshold
     crossings = (above[:, 1:] != above[:, :-1]).sum(1)
     period = 2 * (color.shape[1] - 1) / np.maximum(crossings, 1)
     lo, hi = np.percentile(color, [5, 95], axis=1)
-    return np.stack([period, (hi - lo) / 2, color.mean(1), color.std(1)], axis=1)
+    sc = safety_comfort(color, MetricConfig(centre=threshold, skip=0))
+    return np.stack([period, (hi - lo) / 2, color.mean(1), color.std(1), sc[:, 0], sc[:, 1]], axis=1)
 
 
 def features(color: np.ndarray, cfg: MetricConfig) -> np.ndarray:
-    """The 12 per-run quantities compared: 8 goal metrics (scaled by their range) and 4 statistics."""
+    """The 14 per-run quantities compared: 8 goal metrics (scaled by their range) and 6 statistics."""
     lo, hi = metric_bounds(color.shape[1] - cfg.skip, cfg)
     return np.concatenate([driving_metrics(color, cfg) / (hi - lo), run_stats(color[:, cfg.skip:], cfg.centre)], 1)
 
@@ -112,6 +114,7 @@ SPACE: tuple[tuple[str, float, float, bool], ...] = (
     ("noise.sigma", 0.0, 4.0, False),
     ("lowpass.tau_ms", 1.0, 60.0, True),
     ("white", 60.0, 85.0, False),
+    ("gamma", 0.4, 2.5, True),
     ("run_variation.white_sd", 0.0, 8.0, False),
     ("run_variation.speed_sd", 0.0, 0.25, False),
     ("run_variation.grip_sd", 0.0, 0.25, False),
@@ -133,8 +136,32 @@ def to_profile(u: np.ndarray, base: TwinProfile) -> TwinProfile:
             effects.setdefault(eff, resolve({}, {eff: True})[eff])[par] = round(float(v), 5)
         else:
             phys[name] = round(float(v), 5)
-    effects = {k: v for k, v in effects.items() if not (k == "delay" and v["ticks"] == 0)}
+    searched: dict[str, list[str]] = {}
+    for name, *_ in SPACE:
+        if "." in name:
+            searched.setdefault(name.split(".")[0], []).append(name.split(".")[1])
+    effects = {k: v for k, v in effects.items() if k not in searched or any(v[p] != 0 for p in searched[k])}
     return base.replace(**phys, effects=effects)
+
+
+def from_profile(profile: TwinProfile) -> np.ndarray:
+    """Profile -> unit-cube point (inverse of :func:`to_profile`); an absent effect maps to its
+    neutral value (zero, or the fastest steering), so a search can start from any profile."""
+    u = []
+    for name, lo, hi, log in SPACE:
+        if "." in name:
+            eff, par = name.split(".")
+            if eff in profile.effects:
+                v = resolve({}, {eff: profile.effects[eff]})[eff][par]
+            else:
+                v = 0.0 if lo <= 0 <= hi else (hi if eff == "rate_limit" else lo)
+            if eff == "delay":
+                v += 0.5  # the middle of the interval that floors to this many ticks
+        else:
+            v = getattr(profile, name)
+        v = min(max(v, lo), hi)
+        u.append((math.log(v) - math.log(lo)) / (math.log(hi) - math.log(lo)) if log else (v - lo) / (hi - lo))
+    return np.array(u)
 
 
 def twin_color(profile: TwinProfile, spec: ControllerSpec, runs: int, steps: int, seed: int) -> np.ndarray:
@@ -143,7 +170,7 @@ def twin_color(profile: TwinProfile, spec: ControllerSpec, runs: int, steps: int
 
 
 def ratios(profile: TwinProfile, tgts: list[Target], cfg: MetricConfig, runs: int, seed: int) -> np.ndarray:
-    """(X, 12) twin-vs-real W1 over the real-vs-real floor, per target and feature."""
+    """(X, 14) twin-vs-real W1 over the real-vs-real floor, per target and feature."""
     out = []
     for i, t in enumerate(tgts):
         color = twin_color(profile, t.spec, runs, t.color.shape[1], seed + i)
@@ -158,19 +185,24 @@ def loss_of(r: np.ndarray) -> float:
 
 def calibrate(logs: list[Log], key: str = "x", cfg: MetricConfig = MetricConfig(), budget_s: float = 420.0,
               runs: int = 160, seed: int = 0, base: TwinProfile | None = None,
-              progress: Callable[[str], None] | None = None) -> TwinProfile:
-    """Random search then a shrinking (1+4) evolution strategy in the unit cube, common random
-    numbers (fixed seed) so the loss is deterministic. Stops at ``budget_s`` seconds."""
+              start: TwinProfile | None = None, progress: Callable[[str], None] | None = None) -> TwinProfile:
+    """Random search then a shrinking (1+4) evolution strategy with restarts in the unit cube, common
+    random numbers (fixed seed) so the loss is deterministic. Stops at ``budget_s`` seconds.
+    ``start`` (e.g. the shipped profile) is the first candidate, so a refit never ends worse than it."""
     say = progress or (lambda s: None)
     period, jitter = estimate_timing(logs)
     effects = {"jitter": jitter, "quantise": {"step": 1.0}}
     base = (base or TwinProfile()).replace(period_ms=period, effects=effects)
     tgts = targets(logs, key, cfg)
     rng = np.random.default_rng(seed)
-    start = _time.monotonic()
+    t0 = _time.monotonic()
     best_u, best = None, math.inf
     n_random = 0
-    while _time.monotonic() - start < budget_s * 0.3 or best_u is None:
+    if start is not None:
+        best_u = from_profile(start)
+        best = loss_of(ratios(to_profile(best_u, base), tgts, cfg, runs // 2, seed))
+        say(f"start: loss {best:.3f}")
+    while _time.monotonic() - t0 < budget_s * 0.3 or best_u is None:
         u = rng.random(len(SPACE))
         f = loss_of(ratios(to_profile(u, base), tgts, cfg, runs // 2, seed))
         n_random += 1
@@ -180,7 +212,7 @@ def calibrate(logs: list[Log], key: str = "x", cfg: MetricConfig = MetricConfig(
     best = loss_of(ratios(to_profile(best_u, base), tgts, cfg, runs, seed))  # same runs as the search below
     step = 0.15
     evals = n_random
-    while _time.monotonic() - start < budget_s:
+    while _time.monotonic() - t0 < budget_s:
         if step < 0.005:  # converged locally: restart the steps around the best point
             step = 0.1
         improved = False
@@ -194,5 +226,5 @@ def calibrate(logs: list[Log], key: str = "x", cfg: MetricConfig = MetricConfig(
         if improved:
             say(f"es {evals}: loss {best:.3f} step {step:.3f}")
     prof = to_profile(best_u, base)
-    say(f"done after {evals} evaluations, {_time.monotonic() - start:.0f} s, loss {best:.3f}")
+    say(f"done after {evals} evaluations, {_time.monotonic() - t0:.0f} s, loss {best:.3f}")
     return prof

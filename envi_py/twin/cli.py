@@ -40,7 +40,7 @@ def cmd_effects(args: argparse.Namespace) -> int:
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
     from .calibrate import calibrate
-    from .report import headline, write_report
+    from .report import write_calibration
 
     try:
         logs = load_logs(args.logs, DatasetSpec(pattern=args.pattern))
@@ -48,12 +48,12 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         print(f"envi twin calibrate: {exc}", file=sys.stderr)
         return 2
     budget = 25.0 if args.quick else args.budget
+    start = TwinProfile.load(args.start) if args.start else None
     prof = calibrate(logs, key=args.key, budget_s=budget, runs=60 if args.quick else 160, seed=args.seed,
-                     progress=None if args.quiet else print)
+                     start=start, progress=None if args.quiet else print)
     out = Path(args.out)
-    summary = write_report(prof, logs, out, key=args.key)
-    prof.fit = {"seed": summary["seed"], "key": args.key, "headline": headline(summary)}
-    path = prof.save(out / "profile.json")
+    prof, _ = write_calibration(prof, logs, out, key=args.key)
+    path = out / "profile.json"
     for x, h in prof.fit["headline"].items():
         print(f"{args.key}={x}: {h['within_2x']}/8 metrics within 2x floor, median W1 ratio {h['median_w1_ratio']:.2f}")
     print(f"profile: {path}\nreport: {out / 'report.md'} {out / 'report.json'} {out / 'traces.png'}")
@@ -88,6 +88,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--budget", type=float, default=420.0, help="search time in seconds")
     p.add_argument("--quick", action="store_true", help="a 25 s search (for tests and smoke runs)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--start", default=None, help="profile JSON to start the search from (e.g. the shipped one)")
     p.add_argument("--quiet", action="store_true")
     p.add_argument("--out", required=True)
     p.set_defaults(func=cmd_calibrate)

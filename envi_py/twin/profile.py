@@ -30,6 +30,7 @@ class TwinProfile:
     ahead: float = 40.0  # sensor distance ahead of the rear axle, mm
     black: float = 5.0
     white: float = 75.0
+    gamma: float = 1.0  # sensor non-linearity: reading = black + (white - black) * blend ** gamma
     period_ms: float = 40.0  # nominal control period, before jitter
     warmup: int = 40  # unlogged ticks before a run, so a log starts inside the limit cycle
     effects: dict[str, Any] = field(default_factory=dict)

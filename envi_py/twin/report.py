@@ -116,7 +116,7 @@ def plot(traces: dict[Any, tuple[np.ndarray, np.ndarray]], path: Path, show: int
     axes[-1, 0].set_xlabel("tick")
     axes[-1, 1].set_xlabel("colour")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=80)
     plt.close(fig)
 
 
@@ -137,3 +137,12 @@ def headline(summary: dict[str, Any]) -> dict[str, dict[str, float]]:
                 "within_2x": v["within_2x"], "period_twin": v["stats"]["period"]["twin"],
                 "amplitude_twin": v["stats"]["amplitude"]["twin"]}
             for x, v in summary["versions"].items()}
+
+
+def write_calibration(profile: TwinProfile, logs: list[Log], out_dir: Path, key: str = "x",
+                      cfg: MetricConfig = MetricConfig()) -> tuple[TwinProfile, dict[str, Any]]:
+    """Report on a fitted profile and save it as ``profile.json`` with its headline fit attached."""
+    summary = write_report(profile, logs, out_dir, key, cfg)
+    fitted = profile.replace(fit={"seed": summary["seed"], "key": key, "headline": headline(summary)})
+    fitted.save(out_dir / "profile.json")
+    return fitted, summary

@@ -58,10 +58,14 @@ class Batch:
         return np.cumsum(self.rng.exponential(spacing, (self.n, k)), axis=1) - spacing / 2
 
     def _surface(self) -> np.ndarray:
-        """Reflectance under the sensor spot: a smooth step across the edge."""
+        """Reflectance under the sensor spot: a smooth step across the edge, bent by the sensor's
+    non-linearity (the real readings linger longer on the white side than a linear blend would)."""
         ys = self.y + self.p.ahead * np.sin(self.psi)
         u = np.clip(ys / self.p.spot + 0.5, 0.0, 1.0)
-        return self.p.black + (self.white_run - self.p.black) * u * u * (3 - 2 * u)
+        blend = u * u * (3 - 2 * u)
+        if self.p.gamma != 1.0:
+            blend = blend ** self.p.gamma
+        return self.p.black + (self.white_run - self.p.black) * blend
 
     def read(self) -> np.ndarray:
         """The colour readings now, shape (N,), after the sensor effects."""
