@@ -255,3 +255,20 @@ def test_envi_sim_writes_logs_and_metrics_like_python(tmp_path, real_dir):
     assert json.loads((tmp_path / "m2.json").read_text())["per_run"] == out["per_run"]
     bad = subprocess.run(cmd[:2] + [str(tmp_path / "nope.onnx")] + cmd[3:] + ["--metrics", "-"], capture_output=True, text=True)
     assert bad.returncode == 1 and "nope.onnx" in bad.stderr
+
+
+@pytest.mark.skipif(envi_sim() is None, reason="envi_sim binary not built")
+def test_envi_sim_metrics_only_memory_is_flat(tmp_path, real_dir):
+    model = export(paper_ckpt(), tmp_path / "m.onnx")
+    probe = ("import resource, subprocess, sys; subprocess.run(sys.argv[1:], check=True, stdout=subprocess.DEVNULL); "
+             "print(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)")
+
+    def peak_kib(runs: int) -> int:
+        cmd = [envi_sim(), "--model", str(model), "--init", str(real_dir / "log_30_0.csv"), "--controller",
+               json.dumps(LANE.to_json()), "--steps", "40", "--runs", str(runs), "--metrics-only", "--metrics", "-"]
+        return int(subprocess.run([sys.executable, "-c", probe, *cmd], capture_output=True, text=True,
+                                  check=True).stdout)
+
+    small, large = peak_kib(500), peak_kib(50_000)
+    # 50 000 kept traces would be 50000 x 50 x 2 doubles = 40 MB; streaming keeps a chunk's worth
+    assert large - small < 8 * 1024, (small, large)

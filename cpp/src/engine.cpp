@@ -161,7 +161,7 @@ long total_runs(const Job& job) { return job.n_runs > 0 ? job.n_runs : job.windo
 int block_size(const Job& job) {
   long n = job.windows * job.runs;
   long quarter = ((n + 3) / 4 + 7) / 8 * 8;  // at least four blocks for small jobs, so threads have work
-  return int(std::max<long>(1, std::min<long>({long(job.block), std::max<long>(32, quarter), n})));
+  return int(std::max<long>(1, std::min<long>({long(job.block), std::max<long>(64, quarter), n})));
 }
 
 }  // namespace
