@@ -96,7 +96,8 @@ def load(model: str | os.PathLike | Checkpoint | bytes) -> Any:
 
 
 def _compiled(model: Any) -> Any:
-    return model if type(model).__name__ == "Model" and hasattr(model, "history") else load(model)
+    """A model compiled once by :func:`load` is reused as is; anything else is loaded now."""
+    return model if isinstance(model, _native().Model) else load(model)
 
 
 def _spec_json(controller: ControllerSpec) -> str:
