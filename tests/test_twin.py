@@ -246,3 +246,18 @@ def test_shipped_profile_reproduces_its_reported_fit(real_logs):
         assert again[x]["within_2x"] == h["within_2x"]
         for k in ("median_w1_ratio", "period_twin", "amplitude_twin"):
             assert again[x][k] == pytest.approx(h[k], rel=1e-6)
+
+
+def test_profile_save_load_and_search_space_round_trip(tmp_path):
+    from envi_py.twin.calibrate import SPACE, from_profile, to_profile
+
+    prof = default_profile()
+    assert TwinProfile.load(prof.save(tmp_path / "p.json")) == prof
+    base = prof.replace(effects={k: prof.effects[k] for k in ("jitter", "quantise")})
+    back = to_profile(from_profile(prof), base)
+    assert back.effects == prof.effects
+    for name, *_ in SPACE:
+        if "." not in name:
+            assert getattr(back, name) == pytest.approx(getattr(prof, name), rel=1e-4)
+    with pytest.raises(ValueError, match="unknown field"):
+        TwinProfile.from_json({"speed": 1.0, "sped": 2.0})

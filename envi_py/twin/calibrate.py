@@ -113,6 +113,7 @@ SPACE: tuple[tuple[str, float, float, bool], ...] = (
     ("rate_limit.deg_per_s", 150.0, 3000.0, True),
     ("noise.sigma", 0.0, 4.0, False),
     ("lowpass.tau_ms", 1.0, 60.0, True),
+    ("black", 2.0, 10.0, False),
     ("white", 60.0, 85.0, False),
     ("gamma", 0.4, 2.5, True),
     ("run_variation.white_sd", 0.0, 8.0, False),
