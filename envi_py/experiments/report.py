@@ -121,7 +121,7 @@ def to_markdown(summary: dict[str, Any], meta: dict[str, Any]) -> str:
              "same between two halves of the real test logs (FOT vs FOT).", ""]
     for uc, s in summary.items():
         for x, v in s["versions"].items():
-            algos = list(v["cells"])
+            algos = [a for a in meta["algorithms"] if a in v["cells"]]
             ns = sorted({int(n) for a in algos for n in v["cells"][a]})
             for key, label, scale in (("acc", "accuracy (%)", 100.0), ("w1", "mean normalised W1", 1.0),
                                       ("kld", "safety/comfort KLD", 1.0)):
@@ -159,7 +159,8 @@ def to_markdown(summary: dict[str, Any], meta: dict[str, Any]) -> str:
                   "interval over repetitions and, in brackets, the geometric mean over all repetitions (the "
                   "authors' figure: BCxGAIL 0.80 at n=20, about 6.5 at n=3, FOT-vs-FOT about 0.62).", "",
                   "| algorithm | " + " | ".join(f"n={n}" for n in ns) + " |", "|---|" + "---:|" * len(ns)]
-        for a, cells in g.items():
+        for a in [a for a in meta["algorithms"] if a in g]:
+            cells = g[a]
             lines.append(f"| {a} | " + " | ".join(f"{_fmt(tuple(cells[str(n)]), 1.0, 3)} [{pooled[a][str(n)]:.3f}]"
                                                    if str(n) in cells else "-" for n in ns) + " |")
         lines.append("")
