@@ -119,9 +119,16 @@ SPACE: tuple[tuple[str, float, float, bool], ...] = (
     ("run_variation.white_sd", 0.0, 8.0, False),
     ("run_variation.speed_sd", 0.0, 0.25, False),
     ("run_variation.grip_sd", 0.0, 0.25, False),
+    ("steer_limit.pos_deg", 20.0, 90.0, False),
+    ("steer_limit.neg_deg", 20.0, 90.0, False),
     ("curvature.mean_per_m", -6.0, 6.0, False),
     ("curvature.amp_per_m", 0.0, 4.0, False),
 )
+
+
+def _neutral(effect: str, lo: float, hi: float) -> float:
+    """The searched value at which an effect does nothing: zero, or the fastest/widest steering."""
+    return 0.0 if lo <= 0 <= hi else (hi if effect in ("rate_limit", "steer_limit") else lo)
 
 
 def to_profile(u: np.ndarray, base: TwinProfile) -> TwinProfile:
@@ -137,17 +144,19 @@ def to_profile(u: np.ndarray, base: TwinProfile) -> TwinProfile:
             effects.setdefault(eff, resolve({}, {eff: True})[eff])[par] = round(float(v), 5)
         else:
             phys[name] = round(float(v), 5)
-    searched: dict[str, list[str]] = {}
-    for name, *_ in SPACE:
+    searched: dict[str, list[tuple[str, float]]] = {}
+    for name, lo, hi, _ in SPACE:
         if "." in name:
-            searched.setdefault(name.split(".")[0], []).append(name.split(".")[1])
-    effects = {k: v for k, v in effects.items() if k not in searched or any(v[p] != 0 for p in searched[k])}
+            eff, par = name.split(".")
+            searched.setdefault(eff, []).append((par, _neutral(eff, lo, hi)))
+    effects = {k: v for k, v in effects.items()
+               if k not in searched or any(v[p] != neutral for p, neutral in searched[k])}
     return base.replace(**phys, effects=effects)
 
 
 def from_profile(profile: TwinProfile) -> np.ndarray:
     """Profile -> unit-cube point (inverse of :func:`to_profile`); an absent effect maps to its
-    neutral value (zero, or the fastest steering), so a search can start from any profile."""
+    neutral value (zero, or the fastest and widest steering), so a search can start from any profile."""
     u = []
     for name, lo, hi, log in SPACE:
         if "." in name:
@@ -155,7 +164,7 @@ def from_profile(profile: TwinProfile) -> np.ndarray:
             if eff in profile.effects:
                 v = resolve({}, {eff: profile.effects[eff]})[eff][par]
             else:
-                v = 0.0 if lo <= 0 <= hi else (hi if eff == "rate_limit" else lo)
+                v = _neutral(eff, lo, hi)
             if eff == "delay":
                 v += 0.5  # the middle of the interval that floors to this many ticks
         else:

@@ -83,7 +83,7 @@ class Batch:
         return c
 
     def _target(self, command: np.ndarray) -> np.ndarray:
-        """Command after delay, dead zone and backlash: where the steering is asked to go."""
+        """Command after delay, dead zone, backlash and end stops: where the steering is asked to go."""
         fx = self.fx
         if self.queue:
             self.queue.append(command)
@@ -95,6 +95,8 @@ class Batch:
             half = fx["backlash"]["width_deg"] / 2
             self.play = np.clip(self.play, command - half, command + half)
             command = self.play
+        if "steer_limit" in fx:
+            command = np.clip(command, -fx["steer_limit"]["neg_deg"], fx["steer_limit"]["pos_deg"])
         return command
 
     def apply(self, angle_deg: np.ndarray, dt_s: np.ndarray | float) -> None:
