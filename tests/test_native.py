@@ -213,7 +213,8 @@ def test_gil_is_released_while_simulating():
     stop.set()
     th.join()
     inside = [t for t in ticks if t0 < t < t1]
-    assert t1 - t0 > 0.05 and len(inside) > 0.3 * (t1 - t0) / 0.0011
+    # holding the GIL would starve the ticker for the whole call; a loaded machine only slows it
+    assert t1 - t0 > 0.05 and len(inside) >= max(3, 0.1 * (t1 - t0) / 0.0011)
 
 
 def envi_sim() -> str | None:
