@@ -20,7 +20,12 @@ from .logs import DatasetSpec, Log, LogError, load_logs, write_log
 from .metrics import MetricConfig
 
 #: Subcommands contributed by other parts of the project: "module:function" taking the subparsers.
-PLUGINS: tuple[str, ...] = ("envi_py.diagnose.cli:register",)
+PLUGINS: tuple[str, ...] = (
+    "envi_py.twin.cli:register",
+    "envi_py.experiments.cli:register",
+    "envi_py.diagnose.cli:register",
+    "firmware_bridge.host.brick_sim:register",
+)
 
 
 def parse_where(items: Sequence[str] | None) -> dict[str, list[Any]] | None:
