@@ -1,4 +1,4 @@
-"""``envi diagnose``: the diagnosis of a model against real logs, and ``envi diagnose validate``."""
+"""``envi diagnose``: the diagnosis of a model against real logs."""
 
 from __future__ import annotations
 
@@ -13,14 +13,6 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
     from .report import write_diagnosis
     from .run import diagnose
 
-    if args.validate_command == "validate":
-        from .validate import run_validation
-
-        run_validation(Path(args.out), effects=args.effects, seeds=args.seeds, epochs=args.epochs,
-                       runs=args.runs, seed=args.seed)
-        return 0
-    if not args.model or not args.real:
-        raise ValueError("--model and --real are required (or use 'envi diagnose validate')")
     ckpt = Checkpoint.load(args.model)
     hist = ckpt.config.history
     real = read_logs(args, "real", min_length=hist + 1)
@@ -35,13 +27,13 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
 
 
 def register(sub: Any) -> None:
-    """Add ``diagnose`` (and its ``validate`` mode) to the ``envi`` subcommands."""
+    """Add ``diagnose`` to the ``envi`` subcommands."""
     from ..cli import add_log_args, add_metric_args
 
     p = sub.add_parser("diagnose", help="where the sim-to-real gap lies, which effect causes it, "
                                         "how far it shrinks once added")
-    add_log_args(p, "--real", required=False, help="real logs to diagnose against (choose + confirm)")
-    p.add_argument("--model", default=None, help="checkpoint to diagnose")
+    add_log_args(p, "--real", help="real logs to diagnose against (choose + confirm)")
+    p.add_argument("--model", required=True, help="checkpoint to diagnose")
     p.add_argument("--confirm", nargs="*", default=None,
                    help="confirmation logs, used neither for training nor for choosing the effect "
                         "(default: half of --real, per controller version)")
@@ -51,11 +43,6 @@ def register(sub: Any) -> None:
     p.add_argument("--top", type=int, default=2, help="how many significant effects to retrain with")
     p.add_argument("--no-retrain", action="store_true", help="skip the retraining (step 3)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--effects", nargs="*", default=None, help="validate: twin effects to test (default all)")
-    p.add_argument("--seeds", type=int, default=20, help="validate: seeds per effect")
-    p.add_argument("--epochs", type=int, default=150, help="validate: BC epochs per model")
     add_metric_args(p)
     p.add_argument("--out", default="diagnosis", help="output folder")
-    p.add_argument("validate_command", nargs="?", choices=("validate",), default=None,
-                   help="'validate': score the diagnosis on twin data whose effect is withheld")
     p.set_defaults(func=_cmd_diagnose)
