@@ -16,7 +16,7 @@ from __future__ import annotations
 import platform
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 import torch
@@ -90,18 +90,27 @@ class ModelConfig:
         return self.kind == "random" or self.head == "gaussian"
 
 
+def mlp(in_features: int, hidden: Sequence[int], activation: type[nn.Module], out_features: int | None = None) -> nn.Sequential:
+    """Linear + activation per hidden width, then an optional linear output layer: the one network
+    shape the environment model, the GAIL discriminator and the PPO critic share."""
+    layers: list[nn.Module] = []
+    width = in_features
+    for h in hidden:
+        layers += [nn.Linear(width, h), activation()]
+        width = h
+    if out_features is not None:
+        layers.append(nn.Linear(width, out_features))
+    return nn.Sequential(*layers)
+
+
 class EnvModel(nn.Module):
     """delta_v on normalised values. ``forward`` gives the mean next state (and log-std if Gaussian)."""
 
     def __init__(self, config: ModelConfig) -> None:
         super().__init__()
         self.config = config
-        layers: list[nn.Module] = []
-        width = config.in_features
-        for h in config.hidden:
-            layers += [nn.Linear(width, h), nn.Tanh()]
-            width = h
-        self.body = nn.Sequential(*layers)
+        self.body = mlp(config.in_features, config.hidden, nn.Tanh)
+        width = config.hidden[-1] if config.hidden else config.in_features
         self.mean = nn.Linear(width, config.n_state)
         self.log_std = nn.Linear(width, config.n_state) if config.head == "gaussian" else None
 

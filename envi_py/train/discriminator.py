@@ -12,19 +12,15 @@ from typing import Sequence
 import torch
 from torch import nn
 
+from ..model import mlp
+
 
 class Discriminator(nn.Module):
     """D(window, next state) as a logit; ``sigmoid(logit)`` is the probability that the pair is real."""
 
     def __init__(self, in_features: int, hidden: Sequence[int] = (256, 256)) -> None:
         super().__init__()
-        layers: list[nn.Module] = []
-        width = in_features
-        for h in hidden:
-            layers += [nn.Linear(width, h), nn.ReLU()]
-            width = h
-        layers.append(nn.Linear(width, 1))
-        self.net = nn.Sequential(*layers)
+        self.net = mlp(in_features, hidden, nn.ReLU, 1)
 
     def forward(self, window: torch.Tensor, next_state: torch.Tensor) -> torch.Tensor:
         return self.net(torch.cat([window, next_state], dim=-1)).squeeze(-1)

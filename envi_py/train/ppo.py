@@ -12,6 +12,8 @@ from typing import Sequence
 import torch
 from torch import nn
 
+from ..model import mlp
+
 
 class ValueNet(nn.Module):
     """V(window, time-to-go): an MLP with tanh hidden layers, one output.
@@ -23,13 +25,7 @@ class ValueNet(nn.Module):
 
     def __init__(self, in_features: int, hidden: Sequence[int] = (256, 256)) -> None:
         super().__init__()
-        layers: list[nn.Module] = []
-        width = in_features + 1
-        for h in hidden:
-            layers += [nn.Linear(width, h), nn.Tanh()]
-            width = h
-        layers.append(nn.Linear(width, 1))
-        self.net = nn.Sequential(*layers)
+        self.net = mlp(in_features + 1, hidden, nn.Tanh, 1)
 
     def forward(self, obs: torch.Tensor, to_go: torch.Tensor) -> torch.Tensor:
         return self.net(torch.cat([obs, to_go.unsqueeze(-1)], dim=-1)).squeeze(-1)
