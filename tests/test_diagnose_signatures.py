@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from envi_py.dataset import Normaliser
-from envi_py.diagnose.effects import CANDIDATES, holm, run_candidates
+from envi_py.diagnose.effects import CANDIDATES, holm, lattice_step, run_candidates
 from envi_py.diagnose.residuals import BEYOND, Residuals
 from envi_py.logs import LANE_KEEPING_SCHEMA
 from envi_py.model import Checkpoint, EnvModel, ModelConfig, TrainingRecord
@@ -21,22 +21,29 @@ def ckpt() -> Checkpoint:
 
 
 def synthetic(r_extra=None, seed: int = 0, noise: float = 0.05) -> Residuals:
-    """Residuals of a well-fitting model (tiny white noise) on an oscillating closed loop."""
+    """Residuals of a well-structured model on an oscillating closed loop: tiny white noise plus a
+    misfit that is a smooth function of the window (which no test may mistake for an effect).
+
+    Each run is the same limit cycle at its own phase, so every window has look-alike windows in
+    other runs, as in real closed-loop logs."""
     rng = np.random.default_rng(seed)
     n = RUNS * ROWS
     run = np.repeat(np.arange(RUNS), ROWS)
     row = np.tile(np.arange(HIST, HIST + ROWS), RUNS)
-    state = 40 + 30 * np.sin(row / 3.0 + run)
+    phase = row / 3.0 + 2 * np.pi * rng.random(RUNS)[run]
+    state = 40 + 30 * np.sin(phase)
     action = np.sign(state - 40) * 30
-    pred = 40 + 30 * np.sin((row + 1) / 3.0 + run)
-    since = np.tile(np.arange(ROWS) % 8, RUNS).astype(float)
-    direction = np.tile(np.where((np.arange(ROWS) // 8) % 2 == 0, 1.0, -1.0), RUNS)
+    pred = 40 + 30 * np.sin(phase + 1 / 3.0)
+    since = np.tile(np.arange(ROWS) % 24, RUNS).astype(float)
+    direction = np.tile(np.where((np.arange(ROWS) // 24) % 2 == 0, 1.0, -1.0), RUNS)
     dt = 40 + rng.normal(0, 4, n)
-    window = rng.normal(size=(n, HIST * 2))
+    lags = phase[:, None] - np.arange(HIST)[None, :] / 3.0
+    window = np.stack([np.sin(lags), np.sign(np.sin(lags))], axis=2).reshape(n, HIST * 2)
     beyond = rng.normal(size=(n, BEYOND * 2))
-    res = Residuals(r=rng.normal(0, noise, n), pred_std=None, predicted=pred, real_next=pred + 0.3, state=state,
-                    action=action, run=run, row=row, dt=dt, window=window, beyond=beyond, since_change=since,
-                    change_dir=direction)
+    misfit = 0.5 * np.sin(2 * phase)
+    res = Residuals(r=misfit + rng.normal(0, noise, n), pred_std=None, predicted=pred, real_next=pred + 0.3,
+                    state=state, action=action, run=run, row=row, dt=dt, window=window, beyond=beyond,
+                    since_change=since, change_dir=direction)
     if r_extra is not None:
         res.r = res.r + r_extra(res, rng)
     res.real_next = res.predicted + res.r
@@ -48,7 +55,7 @@ CASES = {
     "drift": lambda res, rng: 0.05 * (res.row - 50),
     "run_to_run": lambda res, rng: rng.normal(0, 1.0, RUNS)[res.run],
     "memory_delay": lambda res, rng: 1.5 * res.beyond[:, 0],
-    "backlash": lambda res, rng: np.where(res.since_change <= 3, 2.0 * res.change_dir, 0.0),
+    "backlash": lambda res, rng: np.where(res.since_change >= HIST - 1, 2.0 * res.change_dir, 0.0),
     "jitter": lambda res, rng: 0.8 * (res.dt / 40 - 1) * (res.predicted - res.state) * 10,
 }
 
@@ -66,7 +73,7 @@ def test_clean_residuals_show_no_significant_effect():
         assert not any(f.significant for f in findings), [(f.effect, f.p_holm, f.share) for f in findings]
 
 
-def test_quantisation_seen_only_when_readings_are_integers_and_model_does_not_round():
+def test_quantisation_seen_only_when_readings_sit_on_a_lattice_and_model_does_not_round():
     res = synthetic(lambda res, rng: rng.normal(0, 0.3, len(res)))
     res.real_next = np.round(res.real_next)
     res.r = res.real_next - res.predicted
@@ -77,12 +84,26 @@ def test_quantisation_seen_only_when_readings_are_integers_and_model_does_not_ro
     assert next(x for x in CANDIDATES if x.name == "quantisation").test(res, c)[1] == 1.0
 
 
-def test_saturation_when_predictions_leave_the_observed_range():
+def test_quantisation_finds_the_lattice_step_and_fixes_with_it():
+    res = synthetic(lambda res, rng: rng.normal(0, 1.0, len(res)))
+    res.real_next = np.round(res.real_next / 4) * 4
+    res.r = res.real_next - res.predicted
+    finding = run_candidates(res, ckpt())[0]
+    assert finding.effect == "quantisation" and finding.significant and finding.fix == {"round_to": (4.0,)}
+    assert lattice_step(res.predicted) is None
+
+
+def test_saturation_when_real_readings_pile_up_at_a_limit():
     res = synthetic()
-    res.real_next = np.clip(res.predicted, 20, 60)
+    res.real_next = np.clip(res.predicted + res.r, 20, 60)
     res.r = res.real_next - res.predicted
     finding = next(f for f in run_candidates(res, ckpt()) if f.effect == "saturation")
     assert finding.significant and finding.fix == {"limits": ((20.0, 60.0),)}
+
+
+def test_no_saturation_for_a_smooth_response_reaching_its_extremes():
+    finding = next(f for f in run_candidates(synthetic(), ckpt()) if f.effect == "saturation")
+    assert not finding.significant and finding.p > 0.05
 
 
 def test_gaussian_model_calibrated_noise_is_not_flagged():

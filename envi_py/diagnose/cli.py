@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import json
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -13,6 +15,8 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
     from .report import write_diagnosis
     from .run import diagnose
 
+    if not args.model or not args.real:
+        args.parser.error("envi diagnose needs --model and --real (or the 'validate' mode)")
     ckpt = Checkpoint.load(args.model)
     hist = ckpt.config.history
     real = read_logs(args, "real", min_length=hist + 1)
@@ -26,14 +30,36 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_validate(args: argparse.Namespace) -> int:
+    from .validate import CASES, Size, run_validation, score, to_markdown
+
+    known = {c.name: c for c in CASES}
+    unknown = set(args.cases or ()) - set(known)
+    if unknown:
+        args.parser.error(f"unknown case(s) {', '.join(sorted(unknown))}; known: {', '.join(known)}")
+    cases = [known[n] for n in args.cases] if args.cases else list(CASES)
+    size = Size(train=args.train, val=args.val, diagnose=args.diag, steps=args.steps, epochs=args.epochs,
+                lr=args.lr, history=args.history, runs=args.runs)
+    out = Path(args.out)
+    results = run_validation(out, cases, range(args.first_seed, args.first_seed + args.seeds), args.mode, size,
+                             args.shrink_seeds, args.jobs)
+    scores = [score(results, m) for m in args.mode]
+    md = to_markdown(scores, size)
+    (out / "report.md").write_text(md + "\n")
+    (out / "scores.json").write_text(json.dumps([asdict(s) for s in scores], indent=1) + "\n")
+    print(md)
+    print(f"report: {out / 'report.md'}")
+    return 0
+
+
 def register(sub: Any) -> None:
     """Add ``diagnose`` to the ``envi`` subcommands."""
     from ..cli import add_log_args, add_metric_args
 
     p = sub.add_parser("diagnose", help="where the sim-to-real gap lies, which effect causes it, "
                                         "how far it shrinks once added")
-    add_log_args(p, "--real", help="real logs to diagnose against (choose + confirm)")
-    p.add_argument("--model", required=True, help="checkpoint to diagnose")
+    add_log_args(p, "--real", required=False, help="real logs to diagnose against (choose + confirm)")
+    p.add_argument("--model", help="checkpoint to diagnose")
     p.add_argument("--confirm", nargs="*", default=None,
                    help="confirmation logs, used neither for training nor for choosing the effect "
                         "(default: half of --real, per controller version)")
@@ -45,4 +71,28 @@ def register(sub: Any) -> None:
     p.add_argument("--seed", type=int, default=0)
     add_metric_args(p)
     p.add_argument("--out", default="diagnosis", help="output folder")
-    p.set_defaults(func=_cmd_diagnose)
+    p.set_defaults(func=_cmd_diagnose, parser=p)
+
+    from .validate import Size, default_jobs
+
+    modes = p.add_subparsers(dest="diagnose_mode", metavar="validate")
+    v = modes.add_parser("validate", help="score the diagnosis on twin data whose effect is known and withheld")
+    d = Size()
+    v.add_argument("--cases", nargs="*", default=None, help="validation cases (default: all, incl. the negative control)")
+    v.add_argument("--seeds", type=int, default=20, help="seeds per case (default 20)")
+    v.add_argument("--first-seed", type=int, default=0)
+    v.add_argument("--mode", nargs="+", choices=("withheld", "verification"), default=["withheld", "verification"],
+                   help="withheld: effect in all logs, missing from the model; verification: effect only in "
+                        "the logs verified against")
+    v.add_argument("--shrink-seeds", type=int, default=5, help="seeds per case that also retrain with the fix")
+    v.add_argument("--jobs", type=int, default=default_jobs(), help="parallel trials")
+    v.add_argument("--train", type=int, default=d.train, help="training logs per trial")
+    v.add_argument("--val", type=int, default=d.val, help="validation logs per trial")
+    v.add_argument("--diag", type=int, default=d.diagnose, help="logs diagnosed per trial (half choose, half confirm)")
+    v.add_argument("--steps", type=int, default=d.steps, help="rows per log")
+    v.add_argument("--epochs", type=int, default=d.epochs)
+    v.add_argument("--lr", type=float, default=d.lr)
+    v.add_argument("--history", type=int, default=d.history)
+    v.add_argument("--runs", type=int, default=d.runs, help="simulated runs per initial window")
+    v.add_argument("--out", default="diagnosis-validation", help="output folder (results.jsonl resumes)")
+    v.set_defaults(func=_cmd_validate, parser=v)

@@ -1,9 +1,12 @@
 """Candidate unmodelled effects: a statistical signature in the residuals and the model change that adds it.
 
-Every test returns a p-value and a *share*: the fraction of the residual mean square the effect
-accounts for. Residuals of one run are serially correlated (closed loop), so tests that treat
-residuals as samples use an effective sample size ``n (1 - rho) / (1 + rho)`` from the lag-1
-autocorrelation. P-values are Holm-corrected over all candidates; an effect is reported as
+Most tests work on matched pairs (:class:`~.residuals.Pairs`): each residual against the one whose
+window is nearest among the other runs. A model's misfit is a smooth function of its window and
+cancels in the difference; an unmodelled effect does not, because it depends on something the
+window does not hold (rows before it, time in the run, the interval, the run, noise). Every test
+returns a p-value and a *share*: the fraction of the (differenced) residual mean square the effect
+accounts for. Residuals of one run are serially correlated (closed loop), so the tests use an
+effective sample size ``n (1 - rho) / (1 + rho)`` from the lag-1 autocorrelation. P-values are Holm-corrected over all candidates; an effect is reported as
 significant when its corrected p-value is below ``alpha`` *and* its share is at least
 ``min_share`` (with thousands of residuals, a real but negligible effect would otherwise be
 flagged). Significant candidates are ranked by share.
@@ -55,171 +58,247 @@ def n_eff(res: Residuals, n: int | None = None) -> float:
     return max(10.0, n * (1 - rho) / (1 + rho))
 
 
-def _ms(res: Residuals) -> float:
-    return float(np.mean(res.r ** 2)) or 1e-12
-
-
 def _ols_rss(y: np.ndarray, x: np.ndarray) -> float:
     coef, *_ = np.linalg.lstsq(x, y, rcond=None)
     return float(np.sum((y - x @ coef) ** 2))
 
 
+def _fit_dof(y: np.ndarray, x: np.ndarray, run: np.ndarray) -> tuple[float, float, int]:
+    """RSS of ``y`` on ``x``, the effective sample size from the lag-1 autocorrelation of the
+    fitted residuals within runs (the alternative's residuals: an effect's own persistence must
+    not be counted as serial correlation), and the rank of ``x``."""
+    coef, _, rank, _ = np.linalg.lstsq(x, y, rcond=None)
+    e = y - x @ coef
+    same = run[1:] == run[:-1]
+    a, b = e[:-1][same], e[1:][same]
+    rho = float(np.clip(np.corrcoef(a, b)[0, 1], 0.0, 0.95)) if len(a) > 2 and a.std() > 0 and b.std() > 0 else 0.0
+    return float(np.sum(e ** 2)), max(10.0, len(y) * (1 - rho) / (1 + rho)), int(rank)
+
+
+def _diff(res: Residuals, v: np.ndarray) -> np.ndarray:
+    """``v_i - v_j`` over the matched pairs."""
+    p = res.pairs
+    return v[p.i] - v[p.j]
+
+
+def _change(res: Residuals) -> np.ndarray:
+    """The change of state the model predicts: anything that scales motion (speed, interval) scales it."""
+    return res.predicted - res.state
+
+
+def _null(res: Residuals) -> np.ndarray:
+    """What a residual difference owes to the (small) difference of the two windows: the model's
+    misfit to first order. Every test asks for more than this."""
+    return np.column_stack([np.ones(len(res.pairs)), _diff(res, res.window)])
+
+
+def _f_test(res: Residuals, x: np.ndarray, mask: np.ndarray | None = None) -> tuple[float, float, float]:
+    """Do the pair differences ``x`` explain the residual differences? F statistic, p-value and the
+    share of the differenced mean square they explain (beyond what chance explains)."""
+    y = _diff(res, res.r)
+    if mask is not None:
+        y, x = y[mask], x[mask]
+    if len(y) < 30 or x.ndim == 1 and np.allclose(x, 0):
+        return 0.0, 1.0, 0.0
+    x = x.reshape(len(y), -1)
+    x0 = _null(res) if mask is None else _null(res)[mask]
+    run = res.run[res.pairs.i] if mask is None else res.run[res.pairs.i][mask]
+    return _compare(y, x0, np.column_stack([x0, x]), run)
+
+
+def _compare(y: np.ndarray, x0: np.ndarray, x1: np.ndarray, run: np.ndarray) -> tuple[float, float, float]:
+    """F test of the nested regressions ``x0`` within ``x1``, and the share of ``y``'s mean square
+    the added columns explain beyond what as many columns of noise would."""
+    rss0, _, rank0 = _fit_dof(y, x0, run)
+    rss1, ne, rank1 = _fit_dof(y, x1, run)
+    q = max(rank1 - rank0, 1)
+    dof = max(ne - rank1, 5)
+    f = ((rss0 - rss1) / q) / max(rss1 / dof, 1e-300)
+    share = max(0.0, (rss0 - rss1) - q * rss1 / dof) / max(float(np.sum(y ** 2)), 1e-300)
+    return float(f), float(stats.f.sf(f, q, dof)), float(share)
+
+
+def lattice_step(v: np.ndarray) -> float | None:
+    """The step of the lattice the readings sit on (``k * step + offset``), or None if they are
+    continuous: far fewer distinct values than readings, all at multiples of the smallest gap."""
+    u = np.unique(np.asarray(v, dtype=np.float64))
+    if len(u) < 2 or len(u) > max(2, len(v) // 4):
+        return None
+    step = float(np.min(np.diff(u)))
+    k = (u - u[0]) / step
+    return step if np.all(np.abs(k - np.round(k)) < 1e-6) else None
+
+
+def _beyond_mask(res: Residuals) -> np.ndarray:
+    p = res.pairs
+    return ~(np.isnan(res.beyond[p.i]).any(axis=1) | np.isnan(res.beyond[p.j]).any(axis=1))
+
+
 def test_memory(res: Residuals, ckpt: Checkpoint) -> tuple[float, float, float, str]:
-    """Memory or delay beyond the window: do inputs *before* the window explain residuals that the
-    window itself (linearly) does not? Only past inputs are used: in closed loop, future inputs are
+    """Memory or delay beyond the window: between windows that look alike, do the rows *before*
+    the window explain the residuals? Only past rows are used: in closed loop, later inputs are
     caused by the residual and prove nothing."""
-    mask = ~np.isnan(res.beyond).any(axis=1)
-    y = res.r[mask]
-    if len(y) < 50:
-        return 0.0, 1.0, 0.0, "too few windows with history before them"
-    x0 = np.column_stack([np.ones(len(y)), res.window[mask]])
-    x1 = np.column_stack([x0, res.beyond[mask]])
-    rss0, rss1 = _ols_rss(y, x0), _ols_rss(y, x1)
-    q = res.beyond.shape[1]
-    dof = max(n_eff(res, len(y)) - x1.shape[1], 5)
-    f = ((rss0 - rss1) / q) / (rss1 / dof)
-    share = (rss0 - rss1) / float(np.sum(y ** 2))
-    return float(f), float(stats.f.sf(f, q, dof)), float(share), \
-        f"inputs up to {res.beyond.shape[1] // ckpt.config.channels} rows before the window explain " \
-        f"{share:.1%} of the residual mean square"
+    mask = _beyond_mask(res)
+    x = np.nan_to_num(_diff(res, res.beyond))
+    f, p, share = _f_test(res, x, mask)
+    return f, p, share, f"the {res.beyond.shape[1] // ckpt.config.channels} rows before the window explain " \
+                        f"{share:.1%} of the residual differences between look-alike windows"
 
 
-def _unexplained(res: Residuals) -> tuple[np.ndarray, np.ndarray]:
-    """Residuals minus their linear fit on every observable input (window and rows before it), with
-    their run indices: what no input explains, so another effect's trace is not mistaken for noise."""
-    mask = ~np.isnan(res.beyond).any(axis=1)
-    if mask.sum() < 50:
-        return res.r, res.run
-    x = np.column_stack([np.ones(int(mask.sum())), res.window[mask], res.beyond[mask]])
-    coef, *_ = np.linalg.lstsq(x, res.r[mask], rcond=None)
-    return res.r[mask] - x @ coef, res.run[mask]
+def _features(res: Residuals, ckpt: Checkpoint) -> np.ndarray:
+    """Every pair difference some candidate suspects, so noise is what none of them explains."""
+    g = _change(res)
+    period = ckpt.record.period_ms or float(np.median(res.dt))
+    cols = [np.nan_to_num(_diff(res, res.beyond)), _diff(res, res.row.astype(float)),
+            _diff(res, res.row * g), _diff(res, (res.dt / period - 1) * g), _diff(res, _backlash_side(res, ckpt))]
+    return np.column_stack(cols)
 
 
 def test_noise(res: Residuals, ckpt: Checkpoint) -> tuple[float, float, float, str]:
-    """Unmodelled noise: the white part of what no input explains (half the mean square of
-    successive differences within a run) against the noise the model predicts (its Gaussian
-    variance), or for a deterministic model against the resolution floor (a quantised sensor's
-    step^2/12, and at least 0.5% of the state's range)."""
-    u, run = _unexplained(res)
-    same = run[1:] == run[:-1]
-    white = float(np.mean(np.diff(u)[same] ** 2) / 2)
+    """Unmodelled noise: half the squared residual difference of look-alike windows, extrapolated to
+    zero window distance (misfit grows with distance, noise does not) after removing what the other
+    candidates explain, against the variance the model predicts (Gaussian head) or, for a
+    deterministic model, the resolution floor (a lattice's step^2/12, at least (0.5% of range)^2)."""
+    p = res.pairs
+    y = _diff(res, res.r)
+    x = np.column_stack([_null(res), _features(res, ckpt), _run_effects(res)])
+    coef, *_ = np.linalg.lstsq(x, y, rcond=None)
+    h = (y - x @ coef) ** 2 / 2
+    a = np.column_stack([np.ones(len(h)), p.d2])
+    coef2, *_ = np.linalg.lstsq(a, h, rcond=None)
+    white = float(coef2[0])
+    dof = max(n_eff(res, len(h)) - 2, 5)
+    se = float(np.sqrt(np.sum((h - a @ coef2) ** 2) / dof * np.linalg.inv(a.T @ a)[0, 0]))
     if res.pred_std is not None:
-        ref = float(np.mean(res.pred_std ** 2))
+        ref = float(np.mean((res.pred_std[p.i] ** 2 + res.pred_std[p.j] ** 2) / 2))
         what = "the model's predicted variance"
     else:
+        step = lattice_step(res.real_next) or 0.0
         span = float(np.ptp(res.real_next)) or 1.0
-        step = 1.0 if np.all(np.abs(res.real_next - np.round(res.real_next)) < 1e-9) else 0.0
         ref = max(step ** 2 / 12, (0.005 * span) ** 2)
         what = "the resolution floor"
-    ratio = white / max(ref, 1e-12)
-    dof = n_eff(res)
-    p = float(stats.chi2.sf(ratio * dof, dof))
-    return ratio, p, min(1.0, white / _ms(res)), \
-        f"white residual variance {white:.3g} is {ratio:.2f}x {what} ({ref:.3g})"
+    tstat = (white - ref) / max(se, 1e-300)
+    share = max(0.0, 2 * (white - ref)) / max(float(np.mean(y ** 2)), 1e-300)
+    return white / max(ref, 1e-12), float(stats.t.sf(tstat, dof)), min(1.0, share), \
+        f"white residual variance {white:.3g} (look-alike windows, zero distance) is {white / max(ref, 1e-12):.2f}x " \
+        f"{what} ({ref:.3g})"
 
 
 def test_quantisation(res: Residuals, ckpt: Checkpoint) -> tuple[float, float, float, str]:
-    """Sensor quantisation: the real readings sit on an integer lattice but the model's do not."""
+    """Sensor quantisation: the real readings sit on a lattice but the model's predictions do not;
+    rounding adds step^2/12 of variance the model cannot reproduce."""
+    step = lattice_step(res.real_next)
+    if step is None:
+        return 0.0, 1.0, 0.0, "the real readings are continuous"
     if ckpt.config.round_to is not None:
-        return 0.0, 1.0, 0.0, "the model already rounds its output"
-    v = res.real_next
-    on = np.abs(v - np.round(v)) < 1e-9
-    k, n = int(on.sum()), len(v)
-    p = float(stats.binom.sf(k - 1, n, 0.05)) if k else 1.0
-    share = min(1.0, (1 / 12) / _ms(res)) if k == n else 0.0
-    return k / n, p, share, f"{k / n:.1%} of real readings are integers; rounding error variance 1/12 is " \
-                            f"{share:.1%} of the residual mean square"
+        return 0.0, 1.0, 0.0, f"the model already rounds its output (readings on a {step:g} lattice)"
+    n = len(res.real_next)
+    off = np.abs(res.predicted / step - np.round(res.predicted / step)) > 1e-6
+    k = int(off.sum())
+    p = float(stats.binom.sf(k - 1, n, 0.5)) if k else 1.0  # a lattice model would be off never
+    share = min(1.0, 2 * (step ** 2 / 12) / max(float(np.mean(_diff(res, res.r) ** 2)), 1e-300))
+    return step, p, share, f"real readings sit on a lattice of step {step:g}; rounding error variance " \
+                           f"{step ** 2 / 12:.3g} is {share:.1%} of the differenced residual mean square"
 
 
 def test_saturation(res: Residuals, ckpt: Checkpoint) -> tuple[float, float, float, str]:
-    """Saturation at range limits: the model predicts beyond the range the real state ever reaches."""
-    lo, hi = float(res.real_next.min()), float(res.real_next.max())
-    margin = 0.01 * (hi - lo)
-    out = (res.predicted > hi + margin) | (res.predicted < lo - margin)
-    k, n = int(out.sum()), len(res)
-    p = float(stats.binom.sf(k - 1, n, 0.01)) if k else 1.0
-    share = float(np.sum(res.r[out] ** 2) / np.sum(res.r ** 2)) if k else 0.0
-    return k / n, p, share, f"{k / n:.1%} of predictions leave the observed range [{lo:g}, {hi:g}]"
+    """Saturation at range limits: real readings pile up at their extreme value (at least 3x the
+    mass of the adjacent bin, or of the busiest inner value when readings sit on a lattice;
+    tested one-sided), which no smooth response produces. Its share is
+    that of the residual differences of pairs with a reading at the limit (or a prediction beyond
+    it, or a clipped reading in its window): there a reading says only that the state is somewhere
+    past the limit."""
+    v = res.real_next
+    lo, hi = float(v.min()), float(v.max())
+    step = lattice_step(v)
+    if step is not None:  # every reading sits on a value: compare with the busiest inner value
+        values, counts = np.unique(v, return_counts=True)
+        inner = int(counts[1:-1].max()) if len(counts) > 2 else 0
+        adjacent = [inner, inner]
+    else:
+        width = 0.02 * (hi - lo)
+        adjacent = [int(np.sum((v < hi) & (v >= hi - width))), int(np.sum((v > lo) & (v <= lo + width)))]
+    best = (0.0, 1.0, np.zeros(len(v), bool), "")
+    for edge, adj in zip((hi, lo), adjacent):
+        at = np.abs(v - edge) < 1e-9
+        k, m = int(at.sum()), int(at.sum()) + adj
+        p = float(stats.binom.sf(k - 1, m, 0.75)) if k > 1 else 1.0
+        if p < best[1]:
+            best = (k / max(1, m - k), p, at, f"{k / len(v):.1%} of real readings sit exactly at {edge:g}")
+    ratio, p, at, detail = best
+    if not at.any():
+        return 0.0, 1.0, 0.0, "no pile-up at the range limits"
+    edge = float(v[at][0])
+    cfg = ckpt.config
+    z = (edge - ckpt.norm.centre[0]) / ckpt.norm.half[0]
+    seen = np.abs(res.window[:, ::cfg.row_width] - z) < 1e-5 * max(1.0, abs(z))  # state 0 of each row
+    hit = at | seen.any(axis=1) | (res.predicted > hi) | (res.predicted < lo)
+    pr = res.pairs
+    y = _diff(res, res.r)
+    share = float(np.sum(y[hit[pr.i] | hit[pr.j]] ** 2) / max(float(np.sum(y ** 2)), 1e-300))
+    return float(ratio), p, share, f"{detail}, {ratio:.1f}x the adjacent bin"
 
 
 def test_drift(res: Residuals, ckpt: Checkpoint) -> tuple[float, float, float, str]:
-    """Drift within a run: the per-run slope of residuals against time, tested across runs
-    (one slope per run, so serial correlation within a run does not inflate the test)."""
-    slopes, fitted = [], np.zeros_like(res.r)
-    for run in np.unique(res.run):
-        m = res.run == run
-        t = res.row[m] - res.row[m].mean()
-        if len(t) < 5 or np.all(t == 0):
-            continue
-        b = float(np.sum(t * res.r[m]) / np.sum(t * t))
-        slopes.append(b)
-    if len(slopes) < 3:
-        return 0.0, 1.0, 0.0, "too few runs"
-    slopes_a = np.array(slopes)
-    tstat, p = stats.ttest_1samp(slopes_a, 0.0)
-    for run in np.unique(res.run):
-        m = res.run == run
-        fitted[m] = slopes_a.mean() * (res.row[m] - res.row[m].mean())
-    share = float(np.mean(fitted ** 2) / _ms(res))
-    return float(tstat), float(p), share, f"residuals drift by {slopes_a.mean():+.3g} per row on average " \
-                                          f"({len(slopes)} runs)"
+    """Drift within a run: between look-alike windows at different times of their runs, do the
+    residuals differ with time, as an offset or as a gain on the predicted change (a sagging
+    battery slows every move)?"""
+    t = res.row.astype(float)
+    x = np.column_stack([_diff(res, t), _diff(res, t * _change(res))])
+    f, p, share = _f_test(res, x)
+    return f, p, share, f"time in the run explains {share:.1%} of the residual differences between look-alike windows"
+
+
+def _run_effects(res: Residuals) -> np.ndarray:
+    """Per-run offset and gain on the predicted change, for the first residual of each pair."""
+    p = res.pairs
+    g = _change(res)[p.i]
+    runs, idx = np.unique(res.run[p.i], return_inverse=True)
+    dummies = np.zeros((len(p), len(runs)))
+    dummies[np.arange(len(p)), idx] = 1.0
+    return np.column_stack([dummies, dummies * g[:, None]])
 
 
 def test_run_to_run(res: Residuals, ckpt: Checkpoint) -> tuple[float, float, float, str]:
-    """Run-to-run variation: spread of per-run residual means against the spread expected from
-    within-run variation, estimated by half-run differences (which share the serial correlation)."""
-    means, halves = [], []
-    for run in np.unique(res.run):
-        r = res.r[res.run == run]
-        if len(r) < 6:
-            continue
-        h = len(r) // 2
-        means.append(r.mean())
-        halves.append((r[:h].mean() - r[h:2 * h].mean()) / 2)
-    if len(means) < 3:
+    """Run-to-run variation: residual differences against look-alike windows of other runs, grouped
+    by run, differ between runs (in offset and in gain on the predicted change) more than chance."""
+    p = res.pairs
+    y = _diff(res, res.r)
+    runs = np.unique(res.run[p.i])
+    if len(runs) < 3:
         return 0.0, 1.0, 0.0, "too few runs"
-    m, d = np.array(means), np.array(halves)
-    f = float(np.var(m, ddof=1) / max(np.mean(d ** 2), 1e-12))
-    p = float(stats.f.sf(f, len(m) - 1, len(d)))
-    share = float(np.var(m) / _ms(res))
-    return f, p, share, f"per-run residual means spread {np.std(m):.3g} vs {np.sqrt(np.mean(d ** 2)):.3g} " \
-                        f"expected within runs ({len(m)} runs)"
+    x0 = np.column_stack([_null(res), _change(res)[p.i]])
+    f, pv, share = _compare(y, x0, np.column_stack([x0, _run_effects(res)]), res.run[p.i])
+    return f, pv, share, \
+        f"per-run offsets and gains explain {share:.1%} of the residual differences ({len(runs)} runs)"
+
+
+def _backlash_side(res: Residuals, ckpt: Checkpoint) -> np.ndarray:
+    """Which side of its play the actuator was left on by the last action change, when that change
+    lies before the window (within it the model sees it): +1, -1 or 0."""
+    return np.where(res.since_change >= ckpt.config.history - 1, res.change_dir, 0.0)
 
 
 def test_backlash(res: Residuals, ckpt: Checkpoint) -> tuple[float, float, float, str]:
-    """Dead zone or backlash: just after the action reverses, residuals lean with (or against) the
-    direction of the change, as the actuator first has to cross its gap."""
-    recent = (res.since_change <= 3) & (res.change_dir != 0)
-    y = res.r[recent] * res.change_dir[recent]
-    if len(y) < 20:
-        return 0.0, 1.0, 0.0, "too few action reversals"
-    ne = max(5.0, n_eff(res, len(y)))
-    tstat = float(y.mean() / (y.std(ddof=1) / np.sqrt(ne)))
-    p = float(2 * stats.t.sf(abs(tstat), ne - 1))
-    share = float(len(y) * y.mean() ** 2 / np.sum(res.r ** 2))
-    return tstat, p, share, f"within 3 rows of an action change residuals lean {y.mean():+.3g} in the " \
-                            f"change's direction ({len(y)} rows)"
+    """Dead zone or backlash: between look-alike windows, residuals lean with the side of the play
+    the actuator was left on by an action change the window no longer shows."""
+    f, p, share = _f_test(res, _diff(res, _backlash_side(res, ckpt)))
+    return f, p, share, f"the side of the actuator's play explains {share:.1%} of the residual differences"
 
 
 def test_jitter(res: Residuals, ckpt: Checkpoint) -> tuple[float, float, float, str]:
-    """Sampling jitter: a longer interval lets the state move further, so residuals follow the
-    predicted change scaled by the interval's deviation from nominal."""
+    """Sampling jitter: a longer interval lets the state move further, so between look-alike windows
+    residuals follow the predicted change scaled by the interval's deviation from nominal."""
     period = ckpt.record.period_ms or float(np.median(res.dt))
-    z = (res.dt / period - 1.0) * (res.predicted - res.state)
+    z = (res.dt / period - 1.0) * _change(res)
     if np.allclose(z, 0):
         return 0.0, 1.0, 0.0, "no interval variation"
-    x = np.column_stack([np.ones(len(z)), z])
-    rss0 = float(np.sum((res.r - res.r.mean()) ** 2))
-    rss1 = _ols_rss(res.r, x)
-    dof = max(n_eff(res) - 2, 5)
-    f = (rss0 - rss1) / (rss1 / dof)
-    share = (rss0 - rss1) / float(np.sum(res.r ** 2))
-    return float(f), float(stats.f.sf(f, 1, dof)), float(share), \
-        f"the interval's deviation explains {share:.1%} of the residual mean square " \
-        f"(period sd {np.std(res.dt):.2g} ms)"
+    f, p, share = _f_test(res, _diff(res, z))
+    return f, p, share, f"the interval's deviation explains {share:.1%} of the residual differences " \
+                        f"(period sd {np.std(res.dt):.2g} ms)"
 
 
-def _longer_history(cfg: ModelConfig) -> dict[str, Any]:
+def _longer_history(cfg: ModelConfig, res: Residuals) -> dict[str, Any]:
     return {"history": cfg.history * 2}
 
 
@@ -230,23 +309,24 @@ class Candidate:
     name: str
     what: str
     test: Callable[[Residuals, Checkpoint], tuple[float, float, float, str]]
-    fix: Callable[[ModelConfig], dict[str, Any]]
+    fix: Callable[[ModelConfig, Residuals], dict[str, Any]]
     twin_effects: tuple[str, ...] = field(default=())  # twin effects this candidate stands for
 
 
 CANDIDATES: tuple[Candidate, ...] = (
     Candidate("memory_delay", "missing memory or actuation delay", test_memory, _longer_history,
               ("delay", "lag", "lowpass")),
-    Candidate("noise", "unmodelled noise", test_noise, lambda c: {"head": "gaussian"}, ("noise", "glitch")),
-    Candidate("quantisation", "sensor quantisation", test_quantisation, lambda c: {"round_to": (1.0,) * c.n_state},
+    Candidate("noise", "unmodelled noise", test_noise, lambda c, r: {"head": "gaussian"}, ("noise", "glitch")),
+    Candidate("quantisation", "sensor quantisation", test_quantisation, lambda c, r: {"round_to": (lattice_step(r.real_next) or 1.0,) * c.n_state},
               ("quantise",)),
-    Candidate("saturation", "saturation at range limits", test_saturation, lambda c: {}, ("saturation",)),
-    Candidate("drift", "drift within a run", test_drift, lambda c: {"extras": tuple(c.extras) + ("phase",)},
+    Candidate("saturation", "saturation at range limits", test_saturation,
+              lambda c, r: {"limits": ((float(r.real_next.min()), float(r.real_next.max())),)}, ("saturation",)),
+    Candidate("drift", "drift within a run", test_drift, lambda c, r: {"extras": tuple(c.extras) + ("phase",)},
               ("battery",)),
-    Candidate("run_to_run", "run-to-run variation", test_run_to_run, lambda c: {"context": True},
+    Candidate("run_to_run", "run-to-run variation", test_run_to_run, lambda c, r: {"context": True},
               ("run_variation",)),
     Candidate("backlash", "dead zone or backlash", test_backlash, _longer_history, ("backlash", "deadzone")),
-    Candidate("jitter", "sampling jitter", test_jitter, lambda c: {"extras": tuple(c.extras) + ("dt",)},
+    Candidate("jitter", "sampling jitter", test_jitter, lambda c, r: {"extras": tuple(c.extras) + ("dt",)},
               ("jitter",)),
 )
 
@@ -270,9 +350,7 @@ def run_candidates(res: Residuals, ckpt: Checkpoint, alpha: float = 0.05, min_sh
     raw = []
     for c in candidates:
         stat, p, share, detail = c.test(res, ckpt)
-        fix = c.fix(ckpt.config)
-        if c.name == "saturation":
-            fix = {"limits": ((float(res.real_next.min()), float(res.real_next.max())),)}
+        fix = c.fix(ckpt.config, res)
         raw.append(Finding(c.name, stat, p, share, detail, fix))
     adj = holm([f.p for f in raw])
     out = [Finding(f.effect, f.statistic, f.p, f.share, f.detail, f.fix, float(a),

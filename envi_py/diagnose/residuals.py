@@ -8,6 +8,7 @@ the state and action it was predicted from, the actual sampling interval, and th
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Sequence
 
 import numpy as np
@@ -37,11 +38,66 @@ class Residuals:
     dt: np.ndarray  # actual interval (ms) from the window's last row to the predicted row
     window: np.ndarray  # the window (N, l*C) in normalised units
     beyond: np.ndarray  # (N, BEYOND*C) normalised rows before the window; NaN where the log has none
-    since_change: np.ndarray  # rows since the last action change (0 = changed on the last row)
-    change_dir: np.ndarray  # sign of that last action change (0 if none seen)
+    since_change: np.ndarray  # rows since the action last reversed direction (0 = on the window's last row)
+    change_dir: np.ndarray  # the direction it reversed to (0 if none seen)
 
     def __len__(self) -> int:
         return int(self.r.shape[0])
+
+    @cached_property
+    def pairs(self) -> "Pairs":
+        """Each residual matched with its nearest window from another run (see :class:`Pairs`)."""
+        return Pairs.match(self)
+
+
+@dataclass(frozen=True)
+class Pairs:
+    """Residual ``i`` paired with ``j``, the residual whose window is nearest to ``i``'s among the
+    other runs (normalised units).
+
+    Why: a model's misfit is a smooth function of its window, so it cancels in ``r_i - r_j``; what
+    is left is what the window does not determine: noise, and anything that differs between the two
+    (time in the run, the sampling interval, the rows before the window, the run itself). The
+    candidate tests regress these differences on the differences of the quantity they suspect,
+    so the misfit of a well-structured model is not mistaken for an effect.
+    """
+
+    i: np.ndarray
+    j: np.ndarray
+    d2: np.ndarray  # squared window distance of the pair
+
+    @staticmethod
+    def match(res: "Residuals", k: int = 8) -> "Pairs":
+        from scipy.spatial import cKDTree
+
+        w = np.asarray(res.window, dtype=np.float64)
+        k = min(k, len(w))
+        dist, idx = cKDTree(w).query(w, k=k)
+        dist, idx = dist.reshape(len(w), k), idx.reshape(len(w), k)
+        other = res.run[idx] != res.run[:, None]
+        first = np.argmax(other, axis=1)
+        ok = other[np.arange(len(w)), first]
+        i = np.flatnonzero(ok)
+        j = idx[i, first[ok]]
+        return Pairs(i, j, dist[i, first[ok]] ** 2)
+
+    def __len__(self) -> int:
+        return int(self.i.shape[0])
+
+
+def _reversals(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per row: rows since the action last reversed its direction of movement (0 = on this row),
+    and the new direction (+1/-1; 0 before any). A bang-bang action reverses at every change; a
+    continuous one at its peaks and troughs: where an actuator's play has to be crossed."""
+    move = np.concatenate([[0.0], np.sign(np.diff(a))])
+    since, direction = np.full(len(a), 10.0 ** 6), np.zeros(len(a))
+    last_dir, last_idx = 0.0, -1
+    for t in range(len(a)):
+        if move[t] != 0 and move[t] != last_dir:
+            last_dir, last_idx = move[t], t
+        if last_idx >= 0:
+            since[t], direction[t] = t - last_idx, last_dir
+    return since, direction
 
 
 @torch.no_grad()
@@ -79,15 +135,7 @@ def one_step_residuals(ckpt: Checkpoint, logs: Sequence[Log]) -> Residuals:
             if len(block):
                 beyond[j, (BEYOND - len(block)) * ch:] = block.ravel()
         parts["beyond"].append(beyond)
-        a = lg.actions[:, 0]
-        change = np.concatenate([[0.0], np.sign(np.diff(a))])
-        last_idx = -1
-        since, direction = np.empty(len(a)), np.empty(len(a))
-        for t in range(len(a)):
-            if change[t] != 0:
-                last_idx = t
-            since[t] = t - last_idx if last_idx >= 0 else 10**6
-            direction[t] = change[last_idx] if last_idx >= 0 else 0.0
+        since, direction = _reversals(lg.actions[:, 0])
         parts["since_change"].append(since[hist - 1:-1])
         parts["change_dir"].append(direction[hist - 1:-1])
     out = {k: np.concatenate(v) for k, v in parts.items()}
