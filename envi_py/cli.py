@@ -132,7 +132,7 @@ def cmd_train(args: argparse.Namespace) -> int:
 
 def cmd_simulate(args: argparse.Namespace) -> int:
     from .model import Checkpoint
-    from .simulate import simulate_logs
+    from .simulate import choose_engine, simulate_logs
     from .verify import controller_of, group_by_controller
 
     ckpt = Checkpoint.load(args.model)
@@ -144,11 +144,14 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         groups = {k: (controller_of(g[0]), g) for k, g in group_by_controller(init).items()}
     n = 0
     t0 = time.perf_counter()
+    engines = set()
     for spec, logs in groups.values():
-        for lg in simulate_logs(ckpt, spec, logs, steps=args.steps, runs=args.runs, seed=args.seed):
+        engines.add(choose_engine(ckpt, spec, args.engine))
+        for lg in simulate_logs(ckpt, spec, logs, steps=args.steps, runs=args.runs, seed=args.seed,
+                                engine=args.engine):
             write_log(lg, out / f"{lg.meta.run_id}.csv")
             n += 1
-    print(f"simulated {n} runs in {time.perf_counter() - t0:.2f} s -> {out}")
+    print(f"simulated {n} runs in {time.perf_counter() - t0:.2f} s ({'+'.join(sorted(engines))} engine) -> {out}")
     return 0
 
 
@@ -220,6 +223,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--runs", type=int, default=1, help="runs per initial window")
     p.add_argument("--steps", type=int, default=None, help="steps after the window (default: the log's length)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--engine", choices=("auto", "native", "torch"), default="auto",
+                   help="auto (default): the C++ engine when it can run the model, else PyTorch")
     p.add_argument("--out", required=True, help="folder for simulated logs")
     p.set_defaults(func=cmd_simulate)
 

@@ -73,6 +73,25 @@ def _native() -> ModuleType:
     return mod
 
 
+def unsupported(ckpt: Checkpoint, controller: ControllerSpec) -> str | None:
+    """Why the native engine cannot run this model with this controller, or None when it can.
+
+    It runs exported MLPs fed by the window alone, with the registered controllers (its C++ twins
+    are tested against them); derived channels, a run context, the random baseline and a user's
+    controller given by import path stay with the PyTorch engine."""
+    from .controllers import REGISTRY
+
+    if not available():
+        return "the native module is not built"
+    if ckpt.config.kind != "mlp":
+        return f"the model is {ckpt.config.kind!r}, not an MLP"
+    if not ckpt.config.plain:
+        return "the model has derived channels or a run context"
+    if controller.name not in REGISTRY:
+        return f"controller {controller.name!r} is not a registered one"
+    return None
+
+
 def onnx_bytes(model: str | os.PathLike | Checkpoint | bytes) -> bytes:
     """An exported model's bytes: an ``.onnx`` file as is, a checkpoint exported on the fly."""
     if isinstance(model, bytes):

@@ -89,22 +89,53 @@ def initial_windows(logs: Sequence[Log], history: int) -> np.ndarray:
     return np.stack([lg.values[:history] for lg in logs])
 
 
+ENGINES = ("auto", "native", "torch")
+
+
+def choose_engine(ckpt: Checkpoint, controller: ControllerSpec, engine: str = "auto") -> str:
+    """``native`` (the C++ engine) or ``torch``. ``auto`` takes native whenever it can run the model;
+    asking for ``native`` when it cannot is an error that says why."""
+    if engine not in ENGINES:
+        raise ValueError(f"unknown engine {engine!r}; choose from {', '.join(ENGINES)}")
+    if engine == "torch":
+        return engine
+    from . import native
+
+    why = native.unsupported(ckpt, controller)
+    if why is None:
+        return "native"
+    if engine == "native":
+        raise ValueError(f"the native engine cannot run this: {why}")
+    return "torch"
+
+
 def simulate_logs(ckpt: Checkpoint, controller: ControllerSpec, init_logs: Sequence[Log],
-                  steps: int | None = None, runs: int = 1, seed: int = 0) -> list[Log]:
+                  steps: int | None = None, runs: int = 1, seed: int = 0, engine: str = "torch") -> list[Log]:
     """Simulate from each log's sigma_0 and return the traces as logs (source ``sim``).
 
     ``steps`` defaults to each real log's own length minus the window, so real and simulated runs
-    cover the same span. Time continues at the initial window's median period.
+    cover the same span. Time continues at the initial window's median period. ``engine``: see
+    :func:`choose_engine`; the default stays PyTorch because training calls this on a few logs
+    many times, where compiling the model for the native engine each time would cost more than
+    it saves. Stochastic draws differ between engines (each is seeded, each repeats exactly); the
+    engine is recorded in every log's provenance.
     """
     hist = ckpt.config.history
+    engine = choose_engine(ckpt, controller, engine)
+    if engine == "native":
+        from . import native
+
+        compiled = native.load(ckpt)
+        roll = lambda init, n, r, s: native.rollout(compiled, controller, init, n, r, s)  # noqa: E731
+    else:
+        roll = lambda init, n, r, s: rollout(ckpt, controller, init, n, r, s)  # noqa: E731
     by_len: dict[int, list[int]] = {}
     for i, lg in enumerate(init_logs):
         n = steps if steps is not None else len(lg) - hist
         by_len.setdefault(n, []).append(i)
     result: list[Log | None] = [None] * (len(init_logs) * runs)
     for n, idx in by_len.items():
-        traj = rollout(ckpt, controller, initial_windows([init_logs[i] for i in idx], hist), n, runs,
-                       seed=seed + 7919 * n)
+        traj = roll(initial_windows([init_logs[i] for i in idx], hist), n, runs, seed + 7919 * n)
         for j, i in enumerate(idx):
             src = init_logs[i]
             period = float(np.median(np.diff(src.time[:hist]))) if hist > 1 else (src.meta.period_ms or 40.0)
@@ -114,7 +145,7 @@ def simulate_logs(ckpt: Checkpoint, controller: ControllerSpec, init_logs: Seque
                 meta = LogMeta(schema=ckpt.schema, controller=controller.to_json(), period_ms=period,
                                run_id=f"{src.meta.run_id or src.name}-sim{r}", source="sim",
                                provenance={"init_log": src.name, "model_algorithm": ckpt.record.algorithm,
-                                           "seed": seed, "replicate": r})
+                                           "seed": seed, "replicate": r, "engine": engine})
                 result[i * runs + r] = Log(None, time.copy(), tr[:, :ckpt.config.n_state].copy(),
                                            tr[:, ckpt.config.n_state:].copy(), meta)
     return [lg for lg in result if lg is not None]

@@ -6,6 +6,7 @@ import json
 
 import pytest
 
+from envi_py import native
 from envi_py.cli import main
 
 
@@ -24,6 +25,8 @@ def test_tovk_on_real_logs(real_dir, tmp_path, capsys):
         sim = tmp_path / f"sim_{alg}"
         assert main(["simulate", "--model", str(model), "--init-logs", str(split / "test.json"),
                      "--runs", "2", "--out", str(sim)]) == 0
+        engine = "native" if alg == "bc" and native.available() else "torch"  # auto: native where it can
+        assert f"({engine} engine)" in capsys.readouterr().out
         report = tmp_path / f"report_{alg}"
         assert main(["verify", "--real", str(split / "test.json"), "--sim", str(sim),
                      "--floor-splits", "5", "--out", str(report)]) == 0
