@@ -36,7 +36,7 @@ def _cmd_validate(args: argparse.Namespace) -> int:
     known = {c.name: c for c in CASES}
     unknown = set(args.cases or ()) - set(known)
     if unknown:
-        args.parser.error(f"unknown case(s) {', '.join(sorted(unknown))}; known: {', '.join(known)}")
+        raise ValueError(f"unknown case(s) {', '.join(sorted(unknown))}; known: {', '.join(known)}")
     cases = [known[n] for n in args.cases] if args.cases else list(CASES)
     size = Size(train=args.train, val=args.val, diagnose=args.diag, steps=args.steps, epochs=args.epochs,
                 lr=args.lr, history=args.history, runs=args.runs)
@@ -95,4 +95,4 @@ def register(sub: Any) -> None:
     v.add_argument("--history", type=int, default=d.history)
     v.add_argument("--runs", type=int, default=d.runs, help="simulated runs per initial window")
     v.add_argument("--out", default="diagnosis-validation", help="output folder (results.jsonl resumes)")
-    v.set_defaults(func=_cmd_validate, parser=v)
+    v.set_defaults(func=_cmd_validate)

@@ -164,11 +164,13 @@ def test_noise(res: Residuals, ckpt: Checkpoint) -> tuple[float, float, float, s
     x = np.column_stack([_null(res), _features(res, ckpt), _run_effects(res)])
     coef, *_ = np.linalg.lstsq(x, y, rcond=None)
     h = (y - x @ coef) ** 2 / 2
-    a = np.column_stack([np.ones(len(h)), p.d2])
+    # Look-alike windows all at one distance (e.g. identical windows of a quantised sensor) leave
+    # nothing to extrapolate from: then the mean is the estimate.
+    a = np.column_stack([np.ones(len(h)), p.d2]) if np.ptp(p.d2) > 1e-12 else np.ones((len(h), 1))
     coef2, *_ = np.linalg.lstsq(a, h, rcond=None)
     white = float(coef2[0])
-    dof = max(n_eff(res, len(h)) - 2, 5)
-    se = float(np.sqrt(np.sum((h - a @ coef2) ** 2) / dof * np.linalg.inv(a.T @ a)[0, 0]))
+    dof = max(n_eff(res, len(h)) - a.shape[1], 5)
+    se = float(np.sqrt(np.sum((h - a @ coef2) ** 2) / dof * np.linalg.pinv(a.T @ a)[0, 0]))
     if res.pred_std is not None:
         ref = float(np.mean((res.pred_std[p.i] ** 2 + res.pred_std[p.j] ** 2) / 2))
         what = "the model's predicted variance"

@@ -152,7 +152,13 @@ def _key(r: dict[str, Any]) -> tuple[str, str, int]:
 
 
 def _run_one(args: tuple[Case, int, str, Size, bool]) -> dict[str, Any]:
-    return trial(*args)
+    """One trial; a failure is recorded as a miss with its message, never lost or fatal to the rest."""
+    case, seed, mode = args[:3]
+    try:
+        return trial(*args)
+    except Exception as exc:  # noqa: BLE001 - any failure of the diagnosis is a validation outcome
+        return {"case": case.name, "seed": seed, "mode": mode, "expected": case.expected, "top": None,
+                "significant": [], "findings": {}, "error": f"{type(exc).__name__}: {exc}"}
 
 
 def run_validation(out: Path, cases: Sequence[Case] = CASES, seeds: Iterable[int] = range(20),
@@ -201,6 +207,7 @@ class Score:
     top1_by_case: dict[str, float]
     trials_by_case: dict[str, int]
     false_alarm: float  # negative-control trials with any significant candidate
+    errors: int = 0  # trials whose diagnosis failed (scored as misses)
     shrink: dict[str, dict[str, float]] = field(default_factory=dict)
     where: dict[str, dict[str, float]] = field(default_factory=dict)
 
@@ -233,7 +240,8 @@ def score(results: Sequence[dict[str, Any]], mode: str) -> Score:
     return Score(mode, labels, columns, conf,
                  float(np.mean([r["top"] == r["expected"] for r in eff])) if eff else float("nan"),
                  by_case, {c: sum(r["case"] == c for r in rs) for c in labels},
-                 float(np.mean([bool(r["significant"]) for r in neg])) if neg else float("nan"), shrink, where)
+                 float(np.mean([bool(r["significant"]) for r in neg])) if neg else float("nan"), shrink, where,
+                 sum("error" in r for r in rs))
 
 
 def to_markdown(scores: Sequence[Score], size: Size) -> str:
@@ -245,7 +253,8 @@ def to_markdown(scores: Sequence[Score], size: Size) -> str:
     for s in scores:
         lines += [f"## Mode `{s.mode}`", "",
                   f"Top-1 accuracy over effect cases: **{s.top1:.0%}**; false-alarm rate on negative controls: "
-                  f"**{s.false_alarm:.0%}**.", "",
+                  f"**{s.false_alarm:.0%}**." + (f" {s.errors} trial(s) failed (scored as misses; see "
+                                                  f"`results.jsonl`)." if s.errors else ""), "",
                   "Confusion matrix (rows: injected case, columns: top-1 significant candidate):", "",
                   "| injected \\ diagnosed | " + " | ".join(s.columns) + " | top-1 |",
                   "|---|" + "---:|" * (len(s.columns) + 1)]
