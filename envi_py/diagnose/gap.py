@@ -99,7 +99,8 @@ def residual_map(res: Residuals, state_bins: int = 8, alpha: float = 0.05) -> di
     phase_edges = np.quantile(res.row, np.linspace(0, 1, 6))
     ph = np.clip(np.searchsorted(phase_edges, res.row, side="right") - 1, 0, 4)
     phase = [{"rows": [float(phase_edges[k]), float(phase_edges[k + 1])], "bias": float(res.r[ph == k].mean()),
-              "sd": float(res.r[ph == k].std())} for k in range(5) if np.any(ph == k)]
+              "sd": float(res.r[ph == k].std()), "rms": float(np.sqrt(np.mean(res.r[ph == k] ** 2)))}
+             for k in range(5) if np.any(ph == k)]
     return {"state_edges": edges.tolist(), "actions": a_labels, "mean": mean.tolist(), "count": count.tolist(),
             "significant": sorted(significant, key=lambda c: -abs(c["bias"])), "by_phase": phase,
             "rmse": float(np.sqrt(np.mean(res.r ** 2)))}
@@ -142,3 +143,15 @@ def by_version(groups: Sequence[tuple[str, np.ndarray, np.ndarray]], cfg: Metric
                     "mean_floor": float(np.mean([g["floor"] for g in gaps])),
                     "worst_metric": gaps[0]["metric"], "worst_ratio": gaps[0]["ratio"]})
     return out
+
+
+def by_run(res: Residuals, names: Sequence[str]) -> list[dict[str, Any]]:
+    """Per log: one-step residual RMS and its ratio to the median log's, largest first. A gap that
+    lives in some runs only (a worn battery, a slippery patch) shows as a few logs far above 1."""
+    ms = np.array([float(np.mean(res.r[res.run == i] ** 2)) if np.any(res.run == i) else np.nan
+                   for i in range(len(names))])
+    med = float(np.nanmedian(ms)) or 1e-12
+    rows = [{"log": names[i], "rms": float(np.sqrt(ms[i])), "ratio": float(ms[i] / med)}
+            for i in range(len(names)) if np.isfinite(ms[i])]
+    return sorted(rows, key=lambda r: -r["ratio"])
+

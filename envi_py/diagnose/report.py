@@ -94,8 +94,10 @@ def write_diagnosis(d: Diagnosis, out: Path) -> Path:
     lines = ["# Sim-to-real diagnosis", "", d.verdict(), "",
              "![metric distributions](metrics.png)", "", "![gap vs horizon](horizon.png)", "",
              "![residual map](residual_map.png)", "", "## Candidate effects", "",
-             "Holm-corrected p-values; *share* is the part of the one-step residual mean square the effect "
-             "accounts for; significant = p_holm < 0.05 and share >= 5%.", "",
+             "Each one-step residual is compared with the residual of the most similar window of another run "
+             "(the model's misfit cancels there, an unmodelled effect does not). Holm-corrected p-values; "
+             "*share* is the part of those differences' mean square the effect accounts for; "
+             "significant = p_holm < 0.05 and share >= 5%.", "",
              "| effect | significant | p (Holm) | share | evidence |", "|---|---|---:|---:|---|"]
     for f in d.findings:
         lines.append(f"| {f.effect} | {'**yes**' if f.significant else 'no'} | {f.p_holm:.2g} | {f.share:.1%} | "
@@ -124,7 +126,10 @@ def write_diagnosis(d: Diagnosis, out: Path) -> Path:
     lines += ["", f"One-step RMSE {rm['rmse']:.3g}. Cells with significant bias (Bonferroni): "
               + (", ".join(f"action {c['action']}, state {c['state'][0]:.0f}-{c['state'][1]:.0f}: {c['bias']:+.2f}"
                            for c in rm["significant"][:6]) or "none") + ".",
-              "", "By phase of the run: " + ", ".join(f"rows {p['rows'][0]:.0f}-{p['rows'][1]:.0f}: {p['bias']:+.2f}"
+              "", "Logs with the largest one-step residuals (RMS, and mean square over the median log's): "
+              + ", ".join(f"{r['log']} {r['rms']:.3g} ({r['ratio']:.1f}x)" for r in d.runs[:5]) + ".",
+              "", "By phase of the run (bias, RMS): " + ", ".join(f"rows {p['rows'][0]:.0f}-{p['rows'][1]:.0f}: "
+                                                                  f"{p['bias']:+.2f}, {p['rms']:.2f}"
                                                        for p in rm["by_phase"]) + ".",
               "", f"Coverage: {d.coverage['outside_share']:.1%} of simulated windows are farther from the training "
               f"windows than 95% of training windows are from each other.",

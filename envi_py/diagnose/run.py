@@ -15,7 +15,7 @@ from ..train.common import dataset_for
 from ..simulate import initial_windows, rollout
 from ..verify import controller_of, group_by_controller
 from .effects import Finding, run_candidates
-from .gap import by_version, coverage, horizon_gap, metric_gaps, residual_map, windows_of
+from .gap import by_run, by_version, coverage, horizon_gap, metric_gaps, residual_map, windows_of
 from .residuals import one_step_residuals
 from .shrink import load_recorded, shrink, simulate_groups
 
@@ -31,6 +31,7 @@ class Diagnosis:
     versions: list[dict[str, Any]]
     coverage: dict[str, Any]
     shrink: dict[str, Any] | None
+    runs: list[dict[str, Any]] = field(default_factory=list)  # per choose log, largest residual first
     choose_logs: list[str] = field(default_factory=list)
     confirm_logs: list[str] = field(default_factory=list)
 
@@ -61,7 +62,7 @@ class Diagnosis:
     def to_json(self) -> dict[str, Any]:
         return {"verdict": self.verdict(), "findings": [f.to_json() for f in self.findings], "gaps": self.gaps,
                 "horizon": self.horizon, "residual_map": self.residual_map, "versions": self.versions,
-                "coverage": self.coverage, "shrink": self.shrink, "choose_logs": self.choose_logs,
+                "coverage": self.coverage, "shrink": self.shrink, "runs": self.runs, "choose_logs": self.choose_logs,
                 "confirm_logs": self.confirm_logs}
 
 
@@ -102,4 +103,5 @@ def diagnose(ckpt: Checkpoint, real: Sequence[Log], confirm: Sequence[Log] | Non
     sig = [f for f in findings if f.significant][:top]
     shrunk = shrink(ckpt, sig, train_logs, val_logs, confirm_l, metric, runs, seed) if retrain and sig else None
     return Diagnosis(findings, gaps, horizon, residual_map(res), by_version(groups, metric), cov, shrunk,
-                     [lg.name for lg in choose], [lg.name for lg in confirm_l])
+                     by_run(res, [lg.name for lg in choose]), [lg.name for lg in choose],
+                     [lg.name for lg in confirm_l])
