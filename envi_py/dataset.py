@@ -88,6 +88,14 @@ def extra_channels(time_ms: np.ndarray, names: Sequence[str], period_ms: float, 
     return np.stack(cols, axis=1) if cols else np.zeros((len(time_ms), 0))
 
 
+def interval_quantiles(logs: Sequence[Log], period_ms: float, n: int = 101) -> tuple[float, ...]:
+    """``n`` quantiles of the ``dt`` channel over the logs' real intervals: a model that takes the
+    interval as input is simulated with intervals drawn from these, not with the nominal one."""
+    dt = np.concatenate([np.diff(lg.time) for lg in logs if len(lg) > 1])
+    rel = np.clip(dt / period_ms - 1.0, -1.0, 3.0)
+    return tuple(float(q) for q in np.quantile(rel, np.linspace(0, 1, n)))
+
+
 def context_of(window_z: np.ndarray, n_state: int) -> np.ndarray:
     """Per-run context from the normalised initial window(s) (..., l, C): mean and spread of each state.
 

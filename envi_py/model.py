@@ -47,6 +47,7 @@ class ModelConfig:
     round_to: tuple[float, ...] | None = None  # per-state resolution in physical units (None: no rounding)
     clamp: bool = True  # keep simulated states inside the valid range: ``limits``, else the schema's
     limits: tuple[tuple[float, float], ...] | None = None  # per-state (low, high) observed physical limits
+    intervals: tuple[float, ...] | None = None  # quantiles of the training logs' 'dt' channel: simulation draws from them
 
     def __post_init__(self) -> None:
         self.hidden = tuple(int(h) for h in self.hidden)
@@ -55,6 +56,8 @@ class ModelConfig:
             self.round_to = tuple(float(r) for r in self.round_to)
         if self.limits is not None:
             self.limits = tuple((float(lo), float(hi)) for lo, hi in self.limits)
+        if self.intervals is not None:
+            self.intervals = tuple(float(q) for q in self.intervals)
         if self.head not in ("deterministic", "gaussian"):
             raise ValueError(f"model head must be 'deterministic' or 'gaussian', not {self.head!r}")
         if self.kind not in ("mlp", "random"):

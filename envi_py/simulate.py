@@ -31,19 +31,27 @@ def post_process(states: np.ndarray, ckpt: Checkpoint) -> np.ndarray:
     return states
 
 
-def _model_rows(ckpt: Checkpoint, values: np.ndarray, first_row: int) -> np.ndarray:
+def _model_rows(ckpt: Checkpoint, values: np.ndarray, first_row: int,
+                rng: np.random.Generator | None = None) -> np.ndarray:
     """Physical rows (B, n, C) -> the model's normalised rows, derived channels appended.
 
-    In simulation every interval is the nominal one (``dt`` = 0) and ``phase`` follows the row index.
+    ``phase`` follows the row index. ``dt`` is drawn per run and row from the training logs'
+    intervals (``config.intervals``) with ``rng``: a model told the interval must be simulated
+    with intervals like the real ones, or a jittery robot is simulated as a punctual one.
+    Without recorded intervals every interval is the nominal one (``dt`` = 0).
     """
     cfg = ckpt.config
     z = ckpt.norm.encode(values)
     if not cfg.extras:
         return z.astype(np.float32)
-    n = values.shape[1]
+    b, n = values.shape[:2]
     period = ckpt.record.period_ms or 40.0
-    ex = extra_channels(period * np.arange(n), cfg.extras, period, cfg.phase_rows, first_row)
-    return np.concatenate([z, np.broadcast_to(ex, (values.shape[0], n, ex.shape[1]))], axis=2).astype(np.float32)
+    ex = np.broadcast_to(extra_channels(period * np.arange(n), cfg.extras, period, cfg.phase_rows, first_row),
+                         (b, n, len(cfg.extras))).copy()
+    if "dt" in cfg.extras and cfg.intervals is not None and rng is not None:
+        q = np.asarray(cfg.intervals)
+        ex[..., cfg.extras.index("dt")] = np.interp(rng.random((b, n)), np.linspace(0, 1, len(q)), q)
+    return np.concatenate([z, ex], axis=2).astype(np.float32)
 
 
 @torch.no_grad()
@@ -65,9 +73,10 @@ def rollout(ckpt: Checkpoint, controller: ControllerSpec, init: np.ndarray, step
     batch = k * runs
     ctrl.reset(batch)
     gen = torch.Generator().manual_seed(int(seed)) if cfg.stochastic else None
+    intervals = np.random.default_rng([int(seed), 1])  # the draws of the 'dt' channel, if the model has one
     out = np.empty((batch, hist + steps, chans))
     out[:, :hist] = np.repeat(init, runs, axis=0)
-    window_np = _model_rows(ckpt, out[:, :hist], 0)
+    window_np = _model_rows(ckpt, out[:, :hist], 0, intervals)
     context = torch.from_numpy(context_of(window_np, ns).astype(np.float32)) if cfg.context else None
     window = torch.from_numpy(window_np)
     model = ckpt.model.eval()
@@ -79,7 +88,7 @@ def rollout(ckpt: Checkpoint, controller: ControllerSpec, init: np.ndarray, step
         s = post_process(norm.decode(np.concatenate([z, np.zeros((batch, chans - ns))], axis=1))[:, :ns], ckpt)
         out[:, hist + t, :ns] = s
         out[:, hist + t, ns:] = ctrl(s)
-        row = torch.from_numpy(_model_rows(ckpt, out[:, hist + t:hist + t + 1], hist + t))
+        row = torch.from_numpy(_model_rows(ckpt, out[:, hist + t:hist + t + 1], hist + t, intervals))
         window = torch.cat([window[:, 1:], row], dim=1)
     return out
 

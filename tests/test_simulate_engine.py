@@ -52,3 +52,32 @@ def test_native_and_torch_simulate_the_same_logs():
 def steer(states: np.ndarray) -> np.ndarray:
     """A user's controller given by import path (the native engine cannot run it)."""
     return np.where(states[:, :1] > 40, 20.0, -20.0)
+
+
+def test_a_model_told_the_interval_is_simulated_with_intervals_like_the_real_ones():
+    """Training records the quantiles of the real intervals; simulation draws the ``dt`` channel
+    from them (seeded), instead of pretending every period is the nominal one."""
+    import torch
+
+    from envi_py.simulate import _model_rows, rollout
+    from envi_py.train.common import model_config, new_checkpoint
+
+    rng = np.random.default_rng(0)
+    logs = init_logs(4)
+    for lg in logs:  # 40 ms plus an exponential extra of mean 10 ms, as a jittery brick
+        lg.time = np.concatenate([[0.0], np.cumsum(40 + np.floor(rng.exponential(10, len(lg) - 1)))])
+    ck = new_checkpoint("bc", logs, [], model_config(logs, history=10, hidden=(8,), extras=("dt",)), 0, {})
+    q = np.asarray(ck.config.intervals)
+    assert ck.record.period_ms == pytest.approx(np.median([np.median(np.diff(lg.time)) for lg in logs]))
+    assert len(q) == 101 and np.all(np.diff(q) >= 0) and q[-1] > 0.5
+    rows = _model_rows(ck, np.repeat(logs[0].values[None, :1], 4000, axis=0), 0, np.random.default_rng(1))
+    drawn = rows[:, 0, -1]
+    real = np.concatenate([np.diff(lg.time) for lg in logs]) / ck.record.period_ms - 1
+    assert abs(drawn.mean() - real.mean()) < 0.03 and abs(drawn.std() - real.std()) < 0.03
+    seen = []
+    original = ck.model.step
+    ck.model.step = lambda x, gen=None: (seen.append(x[:, -1].clone()), original(x, gen))[1]
+    a = rollout(ck, LANE, np.stack([lg.values[:10] for lg in logs]), 30, runs=2, seed=5)
+    b = rollout(ck, LANE, np.stack([lg.values[:10] for lg in logs]), 30, runs=2, seed=5)
+    np.testing.assert_array_equal(a, b)
+    assert torch.cat(seen).std() > 0.1  # the interval input varies in simulation, it is not the nominal 0

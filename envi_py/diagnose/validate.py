@@ -240,8 +240,8 @@ def score(results: Sequence[dict[str, Any]], mode: str) -> Score:
     return Score(mode, labels, columns, conf,
                  float(np.mean([r["top"] == r["expected"] for r in eff])) if eff else float("nan"),
                  by_case, {c: sum(r["case"] == c for r in rs) for c in labels},
-                 float(np.mean([bool(r["significant"]) for r in neg])) if neg else float("nan"), shrink, where,
-                 sum("error" in r for r in rs))
+                 float(np.mean([bool(r["significant"]) for r in neg])) if neg else float("nan"),
+                 errors=sum("error" in r for r in rs), shrink=shrink, where=where)
 
 
 def to_markdown(scores: Sequence[Score], size: Size) -> str:

@@ -15,7 +15,7 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 
-from ..dataset import Dataset, Normaliser
+from ..dataset import Dataset, Normaliser, interval_quantiles
 from ..logs import Log
 from ..metrics import MetricConfig
 from ..model import Checkpoint, EnvModel, ModelConfig, TrainingRecord
@@ -43,9 +43,12 @@ def new_checkpoint(algorithm: str, train_logs: Sequence[Log], val_logs: Sequence
     torch.manual_seed(seed)
     norm = norm or Normaliser.fit(train_logs)
     periods = [float(np.median(np.diff(lg.time))) for lg in train_logs if len(lg) > 1]
+    period = float(np.median(periods)) if periods else None
     record = TrainingRecord(algorithm=algorithm, seed=seed, hyper=hyper, data=data_record(train_logs),
                             validation=data_record(val_logs), controllers=controllers_of(train_logs),
-                            period_ms=float(np.median(periods)) if periods else None)
+                            period_ms=period)
+    if "dt" in config.extras and config.intervals is None:
+        config.intervals = interval_quantiles(train_logs, period or 40.0)
     return Checkpoint(EnvModel(config), norm, train_logs[0].meta.schema, record)
 
 
