@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from envi_py.dataset import Normaliser
-from envi_py.diagnose.effects import CANDIDATES, holm, lattice_step, run_candidates
+from envi_py.diagnose.effects import CANDIDATES, holm, lattice_step, misfit_share, run_candidates
 from envi_py.diagnose.residuals import BEYOND, Residuals
 from envi_py.logs import LANE_KEEPING_SCHEMA
 from envi_py.model import Checkpoint, EnvModel, ModelConfig, TrainingRecord
@@ -118,3 +118,10 @@ def test_gaussian_model_calibrated_noise_is_not_flagged():
 
 def test_holm():
     np.testing.assert_allclose(holm([0.01, 0.04, 0.03, 0.5]), [0.04, 0.09, 0.09, 0.5])
+
+
+def test_misfit_share_separates_a_wrong_model_from_noise():
+    """A residual that is a smooth function of the window (the model is wrong where it has seen
+    similar windows) is misfit; white noise is not."""
+    assert misfit_share(synthetic()) > 0.9
+    assert misfit_share(synthetic(CASES["noise"])) < 0.1

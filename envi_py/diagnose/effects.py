@@ -118,6 +118,16 @@ def _compare(y: np.ndarray, x0: np.ndarray, x1: np.ndarray, run: np.ndarray) -> 
     return float(f), float(stats.f.sf(f, q, dof)), float(share)
 
 
+def misfit_share(res: Residuals) -> float:
+    """The part of the one-step residual mean square that is a smooth function of the window (it
+    cancels between look-alike windows): the model is wrong where it has seen similar windows.
+    Large when the logs come from a world the training logs do not show; no added effect fixes
+    that, training on such logs does."""
+    p = res.pairs
+    ms = float(np.mean(res.r[p.i] ** 2))
+    return max(0.0, 1.0 - float(np.mean(_diff(res, res.r) ** 2)) / 2 / max(ms, 1e-300))
+
+
 def lattice_step(v: np.ndarray) -> float | None:
     """The step of the lattice the readings sit on (``k * step + offset``), or None if they are
     continuous: far fewer distinct values than readings, all at multiples of the smallest gap."""

@@ -123,7 +123,8 @@ def write_diagnosis(d: Diagnosis, out: Path) -> Path:
     lines += [f"| {v['controller']} | {v['mean_w1']:.4f} | {v['mean_floor']:.4f} | {v['worst_metric']} "
               f"({v['worst_ratio']:.1f}) |" for v in d.versions]
     rm = d.residual_map
-    lines += ["", f"One-step RMSE {rm['rmse']:.3g}. Cells with significant bias (Bonferroni): "
+    lines += ["", f"One-step RMSE {rm['rmse']:.3g}; {d.misfit:.0%} of its mean square is a smooth function of the "
+              f"window (misfit where similar windows were seen). Cells with significant bias (Bonferroni): "
               + (", ".join(f"action {c['action']}, state {c['state'][0]:.0f}-{c['state'][1]:.0f}: {c['bias']:+.2f}"
                            for c in rm["significant"][:6]) or "none") + ".",
               "", "Logs with the largest one-step residuals (RMS, and mean square over the median log's): "

@@ -14,7 +14,7 @@ from ..model import Checkpoint
 from ..train.common import dataset_for
 from ..simulate import initial_windows, rollout
 from ..verify import controller_of, group_by_controller
-from .effects import Finding, run_candidates
+from .effects import Finding, misfit_share, run_candidates
 from .gap import by_run, by_version, coverage, horizon_gap, metric_gaps, residual_map, windows_of
 from .residuals import one_step_residuals
 from .shrink import load_recorded, shrink, simulate_groups
@@ -32,6 +32,7 @@ class Diagnosis:
     coverage: dict[str, Any]
     shrink: dict[str, Any] | None
     runs: list[dict[str, Any]] = field(default_factory=list)  # per choose log, largest residual first
+    misfit: float = 0.0  # share of the one-step residual that is a smooth function of the window
     choose_logs: list[str] = field(default_factory=list)
     confirm_logs: list[str] = field(default_factory=list)
 
@@ -47,6 +48,10 @@ class Diagnosis:
                 f"Simulated runs leave the band of real runs after a median of {self.horizon[0]['median_exit_step']:.0f} "
                 f"steps; {self.coverage['outside_share']:.0%} of simulated windows lie outside the training data. ")
         sig = self.significant
+        if self.misfit >= 0.5:
+            text += (f"{self.misfit:.0%} of the one-step residual is a smooth function of the window: the model is "
+                     f"wrong where it has seen similar windows, as when these logs come from a world the training "
+                     f"logs do not show; training on such logs, not an added effect, closes that part. ")
         if not sig:
             return text + "No candidate effect explains a significant share of the one-step residuals."
         names = ", ".join(f"{f.effect} ({f.share:.0%} of residual mean square)" for f in sig)
@@ -62,7 +67,7 @@ class Diagnosis:
     def to_json(self) -> dict[str, Any]:
         return {"verdict": self.verdict(), "findings": [f.to_json() for f in self.findings], "gaps": self.gaps,
                 "horizon": self.horizon, "residual_map": self.residual_map, "versions": self.versions,
-                "coverage": self.coverage, "shrink": self.shrink, "runs": self.runs, "choose_logs": self.choose_logs,
+                "coverage": self.coverage, "shrink": self.shrink, "runs": self.runs, "misfit": self.misfit, "choose_logs": self.choose_logs,
                 "confirm_logs": self.confirm_logs}
 
 
@@ -103,5 +108,5 @@ def diagnose(ckpt: Checkpoint, real: Sequence[Log], confirm: Sequence[Log] | Non
     sig = [f for f in findings if f.significant][:top]
     shrunk = shrink(ckpt, sig, train_logs, val_logs, confirm_l, metric, runs, seed) if retrain and sig else None
     return Diagnosis(findings, gaps, horizon, residual_map(res), by_version(groups, metric), cov, shrunk,
-                     by_run(res, [lg.name for lg in choose]), [lg.name for lg in choose],
+                     by_run(res, [lg.name for lg in choose]), misfit_share(res), [lg.name for lg in choose],
                      [lg.name for lg in confirm_l])

@@ -135,7 +135,7 @@ def trial(case: Case, seed: int, mode: str = "withheld", size: Size = Size(), sh
         "top": sig[0] if sig else None, "significant": sig,
         "findings": {f.effect: {"share": f.share, "p_holm": f.p_holm, "statistic": f.statistic}
                      for f in d.findings},
-        "residual_rms": d.residual_map["rmse"], "gap_ratio": d.gaps[0]["gaps"][0]["ratio"], "gap_metric": d.gaps[0]["gaps"][0]["metric"],
+        "residual_rms": d.residual_map["rmse"], "misfit": d.misfit, "gap_ratio": d.gaps[0]["gaps"][0]["ratio"], "gap_metric": d.gaps[0]["gaps"][0]["metric"],
     }
     if d.shrink:
         b, a = d.shrink["before"], d.shrink["after"][0]
@@ -236,7 +236,8 @@ def score(results: Sequence[dict[str, Any]], mode: str) -> Score:
         wh = [r["where"] for r in rs if r["case"] == c and "where" in r]
         if wh:
             where[c] = {"median_run_auc": float(np.median([w["run_auc"] for w in wh])),
-                        "worst_fifth_mode": int(np.bincount([w["worst_fifth"] for w in wh]).argmax())}
+                        "worst_fifth_mode": int(np.bincount([w["worst_fifth"] for w in wh]).argmax()),
+                        "median_misfit": float(np.median([r.get("misfit", np.nan) for r in rs if r["case"] == c]))}
     return Score(mode, labels, columns, conf,
                  float(np.mean([r["top"] == r["expected"] for r in eff])) if eff else float("nan"),
                  by_case, {c: sum(r["case"] == c for r in rs) for c in labels},
@@ -273,9 +274,10 @@ def to_markdown(scores: Sequence[Score], size: Size) -> str:
         if s.where:
             lines += ["", "Where the gap lies (mixed set, half the runs affected):", "",
                       "| case | median AUC of per-run residual MS (affected vs clean) | fifth of the run with the "
-                      "largest residual (mode) |", "|---|---:|---:|"]
+                      "largest residual (mode) | median misfit share |", "|---|---:|---:|---:|"]
             for c, v in s.where.items():
-                lines.append(f"| {c} | {v['median_run_auc']:.2f} | {v['worst_fifth_mode'] + 1} of 5 |")
+                lines.append(f"| {c} | {v['median_run_auc']:.2f} | {v['worst_fifth_mode'] + 1} of 5 | "
+                             f"{v['median_misfit']:.0%} |")
         lines.append("")
     return "\n".join(lines)
 
