@@ -7,7 +7,7 @@ import pytest
 
 from envi_py.dataset import Normaliser
 from envi_py.diagnose.effects import CANDIDATES, holm, lattice_step, misfit_share, run_candidates
-from envi_py.diagnose.residuals import BEYOND, Residuals
+from envi_py.diagnose.residuals import BEYOND, PLAY_WIDTHS, Residuals, play_offsets
 from envi_py.logs import LANE_KEEPING_SCHEMA
 from envi_py.model import Checkpoint, EnvModel, ModelConfig, TrainingRecord
 
@@ -34,8 +34,9 @@ def synthetic(r_extra=None, seed: int = 0, noise: float = 0.05) -> Residuals:
     state = 40 + 30 * np.sin(phase)
     action = np.sign(state - 40) * 30
     pred = 40 + 30 * np.sin(phase + 1 / 3.0)
-    since = np.tile(np.arange(ROWS) % 24, RUNS).astype(float)
-    direction = np.tile(np.where((np.arange(ROWS) // 24) % 2 == 0, 1.0, -1.0), RUNS)
+    # what an actuator with play would do under a slowly wandering command the window does not show
+    drift = np.cumsum(rng.normal(0, 3, (RUNS, ROWS)), axis=1)
+    play = np.concatenate([np.stack([play_offsets(a, w * 60) for w in PLAY_WIDTHS], axis=1) for a in drift])
     dt = 40 + rng.normal(0, 4, n)
     lags = phase[:, None] - np.arange(HIST)[None, :] / 3.0
     window = np.stack([np.sin(lags), np.sign(np.sin(lags))], axis=2).reshape(n, HIST * 2)
@@ -43,7 +44,7 @@ def synthetic(r_extra=None, seed: int = 0, noise: float = 0.05) -> Residuals:
     misfit = 0.5 * np.sin(2 * phase)
     res = Residuals(r=misfit + rng.normal(0, noise, n), pred_std=None, predicted=pred, real_next=pred + 0.3,
                     state=state, action=action, run=run, row=row, dt=dt, window=window, beyond=beyond,
-                    since_change=since, change_dir=direction)
+                    play=play)
     if r_extra is not None:
         res.r = res.r + r_extra(res, rng)
     res.real_next = res.predicted + res.r
@@ -55,7 +56,7 @@ CASES = {
     "drift": lambda res, rng: 0.05 * (res.row - 50),
     "run_to_run": lambda res, rng: rng.normal(0, 1.0, RUNS)[res.run],
     "memory_delay": lambda res, rng: 1.5 * res.beyond[:, 0],
-    "backlash": lambda res, rng: np.where(res.since_change >= HIST - 1, 2.0 * res.change_dir, 0.0),
+    "backlash": lambda res, rng: 0.3 * res.play[:, 3],
     "jitter": lambda res, rng: 0.8 * (res.dt / 40 - 1) * (res.predicted - res.state) * 10,
 }
 
@@ -125,3 +126,8 @@ def test_misfit_share_separates_a_wrong_model_from_noise():
     similar windows) is misfit; white noise is not."""
     assert misfit_share(synthetic()) > 0.9
     assert misfit_share(synthetic(CASES["noise"])) < 0.1
+
+
+def test_play_offsets_is_a_backlash_filter():
+    a = np.array([0.0, 10, 10, 4, 4, -10, 0])
+    np.testing.assert_allclose(play_offsets(a, 8.0), [0, -4, -4, 2, 2, 4, -4])

@@ -21,7 +21,7 @@ import numpy as np
 from scipy import stats
 
 from ..model import Checkpoint, ModelConfig
-from .residuals import Residuals
+from .residuals import PLAY_WIDTHS, Residuals
 
 
 @dataclass(frozen=True)
@@ -92,16 +92,19 @@ def _null(res: Residuals) -> np.ndarray:
     return np.column_stack([np.ones(len(res.pairs)), _diff(res, res.window)])
 
 
-def _f_test(res: Residuals, x: np.ndarray, mask: np.ndarray | None = None) -> tuple[float, float, float]:
-    """Do the pair differences ``x`` explain the residual differences? F statistic, p-value and the
-    share of the differenced mean square they explain (beyond what chance explains)."""
+def _f_test(res: Residuals, x: np.ndarray, mask: np.ndarray | None = None,
+            given: np.ndarray | None = None) -> tuple[float, float, float]:
+    """Do the pair differences ``x`` explain the residual differences (beyond the window's and
+    ``given``'s)? F statistic, p-value and the share of the differenced mean square they explain
+    (beyond what chance explains)."""
     y = _diff(res, res.r)
     if mask is not None:
         y, x = y[mask], x[mask]
     if len(y) < 30 or x.ndim == 1 and np.allclose(x, 0):
         return 0.0, 1.0, 0.0
     x = x.reshape(len(y), -1)
-    x0 = _null(res) if mask is None else _null(res)[mask]
+    x0 = _null(res) if given is None else np.column_stack([_null(res), given])
+    x0 = x0 if mask is None else x0[mask]
     run = res.run[res.pairs.i] if mask is None else res.run[res.pairs.i][mask]
     return _compare(y, x0, np.column_stack([x0, x]), run)
 
@@ -146,11 +149,12 @@ def _beyond_mask(res: Residuals) -> np.ndarray:
 
 def test_memory(res: Residuals, ckpt: Checkpoint) -> tuple[float, float, float, str]:
     """Memory or delay beyond the window: between windows that look alike, do the rows *before*
-    the window explain the residuals? Only past rows are used: in closed loop, later inputs are
-    caused by the residual and prove nothing."""
+    the window explain the residuals (beyond what an actuator's play explains, which is memory of
+    another kind: hysteresis)? Only past rows are used: in closed loop, later inputs are caused by
+    the residual and prove nothing."""
     mask = _beyond_mask(res)
     x = np.nan_to_num(_diff(res, res.beyond))
-    f, p, share = _f_test(res, x, mask)
+    f, p, share = _f_test(res, x, mask, given=_diff(res, res.play))
     return f, p, share, f"the {res.beyond.shape[1] // ckpt.config.channels} rows before the window explain " \
                         f"{share:.1%} of the residual differences between look-alike windows"
 
@@ -160,7 +164,7 @@ def _features(res: Residuals, ckpt: Checkpoint) -> np.ndarray:
     g = _change(res)
     period = ckpt.record.period_ms or float(np.median(res.dt))
     cols = [np.nan_to_num(_diff(res, res.beyond)), _diff(res, res.row.astype(float)),
-            _diff(res, res.row * g), _diff(res, (res.dt / period - 1) * g), _diff(res, _backlash_side(res, ckpt))]
+            _diff(res, res.row * g), _diff(res, (res.dt / period - 1) * g), _diff(res, res.play)]
     return np.column_stack(cols)
 
 
@@ -285,17 +289,20 @@ def test_run_to_run(res: Residuals, ckpt: Checkpoint) -> tuple[float, float, flo
         f"per-run offsets and gains explain {share:.1%} of the residual differences ({len(runs)} runs)"
 
 
-def _backlash_side(res: Residuals, ckpt: Checkpoint) -> np.ndarray:
-    """Which side of its play the actuator was left on by the last action change, when that change
-    lies before the window (within it the model sees it): +1, -1 or 0."""
-    return np.where(res.since_change >= ckpt.config.history - 1, res.change_dir, 0.0)
-
-
 def test_backlash(res: Residuals, ckpt: Checkpoint) -> tuple[float, float, float, str]:
-    """Dead zone or backlash: between look-alike windows, residuals lean with the side of the play
-    the actuator was left on by an action change the window no longer shows."""
-    f, p, share = _f_test(res, _diff(res, _backlash_side(res, ckpt)))
-    return f, p, share, f"the side of the actuator's play explains {share:.1%} of the residual differences"
+    """Dead zone or backlash: between look-alike windows, residuals follow where an actuator with
+    play would sit relative to the command (a hysteresis of the whole action history), beyond what
+    the rows before the window explain linearly; the best of a few play widths (Bonferroni)."""
+    best = (0.0, 1.0, 0.0, 0)
+    for k in range(res.play.shape[1]):
+        f, p, share = _f_test(res, _diff(res, res.play[:, k]), _beyond_mask(res),
+                              given=np.nan_to_num(_diff(res, res.beyond)))
+        if share > best[2] or (best[2] == 0 and p < best[1]):
+            best = (f, p, share, k)
+    f, p, share, k = best
+    return f, min(1.0, p * res.play.shape[1]), share, \
+        f"an actuator play of {PLAY_WIDTHS[k]:.0%} of the action range explains {share:.1%} of the residual " \
+        f"differences between look-alike windows"
 
 
 def test_jitter(res: Residuals, ckpt: Checkpoint) -> tuple[float, float, float, str]:

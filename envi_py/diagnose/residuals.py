@@ -38,8 +38,8 @@ class Residuals:
     dt: np.ndarray  # actual interval (ms) from the window's last row to the predicted row
     window: np.ndarray  # the window (N, l*C) in normalised units
     beyond: np.ndarray  # (N, BEYOND*C) normalised rows before the window; NaN where the log has none
-    since_change: np.ndarray  # rows since the action last reversed direction (0 = on the window's last row)
-    change_dir: np.ndarray  # the direction it reversed to (0 if none seen)
+    play: np.ndarray  # (N, len(PLAY_WIDTHS)): where an actuator with play of each width would sit
+    #                   relative to the last action of the window (see :func:`play_offsets`)
 
     def __len__(self) -> int:
         return int(self.r.shape[0])
@@ -85,19 +85,22 @@ class Pairs:
         return int(self.i.shape[0])
 
 
-def _reversals(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per row: rows since the action last reversed its direction of movement (0 = on this row),
-    and the new direction (+1/-1; 0 before any). A bang-bang action reverses at every change; a
-    continuous one at its peaks and troughs: where an actuator's play has to be crossed."""
-    move = np.concatenate([[0.0], np.sign(np.diff(a))])
-    since, direction = np.full(len(a), 10.0 ** 6), np.zeros(len(a))
-    last_dir, last_idx = 0.0, -1
-    for t in range(len(a)):
-        if move[t] != 0 and move[t] != last_dir:
-            last_dir, last_idx = move[t], t
-        if last_idx >= 0:
-            since[t], direction[t] = t - last_idx, last_dir
-    return since, direction
+#: Widths of actuator play tried by the backlash test, as fractions of the action's training range.
+PLAY_WIDTHS = (0.05, 0.1, 0.2, 0.4, 0.8)
+
+
+def play_offsets(a: np.ndarray, width: float) -> np.ndarray:
+    """Backlash filter of the action sequence: an actuator with play ``width`` stays put until the
+    command pushes it from one side of the play (``p = clip(p, a - w/2, a + w/2)``); returns its
+    offset from the command per row. Hysteresis: it depends on the whole history of reversals, not
+    on the last few commands alone, so a window that does not reach back far enough cannot hold it."""
+    out = np.empty(len(a))
+    p = float(a[0]) if len(a) else 0.0
+    h = width / 2
+    for t, v in enumerate(a):
+        p = min(max(p, v - h), v + h)
+        out[t] = p - v
+    return out
 
 
 @torch.no_grad()
@@ -135,9 +138,9 @@ def one_step_residuals(ckpt: Checkpoint, logs: Sequence[Log]) -> Residuals:
             if len(block):
                 beyond[j, (BEYOND - len(block)) * ch:] = block.ravel()
         parts["beyond"].append(beyond)
-        since, direction = _reversals(lg.actions[:, 0])
-        parts["since_change"].append(since[hist - 1:-1])
-        parts["change_dir"].append(direction[hist - 1:-1])
+        span = 2 * float(ckpt.norm.half[ns])  # the first action's training range
+        play = np.stack([play_offsets(lg.actions[:, 0], f * span) for f in PLAY_WIDTHS], axis=1)
+        parts["play"].append(play[hist - 1:-1])
     out = {k: np.concatenate(v) for k, v in parts.items()}
     if cfg.head != "gaussian":
         out["pred_std"] = None
