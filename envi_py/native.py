@@ -145,3 +145,11 @@ def rollout_metrics(model: str | os.PathLike | Checkpoint | bytes | Any, control
     return _native().rollout_metrics(_compiled(model), _spec_json(controller), init, int(steps), int(runs),
                                      int(seed), int(threads), centre=metric.centre, band=metric.band,
                                      skip=metric.skip)
+
+
+def peak_flops(threads: int = 0, seconds: float = 0.5) -> float:
+    """FLOP/s of register-only multiply-adds on the engine's vectors: the hard ceiling for benchmarks.
+
+    A library GEMM's rate is the ceiling the speed targets name, but it sits below this one when the
+    library does not use the widest vectors the machine has; benchmarks report both."""
+    return float(_native().peak_flops(int(threads), float(seconds)))

@@ -5,10 +5,12 @@
 #include <cmath>
 #include <exception>
 #include <mutex>
+#include <optional>
 #include <stdexcept>
 #include <thread>
 #include <vector>
 
+#include "envi/dense.hpp"
 #include "envi/rng.hpp"
 
 namespace envi {
@@ -28,14 +30,35 @@ void activate(OutMap& y, const Dense& d) {
   }
 }
 
+// A chain of layers, each with its packed form where the microkernel suits it.
+struct Chain {
+  const std::vector<Dense>& layers;
+  std::vector<std::optional<PackedDense>> packed;
+
+  explicit Chain(const std::vector<Dense>& ls) : layers(ls) {
+    for (const Dense& d : ls) packed.emplace_back(PackedDense::suits(d) ? std::optional<PackedDense>(d) : std::nullopt);
+  }
+  long scratch_size() const {
+    long n = 0;
+    for (const auto& p : packed)
+      if (p) n = std::max(n, p->scratch_size());
+    return n;
+  }
+};
+
 // Layers applied to `in` (rows x count, column stride `stride`), ping-ponging between two buffers.
-// The bias is written first and the product accumulated onto it: one pass fewer than adding it
-// after, and Eigen's GEMM accumulates at no extra cost.
-const float* forward(const std::vector<Dense>& layers, const float* in, long rows, long stride, long count,
-                     float* a, float* b) {
-  for (const Dense& d : layers) {
+// Packed layers run the engine's microkernel when the block fills at least one tile of columns (a
+// single run is a matrix-vector product, Eigen's GEMV does it better); the rest runs Eigen, with
+// the bias written first and the product accumulated onto it (one pass fewer than adding it after).
+const float* forward(const Chain& chain, const float* in, long rows, long stride, long count, float* a, float* b,
+                     float* scratch) {
+  for (size_t i = 0; i < chain.layers.size(); ++i) {
+    const Dense& d = chain.layers[i];
     float* outp = (in == a) ? b : a;
-    if (d.W.size() == 0) {  // activation on its own
+    if (chain.packed[i] && count >= PackedDense::kCols) {
+      chain.packed[i]->apply(in, stride, count, outp, scratch);
+      rows = d.W.rows();
+    } else if (d.W.size() == 0) {  // activation on its own
       OutMap y(outp, rows, count);
       y = InMap(in, rows, count, Eigen::OuterStride<>(stride));
       activate(y, d);
@@ -56,9 +79,10 @@ struct Workspace {
   MatF ring;                       // (2 l C) x block: each run's window rows, twice (see below)
   std::vector<float> buf[4];       // hidden activations, ping-pong pairs for trunk and heads
   MatF mean;                       // n_state x block
+  std::vector<float> scratch;      // the packed layers' input panel
   std::vector<double> rows, states, actions, memory;
 
-  Workspace(const Model& m, int block) {
+  Workspace(const Model& m, long scratch_size, int block) : scratch(size_t(std::max<long>(1, scratch_size))) {
     long c = m.channels();
     ring.resize(2 * m.history * c, block);
     for (auto& v : buf) v.resize(size_t(m.max_width()) * size_t(block));
@@ -75,10 +99,12 @@ struct Runner {
   const ControllerSpec& ctrl;
   const Job& job;
   Sink& sink;
+  Chain trunk, mean, log_std;
   std::vector<double> centre, half;
   long trunk_out;  // width of the trunk's output (the window itself without a trunk)
 
-  Runner(const Model& model, const ControllerSpec& c, const Job& j, Sink& s) : m(model), ctrl(c), job(j), sink(s) {
+  Runner(const Model& model, const ControllerSpec& c, const Job& j, Sink& s)
+      : m(model), ctrl(c), job(j), sink(s), trunk(model.trunk), mean(model.mean), log_std(model.log_std) {
     trunk_out = m.in_features();
     for (const Dense& d : m.trunk)
       if (d.W.size()) trunk_out = d.W.rows();
@@ -86,6 +112,10 @@ struct Runner {
       centre.push_back((m.norm_high[size_t(i)] + m.norm_low[size_t(i)]) / 2);  // as Normaliser.centre/half
       half.push_back((m.norm_high[size_t(i)] - m.norm_low[size_t(i)]) / 2);
     }
+  }
+
+  long scratch_size() const {
+    return std::max({trunk.scratch_size(), mean.scratch_size(), log_std.scratch_size()});
   }
 
   // The window of each run is kept twice over in a ring of 2l rows: row i and row i+l always hold
@@ -118,12 +148,14 @@ struct Runner {
     long p = 0;
     for (long t = 0; t < job.steps; ++t) {
       const float* x = w.ring.data() + p * c;
-      const float* h = m.trunk.empty() ? x : forward(m.trunk, x, in, stride, count, w.buf[0].data(), w.buf[1].data());
+      const float* h =
+          m.trunk.empty() ? x : forward(trunk, x, in, stride, count, w.buf[0].data(), w.buf[1].data(), w.scratch.data());
       const long hstride = m.trunk.empty() ? stride : trunk_out;
-      const float* mu = forward(m.mean, h, trunk_out, hstride, count, w.buf[2].data(), w.buf[3].data());
+      const float* mu = forward(mean, h, trunk_out, hstride, count, w.buf[2].data(), w.buf[3].data(), w.scratch.data());
       if (m.gaussian()) {
         OutMap(w.mean.data(), ns, count) = Eigen::Map<const MatF>(mu, ns, count);
-        const float* ls = forward(m.log_std, h, trunk_out, hstride, count, w.buf[2].data(), w.buf[3].data());
+        const float* ls = forward(log_std, h, trunk_out, hstride, count, w.buf[2].data(), w.buf[3].data(),
+                                 w.scratch.data());
         for (int b = 0; b < count; ++b)
           for (int i = 0; i < ns; ++i) {
             size_t k = size_t(b) * size_t(ns) + size_t(i);
@@ -188,7 +220,7 @@ void simulate(const Model& model, const ControllerSpec& controller, const Job& j
   std::mutex error_mutex;
   auto work = [&](int thread) {
     try {
-      Workspace w(model, block);  // every buffer of this thread, allocated once
+      Workspace w(model, runner.scratch_size(), block);  // every buffer of this thread, allocated once
       for (long k; (k = next.fetch_add(1)) < blocks;) {
         long first = job.first_run + k * block;
         runner.block(thread, w, first, int(std::min<long>(block, job.first_run + n - first)));

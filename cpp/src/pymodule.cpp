@@ -11,6 +11,7 @@
 #include "envi/engine.hpp"
 #include "envi/metrics.hpp"
 #include "envi/model.hpp"
+#include "envi/peak.hpp"
 
 namespace py = pybind11;
 using namespace envi;
@@ -153,6 +154,13 @@ PYBIND11_MODULE(ENVI_MODULE_NAME, mod) {
             return out;
           },
           py::arg("traces"), py::arg("centre") = 40.0, py::arg("band") = 10.0, py::arg("skip") = 10);
+  mod.def("peak_flops",
+          [](int threads, double seconds) {
+            py::gil_scoped_release nogil;
+            return peak_flops(threads, seconds);
+          },
+          py::arg("threads") = 0, py::arg("seconds") = 0.5,
+          "FLOP/s of register-only fused multiply-adds on this build's widest vectors (a benchmark's ceiling).");
   mod.def("simd", [] { return std::string(Eigen::SimdInstructionSetsInUse()); },
           "Vector instruction sets this build of the engine uses.");
 }

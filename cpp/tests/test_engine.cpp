@@ -77,24 +77,28 @@ static std::vector<double> reference(const Model& m, const ControllerSpec& c, co
 int main() {
   pb::Spec spec;
   spec.history = 4;
-  spec.hidden = 16;
-  Model m = load(pb::model(spec));
-  const long K = 3, runs = 2, steps = 60;
+  const long K = 3, runs = 5, steps = 60;  // 15 runs: more than a microkernel panel of columns
   std::vector<double> init;
   for (long k = 0; k < K; ++k)
     for (int r = 0; r < 4; ++r) { init.push_back(20.0 + 15 * k + 5 * r); init.push_back(r % 2 ? 30 : -30); }
-  for (const char* js : {R"({"name": "lane-keeping", "params": {"x": 30}})",
-                         R"({"name": "pid", "params": {"kp": 2, "ki": 8, "kd": 0.1, "out_min": -30, "out_max": 30}})"}) {
-    ControllerSpec c = ControllerSpec::parse(js);
-    std::vector<double> got = run(m, c, init, K, runs, steps, 2, 256);
-    double worst = 0;
-    for (long g = 0; g < K * runs; ++g) {
-      std::vector<double> want = reference(m, c, init.data() + (g / runs) * 8, steps);
-      for (size_t i = 0; i < want.size(); ++i) worst = std::max(worst, std::fabs(want[i] - got[size_t(g) * want.size() + i]));
+  // Widths below and above a microkernel tile of rows on every instruction set (Eigen or packed).
+  for (int hidden : {6, 40}) {
+    spec.hidden = hidden;
+    Model m = load(pb::model(spec));
+    for (const char* js : {R"({"name": "lane-keeping", "params": {"x": 30}})",
+                           R"({"name": "pid", "params": {"kp": 2, "ki": 8, "kd": 0.1, "out_min": -30, "out_max": 30}})"}) {
+      ControllerSpec c = ControllerSpec::parse(js);
+      std::vector<double> got = run(m, c, init, K, runs, steps, 2, 256);
+      double worst = 0;
+      for (long g = 0; g < K * runs; ++g) {
+        std::vector<double> want = reference(m, c, init.data() + (g / runs) * 8, steps);
+        for (size_t i = 0; i < want.size(); ++i) worst = std::max(worst, std::fabs(want[i] - got[size_t(g) * want.size() + i]));
+      }
+      CHECK(worst < 1e-2);  // float32 engine vs double reference; a logic error would be O(1)
+      std::printf("hidden %d, %s: max |engine - reference| = %.2e\n", hidden, c.name().c_str(), worst);
     }
-    CHECK(worst < 1e-2);  // float32 engine vs double reference; a logic error would be O(1)
-    std::printf("%s: max |engine - reference| = %.2e\n", c.name().c_str(), worst);
   }
+  spec.hidden = 16;
 
   // Gaussian: the same draws whatever the thread count; different seeds differ.
   spec.gaussian = true;
