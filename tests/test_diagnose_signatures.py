@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from envi_py.dataset import Normaliser
-from envi_py.diagnose.effects import CANDIDATES, holm, lattice_step, misfit_share, run_candidates
+from envi_py.diagnose.effects import CANDIDATES, Finding, _nested_first, holm, lattice_step, misfit_share, run_candidates
 from envi_py.diagnose.residuals import BEYOND, PLAY_WIDTHS, Residuals, play_offsets
 from envi_py.logs import LANE_KEEPING_SCHEMA
 from envi_py.model import Checkpoint, EnvModel, ModelConfig, TrainingRecord
@@ -115,6 +115,21 @@ def test_gaussian_model_calibrated_noise_is_not_flagged():
     res.pred_std = np.full(len(res), 0.5)  # under-dispersed model
     noise = next(f for f in run_candidates(res, ckpt()) if f.effect == "noise")
     assert noise.significant
+
+
+def _finding(effect: str, share: float, p_holm: float, significant: bool) -> Finding:
+    return Finding(effect, 1.0, p_holm, share, "", {}, p_holm, significant)
+
+
+def test_backlash_beyond_a_leading_memory_is_named_first():
+    memory, drift = _finding("memory_delay", 0.12, 1e-20, True), _finding("drift", 0.06, 1e-9, True)
+    backlash = _finding("backlash", 0.03, 1e-6, False)  # below the share bar, yet beyond the memory rows
+    named = _nested_first([memory, drift, backlash], 0.05)
+    assert [f.effect for f in named] == ["backlash", "memory_delay", "drift"] and named[0].significant
+    weak = _finding("backlash", 0.03, 0.2, False)  # nothing beyond the rows: memory keeps its place
+    assert _nested_first([memory, drift, weak], 0.05) == [memory, drift, weak]
+    # Memory not leading (another effect explains more): the order stands.
+    assert _nested_first([drift, memory, backlash], 0.05) == [drift, memory, backlash]
 
 
 def test_holm():

@@ -9,7 +9,12 @@ accounts for. Residuals of one run are serially correlated (closed loop), so the
 effective sample size ``n (1 - rho) / (1 + rho)`` from the lag-1 autocorrelation. P-values are Holm-corrected over all candidates; an effect is reported as
 significant when its corrected p-value is below ``alpha`` *and* its share is at least
 ``min_share`` (with thousands of residuals, a real but negligible effect would otherwise be
-flagged). Significant candidates are ranked by share.
+flagged). Significant candidates are ranked by share, with one exception for nested candidates
+(:data:`NESTED`): backlash is a particular memory, of the last reversal. Rows before the window
+approximate any dependence on history, hysteresis included, so the memory test's share stays high
+under backlash; only hysteresis makes the play filter explain something *beyond* those rows. When
+memory leads and the backlash test (conditioned on those rows) is significant, backlash is named
+first and memory follows it.
 """
 
 from __future__ import annotations
@@ -374,4 +379,24 @@ def run_candidates(res: Residuals, ckpt: Checkpoint, alpha: float = 0.05, min_sh
     adj = holm([f.p for f in raw])
     out = [Finding(f.effect, f.statistic, f.p, f.share, f.detail, f.fix, float(a),
                    bool(a < alpha and f.share >= min_share)) for f, a in zip(raw, adj)]
-    return sorted(out, key=lambda f: (not f.significant, -f.share if f.significant else f.p_holm))
+    out.sort(key=lambda f: (not f.significant, -f.share if f.significant else f.p_holm))
+    return _nested_first(out, alpha)
+
+
+#: Specific effect -> the general one its test is conditioned on (see the module docstring).
+NESTED = {"backlash": "memory_delay"}
+
+
+def _nested_first(findings: list[Finding], alpha: float) -> list[Finding]:
+    """When the leading finding is a general effect and a specific form of it is significant beyond
+    it, the specific one leads: it says what the general test only approximates."""
+    if not findings or not findings[0].significant:
+        return findings
+    for specific, general in NESTED.items():
+        if findings[0].effect != general:
+            continue
+        s = next((f for f in findings if f.effect == specific), None)
+        if s is not None and s.p_holm < alpha:
+            named = Finding(s.effect, s.statistic, s.p, s.share, s.detail, s.fix, s.p_holm, True)
+            return [named] + [f for f in findings if f.effect != specific]
+    return findings

@@ -97,7 +97,8 @@ def write_diagnosis(d: Diagnosis, out: Path) -> Path:
              "Each one-step residual is compared with the residual of the most similar window of another run "
              "(the model's misfit cancels there, an unmodelled effect does not). Holm-corrected p-values; "
              "*share* is the part of those differences' mean square the effect accounts for; "
-             "significant = p_holm < 0.05 and share >= 5%.", "",
+             "significant = p_holm < 0.05 and share >= 5%; backlash, a specific memory, is also significant "
+             "(and named first) when memory leads and backlash explains something beyond the rows before the window.", "",
              "| effect | significant | p (Holm) | share | evidence |", "|---|---|---:|---:|---|"]
     for f in d.findings:
         lines.append(f"| {f.effect} | {'**yes**' if f.significant else 'no'} | {f.p_holm:.2g} | {f.share:.1%} | "

@@ -85,8 +85,10 @@ class Pairs:
         return int(self.i.shape[0])
 
 
-#: Widths of actuator play tried by the backlash test, as fractions of the action's training range.
-PLAY_WIDTHS = (0.05, 0.1, 0.2, 0.4, 0.8)
+#: Widths of actuator play tried by the backlash test, as fractions of the action's training range:
+#: 5% to 80% in steps of sqrt(2), so the true width is never far from one (a play filter of the
+#: wrong width leaves part of the hysteresis to the linear memory test).
+PLAY_WIDTHS = tuple(round(0.05 * 2 ** (k / 2), 4) for k in range(9))
 
 
 def play_offsets(a: np.ndarray, width: float) -> np.ndarray:
