@@ -5,7 +5,6 @@
 #include <cmath>
 #include <exception>
 #include <mutex>
-#include <optional>
 #include <stdexcept>
 #include <thread>
 #include <vector>
@@ -30,33 +29,16 @@ void activate(OutMap& y, const Dense& d) {
   }
 }
 
-// A chain of layers, each with its packed form where the microkernel suits it.
-struct Chain {
-  const std::vector<Dense>& layers;
-  std::vector<std::optional<PackedDense>> packed;
-
-  explicit Chain(const std::vector<Dense>& ls) : layers(ls) {
-    for (const Dense& d : ls) packed.emplace_back(PackedDense::suits(d) ? std::optional<PackedDense>(d) : std::nullopt);
-  }
-  long scratch_size() const {
-    long n = 0;
-    for (const auto& p : packed)
-      if (p) n = std::max(n, p->scratch_size());
-    return n;
-  }
-};
-
 // Layers applied to `in` (rows x count, column stride `stride`), ping-ponging between two buffers.
 // Packed layers run the engine's microkernel when the block fills at least one tile of columns (a
 // single run is a matrix-vector product, Eigen's GEMV does it better); the rest runs Eigen, with
 // the bias written first and the product accumulated onto it (one pass fewer than adding it after).
-const float* forward(const Chain& chain, const float* in, long rows, long stride, long count, float* a, float* b,
-                     float* scratch) {
-  for (size_t i = 0; i < chain.layers.size(); ++i) {
-    const Dense& d = chain.layers[i];
+const float* forward(const std::vector<Dense>& layers, const float* in, long rows, long stride, long count,
+                     float* a, float* b, float* scratch) {
+  for (const Dense& d : layers) {
     float* outp = (in == a) ? b : a;
-    if (chain.packed[i] && count >= PackedDense::kCols) {
-      chain.packed[i]->apply(in, stride, count, outp, scratch);
+    if (d.packed && count >= PackedDense::kCols) {
+      d.packed->apply(in, stride, count, outp, scratch);
       rows = d.W.rows();
     } else if (d.W.size() == 0) {  // activation on its own
       OutMap y(outp, rows, count);
@@ -82,8 +64,13 @@ struct Workspace {
   std::vector<float> scratch;      // the packed layers' input panel
   std::vector<double> rows, states, actions, memory;
 
-  Workspace(const Model& m, long scratch_size, int block) : scratch(size_t(std::max<long>(1, scratch_size))) {
+  Workspace(const Model& m, int block) {
     long c = m.channels();
+    long panel = 1;
+    for (const auto* layers : {&m.trunk, &m.mean, &m.log_std})
+      for (const Dense& d : *layers)
+        if (d.packed) panel = std::max(panel, d.packed->scratch_size());
+    scratch.resize(size_t(panel));
     ring.resize(2 * m.history * c, block);
     for (auto& v : buf) v.resize(size_t(m.max_width()) * size_t(block));
     mean.resize(m.n_state(), block);
@@ -99,12 +86,11 @@ struct Runner {
   const ControllerSpec& ctrl;
   const Job& job;
   Sink& sink;
-  Chain trunk, mean, log_std;
   std::vector<double> centre, half;
   long trunk_out;  // width of the trunk's output (the window itself without a trunk)
 
   Runner(const Model& model, const ControllerSpec& c, const Job& j, Sink& s)
-      : m(model), ctrl(c), job(j), sink(s), trunk(model.trunk), mean(model.mean), log_std(model.log_std) {
+      : m(model), ctrl(c), job(j), sink(s) {
     trunk_out = m.in_features();
     for (const Dense& d : m.trunk)
       if (d.W.size()) trunk_out = d.W.rows();
@@ -112,10 +98,6 @@ struct Runner {
       centre.push_back((m.norm_high[size_t(i)] + m.norm_low[size_t(i)]) / 2);  // as Normaliser.centre/half
       half.push_back((m.norm_high[size_t(i)] - m.norm_low[size_t(i)]) / 2);
     }
-  }
-
-  long scratch_size() const {
-    return std::max({trunk.scratch_size(), mean.scratch_size(), log_std.scratch_size()});
   }
 
   // The window of each run is kept twice over in a ring of 2l rows: row i and row i+l always hold
@@ -149,12 +131,12 @@ struct Runner {
     for (long t = 0; t < job.steps; ++t) {
       const float* x = w.ring.data() + p * c;
       const float* h =
-          m.trunk.empty() ? x : forward(trunk, x, in, stride, count, w.buf[0].data(), w.buf[1].data(), w.scratch.data());
+          m.trunk.empty() ? x : forward(m.trunk, x, in, stride, count, w.buf[0].data(), w.buf[1].data(), w.scratch.data());
       const long hstride = m.trunk.empty() ? stride : trunk_out;
-      const float* mu = forward(mean, h, trunk_out, hstride, count, w.buf[2].data(), w.buf[3].data(), w.scratch.data());
+      const float* mu = forward(m.mean, h, trunk_out, hstride, count, w.buf[2].data(), w.buf[3].data(), w.scratch.data());
       if (m.gaussian()) {
         OutMap(w.mean.data(), ns, count) = Eigen::Map<const MatF>(mu, ns, count);
-        const float* ls = forward(log_std, h, trunk_out, hstride, count, w.buf[2].data(), w.buf[3].data(),
+        const float* ls = forward(m.log_std, h, trunk_out, hstride, count, w.buf[2].data(), w.buf[3].data(),
                                  w.scratch.data());
         for (int b = 0; b < count; ++b)
           for (int i = 0; i < ns; ++i) {
@@ -220,7 +202,7 @@ void simulate(const Model& model, const ControllerSpec& controller, const Job& j
   std::mutex error_mutex;
   auto work = [&](int thread) {
     try {
-      Workspace w(model, runner.scratch_size(), block);  // every buffer of this thread, allocated once
+      Workspace w(model, block);  // every buffer of this thread, allocated once
       for (long k; (k = next.fetch_add(1)) < blocks;) {
         long first = job.first_run + k * block;
         runner.block(thread, w, first, int(std::min<long>(block, job.first_run + n - first)));

@@ -10,6 +10,7 @@
 #include <set>
 
 #include "envi/json.hpp"
+#include "envi/dense.hpp"
 #include "envi/model.hpp"
 
 namespace envi {
@@ -570,6 +571,9 @@ Model load_model(const uint8_t* data, size_t size) {
   m.metadata = std::move(metadata);
   read_metadata(m);
   check_shapes(m);
+  for (auto* layers : {&m.trunk, &m.mean, &m.log_std})
+    for (Dense& d : *layers)
+      if (PackedDense::suits(d)) d.packed = std::make_shared<const PackedDense>(d);
   return m;
 }
 

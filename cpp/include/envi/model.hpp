@@ -3,6 +3,7 @@
 #pragma once
 #include <Eigen/Core>
 #include <cstdint>
+#include <memory>
 #include <stdexcept>
 #include <string>
 #include <vector>
@@ -16,12 +17,16 @@ struct ModelError : std::runtime_error {
 
 enum class Act { None, Tanh, Relu, Sigmoid, Clip };
 
+class PackedDense;  // envi/dense.hpp
+
 // y = act(W x + b) on column vectors (one column per simulation).
 struct Dense {
   Eigen::MatrixXf W;  // out x in
   Eigen::VectorXf b;  // out
   Act act = Act::None;
   float clip_lo = 0.f, clip_hi = 0.f;
+  // The same layer packed for the engine's microkernel, made once at load where it suits.
+  std::shared_ptr<const PackedDense> packed;
 };
 
 struct ChannelInfo {
