@@ -27,8 +27,6 @@ class PackedDense {
 
   explicit PackedDense(const Dense& d);
 
-  long out() const { return out_; }
-  long in() const { return in_; }
   // Floats of scratch `apply` needs: one panel of the input, transposed.
   long scratch_size() const { return in_ * kCols; }
 
