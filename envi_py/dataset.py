@@ -69,13 +69,37 @@ def windows(values: np.ndarray, history: int) -> np.ndarray:
 
 #: Derived per-row input channels an effect may need (see :class:`envi_py.model.ModelConfig`):
 #: ``dt`` the interval from this row to the next, relative to the nominal period (sampling jitter);
-#: ``phase`` the position in the run, -1 at the first row to +1 at ``phase_rows`` and after (drift).
-EXTRA_CHANNELS = ("dt", "phase")
+#: ``phase`` the position in the run, -1 at the first row to +1 at ``phase_rows`` and after (drift);
+#: ``play`` where an actuator with play sits relative to the row's first action (backlash): a
+#: hysteresis of the whole action history, which no window of recent rows holds.
+EXTRA_CHANNELS = ("dt", "phase", "play")
+
+
+def play_offsets(a: np.ndarray, width: float, start: np.ndarray | float | None = None) -> np.ndarray:
+    """Backlash filter of command sequences ``a`` (..., T): an actuator with play ``width`` stays
+    put until the command pushes it from one side of the play (``p = clip(p, a - w/2, a + w/2)``);
+    returns its offset from the command per row, (..., T). It starts at ``start`` (the position
+    before the first row; by default the first command). Position = command + offset, so a row
+    that holds the offset is all a later row needs to continue the filter."""
+    a = np.asarray(a, dtype=np.float64)
+    out = np.empty_like(a)
+    if a.shape[-1] == 0:
+        return out
+    p = np.array(a[..., 0] if start is None else np.broadcast_to(start, a.shape[:-1]), dtype=np.float64)
+    h = width / 2
+    for t in range(a.shape[-1]):
+        p = np.clip(p, a[..., t] - h, a[..., t] + h)
+        out[..., t] = p - a[..., t]
+    return out
 
 
 def extra_channels(time_ms: np.ndarray, names: Sequence[str], period_ms: float, phase_rows: int,
-                   first_row: int = 0) -> np.ndarray:
-    """The derived channels of rows ``first_row...`` of a log, (T, len(names)), on a [-1, 1]-like scale."""
+                   first_row: int = 0, action: np.ndarray | None = None, play_width: float = 0.0) -> np.ndarray:
+    """The derived channels of rows ``first_row...`` of a log, (T, len(names)), on a [-1, 1]-like scale.
+
+    ``play`` needs the log's first action, normalised (``action``, (T,)), and the play's full width
+    as a fraction of that action's range (``play_width``); the filter starts at the first row, as a
+    simulation from the log's initial window does."""
     cols = []
     for name in names:
         if name == "dt":
@@ -83,9 +107,20 @@ def extra_channels(time_ms: np.ndarray, names: Sequence[str], period_ms: float, 
             cols.append(np.clip(dt / period_ms - 1.0, -1.0, 3.0))
         elif name == "phase":
             cols.append(np.minimum(np.arange(first_row, first_row + len(time_ms)) / phase_rows, 1.0) * 2 - 1)
+        elif name == "play":
+            if action is None or len(action) != len(time_ms):
+                raise ValueError("the 'play' channel needs the action of every row")
+            cols.append(play_offsets(action, 2.0 * play_width))  # the normalised range is 2 wide
         else:
             raise ValueError(f"unknown extra channel {name!r}; known: {', '.join(EXTRA_CHANNELS)}")
     return np.stack(cols, axis=1) if cols else np.zeros((len(time_ms), 0))
+
+
+def actuator_position(rows: np.ndarray, n_state: int, channels: int, extras: Sequence[str]) -> np.ndarray:
+    """Where the actuator with play sits after the last of the normalised model ``rows`` (..., n, W):
+    its command plus the row's ``play`` offset. The filter of the next rows continues from it."""
+    last = rows[..., -1, :]
+    return last[..., n_state] + last[..., channels + list(extras).index("play")]
 
 
 def interval_quantiles(logs: Sequence[Log], period_ms: float, n: int = 101) -> tuple[float, ...]:
@@ -129,7 +164,8 @@ class Dataset:
 
     @staticmethod
     def build(logs: Sequence[Log], history: int, norm: Normaliser | None = None, extras: Sequence[str] = (),
-              period_ms: float = 40.0, phase_rows: int = 100, context: bool = False) -> "Dataset":
+              period_ms: float = 40.0, phase_rows: int = 100, context: bool = False,
+              play_width: float = 0.0) -> "Dataset":
         """Pairs of every log; ``extras`` and ``context`` as declared by the model's config."""
         norm = norm or Normaliser.fit(logs)
         n_state = logs[0].states.shape[1]
@@ -137,8 +173,9 @@ class Dataset:
         for lg in logs:
             if len(lg) <= history:
                 raise ValueError(f"{lg.name}: {len(lg)} rows, need more than the history {history}")
-            z = np.concatenate([norm.encode(lg.values), extra_channels(lg.time, extras, period_ms, phase_rows)],
-                               axis=1).astype(np.float32)
+            zv = norm.encode(lg.values)
+            ex = extra_channels(lg.time, extras, period_ms, phase_rows, action=zv[:, n_state], play_width=play_width)
+            z = np.concatenate([zv, ex], axis=1).astype(np.float32)
             ctx = context_of(z[:history], n_state) if context else None
             x, y = log_pairs(z, history, n_state, ctx)
             zs.append(z), xs.append(x), ys.append(y)

@@ -3,7 +3,7 @@
 The paper's structure is an MLP l*(|s|+|a|) -> 256 -> tanh -> 256 -> tanh -> |s| -> tanh on values
 normalised to [-1, 1]. Everything an unmodelled effect may need later is a field of
 :class:`ModelConfig` rather than a new class: a longer ``history``, a ``gaussian`` head (mean and
-log-std) for stochastic simulation, ``extras`` for derived input channels (``dt``, ``phase``),
+log-std) for stochastic simulation, ``extras`` for derived input channels (``dt``, ``phase``, ``play``),
 ``context`` for a per-run context vector appended to the input, and output post-processing (``round_to`` sensor resolution, clamping to the valid range)
 applied by the simulator. The diagnosis retrains by changing the config, not the code.
 
@@ -43,6 +43,7 @@ class ModelConfig:
     kind: str = "mlp"  # or "random": the paper's baseline, a state drawn at random each step
     extras: tuple[str, ...] = ()  # derived per-row channels, see envi_py.dataset.EXTRA_CHANNELS
     phase_rows: int = 100  # rows over which the 'phase' channel runs from -1 to 1
+    play_width: float = 0.0  # the 'play' channel's full width, as a fraction of the first action's range
     context: bool = False  # append the per-run context of sigma_0 (envi_py.dataset.context_of)
     round_to: tuple[float, ...] | None = None  # per-state resolution in physical units (None: no rounding)
     clamp: bool = True  # keep simulated states inside the valid range: ``limits``, else the schema's
@@ -64,6 +65,8 @@ class ModelConfig:
             raise ValueError(f"model kind must be 'mlp' or 'random', not {self.kind!r}")
         if self.history < 1:
             raise ValueError("history must be at least 1")
+        if "play" in self.extras and not self.play_width > 0:
+            raise ValueError("the 'play' channel needs a play_width > 0 (a fraction of the action range)")
 
     @property
     def channels(self) -> int:

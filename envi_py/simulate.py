@@ -14,7 +14,7 @@ import numpy as np
 import torch
 
 from .controllers import ControllerSpec
-from .dataset import context_of, extra_channels
+from .dataset import actuator_position, context_of, extra_channels, play_offsets
 from .logs import Log, LogMeta
 from .model import Checkpoint
 
@@ -32,13 +32,15 @@ def post_process(states: np.ndarray, ckpt: Checkpoint) -> np.ndarray:
 
 
 def _model_rows(ckpt: Checkpoint, values: np.ndarray, first_row: int,
-                rng: np.random.Generator | None = None) -> np.ndarray:
+                rng: np.random.Generator | None = None, previous: np.ndarray | None = None) -> np.ndarray:
     """Physical rows (B, n, C) -> the model's normalised rows, derived channels appended.
 
     ``phase`` follows the row index. ``dt`` is drawn per run and row from the training logs'
     intervals (``config.intervals``) with ``rng``: a model told the interval must be simulated
     with intervals like the real ones, or a jittery robot is simulated as a punctual one.
-    Without recorded intervals every interval is the nominal one (``dt`` = 0).
+    Without recorded intervals every interval is the nominal one (``dt`` = 0). ``play`` continues
+    the backlash filter from the actuator position of the ``previous`` model rows (B, m, W), or
+    starts it at the first row's command, as :class:`~envi_py.dataset.Dataset` does for a log.
     """
     cfg = ckpt.config
     z = ckpt.norm.encode(values)
@@ -46,11 +48,16 @@ def _model_rows(ckpt: Checkpoint, values: np.ndarray, first_row: int,
         return z.astype(np.float32)
     b, n = values.shape[:2]
     period = ckpt.record.period_ms or 40.0
-    ex = np.broadcast_to(extra_channels(period * np.arange(n), cfg.extras, period, cfg.phase_rows, first_row),
-                         (b, n, len(cfg.extras))).copy()
+    clock = [name for name in cfg.extras if name != "play"]
+    ex = np.zeros((b, n, len(cfg.extras)))
+    ex[..., [cfg.extras.index(name) for name in clock]] = extra_channels(
+        period * np.arange(n), clock, period, cfg.phase_rows, first_row)
     if "dt" in cfg.extras and cfg.intervals is not None and rng is not None:
         q = np.asarray(cfg.intervals)
         ex[..., cfg.extras.index("dt")] = np.interp(rng.random((b, n)), np.linspace(0, 1, len(q)), q)
+    if "play" in cfg.extras:
+        start = None if previous is None else actuator_position(previous, cfg.n_state, cfg.channels, cfg.extras)
+        ex[..., cfg.extras.index("play")] = play_offsets(z[..., cfg.n_state], 2.0 * cfg.play_width, start)
     return np.concatenate([z, ex], axis=2).astype(np.float32)
 
 
@@ -88,7 +95,8 @@ def rollout(ckpt: Checkpoint, controller: ControllerSpec, init: np.ndarray, step
         s = post_process(norm.decode(np.concatenate([z, np.zeros((batch, chans - ns))], axis=1))[:, :ns], ckpt)
         out[:, hist + t, :ns] = s
         out[:, hist + t, ns:] = ctrl(s)
-        row = torch.from_numpy(_model_rows(ckpt, out[:, hist + t:hist + t + 1], hist + t, intervals))
+        row = torch.from_numpy(_model_rows(ckpt, out[:, hist + t:hist + t + 1], hist + t, intervals,
+                                           window[:, -1:].numpy()))
         window = torch.cat([window[:, 1:], row], dim=1)
     return out
 

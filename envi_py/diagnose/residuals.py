@@ -14,6 +14,7 @@ from typing import Sequence
 import numpy as np
 import torch
 
+from ..dataset import play_offsets
 from ..logs import Log
 from ..model import Checkpoint
 from ..simulate import post_process
@@ -89,20 +90,6 @@ class Pairs:
 #: 5% to 80% in steps of sqrt(2), so the true width is never far from one (a play filter of the
 #: wrong width leaves part of the hysteresis to the linear memory test).
 PLAY_WIDTHS = tuple(round(0.05 * 2 ** (k / 2), 4) for k in range(9))
-
-
-def play_offsets(a: np.ndarray, width: float) -> np.ndarray:
-    """Backlash filter of the action sequence: an actuator with play ``width`` stays put until the
-    command pushes it from one side of the play (``p = clip(p, a - w/2, a + w/2)``); returns its
-    offset from the command per row. Hysteresis: it depends on the whole history of reversals, not
-    on the last few commands alone, so a window that does not reach back far enough cannot hold it."""
-    out = np.empty(len(a))
-    p = float(a[0]) if len(a) else 0.0
-    h = width / 2
-    for t, v in enumerate(a):
-        p = min(max(p, v - h), v + h)
-        out[t] = p - v
-    return out
 
 
 @torch.no_grad()

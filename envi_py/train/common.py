@@ -100,4 +100,4 @@ def dataset_for(ckpt: Checkpoint, logs: Sequence[Log]) -> Dataset:
     """Training pairs laid out as the checkpoint's model expects them (derived channels, context)."""
     cfg = ckpt.config
     return Dataset.build(logs, cfg.history, ckpt.norm, cfg.extras, ckpt.record.period_ms or 40.0,
-                         cfg.phase_rows, cfg.context)
+                         cfg.phase_rows, cfg.context, cfg.play_width)

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from ..dataset import context_of, extra_channels
+from ..dataset import actuator_position, context_of, extra_channels, play_offsets
 from ..logs import Log
 from ..model import Checkpoint
 from ..verify import controller_of, group_by_controller
@@ -45,7 +45,7 @@ class WindowEnv:
     Start windows are taken every ``stride`` rows of each log (sigma_0 included) as long as
     ``horizon`` real rows follow, so the model is trained on the states the robot actually visits,
     not only on the first second of each run. Simulated rows get the derived channels they would
-    have in simulation (nominal ``dt``, ``phase`` by row index), as :mod:`envi_py.simulate` does.
+    have in simulation (nominal ``dt``, ``phase`` by row index, ``play`` from the simulated actions), as :mod:`envi_py.simulate` does.
     """
 
     def __init__(self, ckpt: Checkpoint, logs: list[Log], horizon: int = 40, stride: int = 10) -> None:
@@ -62,8 +62,9 @@ class WindowEnv:
             for o in range(0, last + 1, stride):
                 windows.append(z[o:o + hist])
                 contexts.append(context_of(z[:hist], ns))
+                # 'play' depends on the simulated actions: a placeholder here, filled in by the rollout
                 extras.append(extra_channels(period * np.arange(horizon), cfg.extras, period, cfg.phase_rows,
-                                             o + hist))
+                                             o + hist, np.zeros(horizon), cfg.play_width))
                 log_idx.append(i)
         self.window0 = torch.from_numpy(np.stack(windows).astype(np.float32))
         self.context = torch.from_numpy(np.stack(contexts).astype(np.float32)) if cfg.context else None
@@ -127,7 +128,13 @@ class WindowEnv:
                 act[idx] = ctrl(s_np[idx])
             phys = torch.cat([s, torch.from_numpy(act)], dim=1)
             z_row = ((phys - self.centre.double()) / self.half.double()).float()
-            row = torch.cat([z_row, self.extras[:, t]], dim=1)
+            ex = self.extras[:, t]
+            if "play" in cfg.extras:
+                ex = ex.clone()
+                start = actuator_position(window.numpy(), ns, cfg.channels, cfg.extras)
+                play = play_offsets(z_row[:, ns:ns + 1].numpy(), 2.0 * cfg.play_width, start)
+                ex[:, cfg.extras.index("play")] = torch.from_numpy(play[:, 0].astype(np.float32))
+            row = torch.cat([z_row, ex], dim=1)
             obs.append(x), acts.append(a), logps.append(logp), nexts.append(z_row[:, :ns])
             window = torch.cat([window[:, 1:], row.unsqueeze(1)], dim=1)
         to_go = 1.0 - torch.arange(h, dtype=torch.float32) / h
