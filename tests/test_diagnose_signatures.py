@@ -7,7 +7,8 @@ import pytest
 
 from envi_py.dataset import Normaliser
 from envi_py.diagnose.effects import CANDIDATES, Finding, _nested_first, holm, lattice_step, misfit_share, run_candidates
-from envi_py.diagnose.residuals import BEYOND, PLAY_WIDTHS, Residuals, play_offsets
+from envi_py.dataset import play_offsets
+from envi_py.diagnose.residuals import BEYOND, PLAY_WIDTHS, Residuals
 from envi_py.logs import LANE_KEEPING_SCHEMA
 from envi_py.model import Checkpoint, EnvModel, ModelConfig, TrainingRecord
 
@@ -141,6 +142,12 @@ def test_misfit_share_separates_a_wrong_model_from_noise():
     similar windows) is misfit; white noise is not."""
     assert misfit_share(synthetic()) > 0.9
     assert misfit_share(synthetic(CASES["noise"])) < 0.1
+
+
+def test_backlash_is_fixed_with_a_play_channel_of_the_width_found():
+    res = synthetic(CASES["backlash"])
+    finding = next(f for f in run_candidates(res, ckpt()) if f.effect == "backlash")
+    assert finding.fix == {"extras": ("play",), "play_width": PLAY_WIDTHS[3]}
 
 
 def test_play_offsets_is_a_backlash_filter():

@@ -92,7 +92,7 @@ def register(sub: Any) -> None:
     v.add_argument("--steps", type=int, default=d.steps, help="rows per log")
     v.add_argument("--epochs", type=int, default=d.epochs)
     v.add_argument("--lr", type=float, default=d.lr)
-    v.add_argument("--history", type=int, default=d.history)
+    v.add_argument("--history", type=int, default=d.history, help="model history (cases that set their own keep it)")
     v.add_argument("--runs", type=int, default=d.runs, help="simulated runs per initial window")
     v.add_argument("--out", default="diagnosis-validation", help="output folder (results.jsonl resumes)")
     v.set_defaults(func=_cmd_validate)

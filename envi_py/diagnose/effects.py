@@ -9,7 +9,7 @@ accounts for. Residuals of one run are serially correlated (closed loop), so the
 effective sample size ``n (1 - rho) / (1 + rho)`` from the lag-1 autocorrelation. P-values are Holm-corrected over all candidates; an effect is reported as
 significant when its corrected p-value is below ``alpha`` *and* its share is at least
 ``min_share`` (with thousands of residuals, a real but negligible effect would otherwise be
-flagged). Significant candidates are ranked by share, with one exception for nested candidates
+flagged; :data:`MIN_SHARE`, higher for a few candidates). Significant candidates are ranked by share, with one exception for nested candidates
 (:data:`NESTED`): backlash is a particular memory, of the last reversal. Rows before the window
 approximate any dependence on history, hysteresis included, so the memory test's share stays high
 under backlash; only hysteresis makes the play filter explain something *beyond* those rows. When
@@ -294,20 +294,33 @@ def test_run_to_run(res: Residuals, ckpt: Checkpoint) -> tuple[float, float, flo
         f"per-run offsets and gains explain {share:.1%} of the residual differences ({len(runs)} runs)"
 
 
-def test_backlash(res: Residuals, ckpt: Checkpoint) -> tuple[float, float, float, str]:
-    """Dead zone or backlash: between look-alike windows, residuals follow where an actuator with
-    play would sit relative to the command (a hysteresis of the whole action history), beyond what
-    the rows before the window explain linearly; the best of a few play widths (Bonferroni)."""
+def _best_play(res: Residuals) -> tuple[float, float, float, int]:
+    """F, p (uncorrected), share and index into :data:`PLAY_WIDTHS` of the play width that explains
+    the most of the residual differences beyond the rows before the window."""
     best = (0.0, 1.0, 0.0, 0)
     for k in range(res.play.shape[1]):
         f, p, share = _f_test(res, _diff(res, res.play[:, k]), _beyond_mask(res),
                               given=np.nan_to_num(_diff(res, res.beyond)))
         if share > best[2] or (best[2] == 0 and p < best[1]):
             best = (f, p, share, k)
-    f, p, share, k = best
+    return best
+
+
+def test_backlash(res: Residuals, ckpt: Checkpoint) -> tuple[float, float, float, str]:
+    """Dead zone or backlash: between look-alike windows, residuals follow where an actuator with
+    play would sit relative to the command (a hysteresis of the whole action history), beyond what
+    the rows before the window explain linearly; the best of a few play widths (Bonferroni)."""
+    f, p, share, k = _best_play(res)
     return f, min(1.0, p * res.play.shape[1]), share, \
         f"an actuator play of {PLAY_WIDTHS[k]:.0%} of the action range explains {share:.1%} of the residual " \
         f"differences between look-alike windows"
+
+
+def _play_channel(cfg: ModelConfig, res: Residuals) -> dict[str, Any]:
+    """Backlash's fix: tell the model where the actuator sits in its play (the ``play`` channel,
+    carried by the closed loop), at the width the test found."""
+    extras = cfg.extras if "play" in cfg.extras else tuple(cfg.extras) + ("play",)
+    return {"extras": extras, "play_width": PLAY_WIDTHS[_best_play(res)[3]]}
 
 
 def test_jitter(res: Residuals, ckpt: Checkpoint) -> tuple[float, float, float, str]:
@@ -335,6 +348,7 @@ class Candidate:
     test: Callable[[Residuals, Checkpoint], tuple[float, float, float, str]]
     fix: Callable[[ModelConfig, Residuals], dict[str, Any]]
     twin_effects: tuple[str, ...] = field(default=())  # twin effects this candidate stands for
+    min_share: float = 0.0  # a bar above the common one (:data:`MIN_SHARE`), see :data:`CANDIDATES`
 
 
 CANDIDATES: tuple[Candidate, ...] = (
@@ -345,11 +359,14 @@ CANDIDATES: tuple[Candidate, ...] = (
               ("quantise",)),
     Candidate("saturation", "saturation at range limits", test_saturation,
               lambda c, r: {"limits": ((float(r.real_next.min()), float(r.real_next.max())),)}, ("saturation",)),
+    # Per-run offsets and trends in time absorb slow transients of a closed loop whose state the
+    # window does not fully hold (PID steering of a clean twin: shares up to 5.5% on negative
+    # controls), so these two need a higher bar; injected drift or run variation explains >= 14%.
     Candidate("drift", "drift within a run", test_drift, lambda c, r: {"extras": tuple(c.extras) + ("phase",)},
-              ("battery",)),
+              ("battery",), min_share=0.10),
     Candidate("run_to_run", "run-to-run variation", test_run_to_run, lambda c, r: {"context": True},
-              ("run_variation",)),
-    Candidate("backlash", "dead zone or backlash", test_backlash, _longer_history, ("backlash", "deadzone")),
+              ("run_variation",), min_share=0.10),
+    Candidate("backlash", "dead zone or backlash", test_backlash, _play_channel, ("backlash", "deadzone")),
     Candidate("jitter", "sampling jitter", test_jitter, lambda c, r: {"extras": tuple(c.extras) + ("dt",)},
               ("jitter",)),
 )
@@ -368,7 +385,15 @@ def holm(pvalues: Sequence[float]) -> np.ndarray:
     return adj
 
 
-def run_candidates(res: Residuals, ckpt: Checkpoint, alpha: float = 0.05, min_share: float = 0.05,
+#: The smallest share of the differenced residual mean square a significant effect must explain.
+#: With thousands of residuals a real but negligible effect would otherwise be flagged. On 80
+#: negative-control trials of ``envi diagnose validate`` under bang-bang steering (seeds 0-39, both
+#: modes) the largest share a Holm-significant candidate reached was 2.0%; 3% keeps a margin above
+#: that. Two candidates need more (:attr:`Candidate.min_share`).
+MIN_SHARE = 0.03
+
+
+def run_candidates(res: Residuals, ckpt: Checkpoint, alpha: float = 0.05, min_share: float = MIN_SHARE,
                    candidates: Sequence[Candidate] = CANDIDATES) -> list[Finding]:
     """Every candidate's finding, significant ones first (by share), then the rest by p-value."""
     raw = []
@@ -378,7 +403,8 @@ def run_candidates(res: Residuals, ckpt: Checkpoint, alpha: float = 0.05, min_sh
         raw.append(Finding(c.name, stat, p, share, detail, fix))
     adj = holm([f.p for f in raw])
     out = [Finding(f.effect, f.statistic, f.p, f.share, f.detail, f.fix, float(a),
-                   bool(a < alpha and f.share >= min_share)) for f, a in zip(raw, adj)]
+                   bool(a < alpha and f.share >= max(min_share, c.min_share)))
+           for f, a, c in zip(raw, adj, candidates)]
     out.sort(key=lambda f: (not f.significant, -f.share if f.significant else f.p_holm))
     return _nested_first(out, alpha)
 

@@ -12,6 +12,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from ..metrics import METRIC_NAMES  # noqa: E402
+from .effects import MIN_SHARE  # noqa: E402
 from .run import Diagnosis  # noqa: E402
 
 
@@ -97,7 +98,7 @@ def write_diagnosis(d: Diagnosis, out: Path) -> Path:
              "Each one-step residual is compared with the residual of the most similar window of another run "
              "(the model's misfit cancels there, an unmodelled effect does not). Holm-corrected p-values; "
              "*share* is the part of those differences' mean square the effect accounts for; "
-             "significant = p_holm < 0.05 and share >= 5%; backlash, a specific memory, is also significant "
+             f"significant = p_holm < 0.05 and share >= {MIN_SHARE:.0%}; backlash, a specific memory, is also significant "
              "(and named first) when memory leads and backlash explains something beyond the rows before the window.", "",
              "| effect | significant | p (Holm) | share | evidence |", "|---|---|---:|---:|---|"]
     for f in d.findings:

@@ -14,7 +14,7 @@ from ..model import Checkpoint
 from ..train.common import dataset_for
 from ..simulate import initial_windows, rollout
 from ..verify import controller_of, group_by_controller
-from .effects import Finding, misfit_share, run_candidates
+from .effects import MIN_SHARE, Finding, misfit_share, run_candidates
 from .gap import by_run, by_version, coverage, horizon_gap, metric_gaps, residual_map, windows_of
 from .residuals import one_step_residuals
 from .shrink import load_recorded, shrink, simulate_groups
@@ -84,7 +84,7 @@ def split_choose_confirm(logs: Sequence[Log], seed: int) -> tuple[list[Log], lis
 def diagnose(ckpt: Checkpoint, real: Sequence[Log], confirm: Sequence[Log] | None = None,
              train_logs: Sequence[Log] | None = None, val_logs: Sequence[Log] | None = None,
              metric: MetricConfig = MetricConfig(), runs: int = 10, top: int = 2, retrain: bool = True,
-             alpha: float = 0.05, min_share: float = 0.05, seed: int = 0) -> Diagnosis:
+             alpha: float = 0.05, min_share: float = MIN_SHARE, seed: int = 0) -> Diagnosis:
     """Diagnose ``ckpt`` on ``real`` logs; effects are confirmed on ``confirm`` (default: half of ``real``)."""
     choose, confirm_l = (list(real), list(confirm)) if confirm else split_choose_confirm(real, seed)
     res = one_step_residuals(ckpt, choose)
