@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any, Callable, Sequence
 
 from .controllers import ControllerSpec, parse_params
+from .dataset import EXTRA_CHANNELS
 from .logs import DatasetSpec, Log, LogError, load_logs, write_log
 from .metrics import MetricConfig
 
@@ -116,7 +117,8 @@ def cmd_train(args: argparse.Namespace) -> int:
                               "metric": metric_config(args, args.history)}
     if args.algorithm != "random":
         kwargs.update(epochs=args.epochs, hidden=[int(h) for h in args.hidden.split(",") if h],
-                      head=args.head, eval_every=args.eval_every)
+                      head=args.head, eval_every=args.eval_every, extras=tuple(args.extras),
+                      play_width=args.play_width, context=args.context)
         if args.lr is not None:
             kwargs["lr"] = args.lr
     t0 = time.perf_counter()
@@ -207,6 +209,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--history", type=int, default=10, help="window length l")
     p.add_argument("--hidden", default="256,256", help="hidden widths")
     p.add_argument("--head", choices=("deterministic", "gaussian"), default="deterministic")
+    p.add_argument("--extras", nargs="*", choices=EXTRA_CHANNELS, default=[],
+                   help="derived input channels (what a diagnosis' fix may add): dt, phase, play")
+    p.add_argument("--play-width", type=float, default=0.0,
+                   help="the play channel's full width, a fraction of the action range")
+    p.add_argument("--context", action="store_true", help="append the per-run context of the initial window")
     p.add_argument("--eval-every", type=int, default=10, help="epochs between closed-loop validations")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--quiet", action="store_true", help="no progress bar")

@@ -48,3 +48,21 @@ def test_bad_input_exits_2_with_one_line(tmp_path, capsys):
     assert main(["simulate", "--model", str(bad), "--init-logs", str(bad), "--out", str(tmp_path)]) == 2
     with pytest.raises(SystemExit):
         main(["train", "--help"])
+
+
+def test_a_diagnosed_fix_can_be_trained_and_simulated_from_the_command_line(real_dir, tmp_path, capsys):
+    """What a diagnosis proposes (here backlash's play channel) is a training option; the model
+    then simulates on the PyTorch engine, and a play channel without a width is refused."""
+    logs = [str(p) for p in sorted(real_dir.glob("log_30_*.csv"))[:6]]
+    model = tmp_path / "play.pt"
+    assert main(["train", "--logs", *logs[:4], "--epochs", "5", "--history", "4", "--extras", "play", "dt",
+                 "--play-width", "0.3", "--quiet", "-o", str(model)]) == 0
+    from envi_py.model import Checkpoint
+
+    cfg = Checkpoint.load(model).config
+    assert cfg.extras == ("play", "dt") and cfg.play_width == 0.3 and cfg.in_features == 4 * 4
+    capsys.readouterr()
+    assert main(["simulate", "--model", str(model), "--init-logs", *logs[4:], "--out", str(tmp_path / "sim")]) == 0
+    assert "(torch engine)" in capsys.readouterr().out
+    assert main(["train", "--logs", *logs[:4], "--extras", "play", "-o", str(tmp_path / "bad.pt")]) == 2
+    assert "play_width" in capsys.readouterr().err

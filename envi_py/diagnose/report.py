@@ -12,8 +12,13 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from ..metrics import METRIC_NAMES  # noqa: E402
-from .effects import MIN_SHARE  # noqa: E402
+from .effects import CANDIDATES, MIN_SHARE  # noqa: E402
 from .run import Diagnosis  # noqa: E402
+
+
+def _higher_bars() -> str:
+    """The candidates whose share bar is above the common one, for the report's legend."""
+    return ", ".join(f"{c.min_share:.0%} for {c.name}" for c in CANDIDATES if c.min_share > MIN_SHARE)
 
 
 def _residual_map_png(d: Diagnosis, path: Path) -> None:
@@ -98,7 +103,7 @@ def write_diagnosis(d: Diagnosis, out: Path) -> Path:
              "Each one-step residual is compared with the residual of the most similar window of another run "
              "(the model's misfit cancels there, an unmodelled effect does not). Holm-corrected p-values; "
              "*share* is the part of those differences' mean square the effect accounts for; "
-             f"significant = p_holm < 0.05 and share >= {MIN_SHARE:.0%}; backlash, a specific memory, is also significant "
+             f"significant = p_holm < 0.05 and share >= {MIN_SHARE:.0%} ({_higher_bars()}); backlash, a specific memory, is also significant "
              "(and named first) when memory leads and backlash explains something beyond the rows before the window.", "",
              "| effect | significant | p (Holm) | share | evidence |", "|---|---|---:|---:|---|"]
     for f in d.findings:
