@@ -45,7 +45,8 @@ class WindowEnv:
     Start windows are taken every ``stride`` rows of each log (sigma_0 included) as long as
     ``horizon`` real rows follow, so the model is trained on the states the robot actually visits,
     not only on the first second of each run. Simulated rows get the derived channels they would
-    have in simulation (nominal ``dt``, ``phase`` by row index, ``play`` from the simulated actions), as :mod:`envi_py.simulate` does.
+    have in simulation (nominal ``dt``, ``phase`` by row index, ``play`` from the simulated
+    actions), as :mod:`envi_py.simulate` does.
     """
 
     def __init__(self, ckpt: Checkpoint, logs: list[Log], horizon: int = 40, stride: int = 10) -> None:
