@@ -68,3 +68,33 @@ def test_cli_writes_the_report_and_resumes(tmp_path, capsys):
     assert (tmp_path / "results.jsonl").read_text().splitlines() == lines
     assert main(["diagnose", "validate", "--cases", "wind", "--out", str(tmp_path)]) == 2
     assert "unknown case(s) wind" in capsys.readouterr().err
+
+
+def test_has_gap_asks_for_a_metric_beyond_its_floor():
+    from envi_py.diagnose.run import has_gap
+
+    inside = [{"controller": "a", "gaps": [{"metric": "m", "ratio": 1.0}, {"metric": "n", "ratio": 0.0}]}]
+    assert not has_gap(inside)
+    assert has_gap(inside + [{"controller": "b", "gaps": [{"metric": "m", "ratio": 1.2}]}])
+
+
+def test_a_robot_that_never_leaves_its_setpoint_has_no_gap_to_attribute(monkeypatch):
+    """A clean twin under PID steering sits on the edge: every metric is equal in every run, the
+    model reproduces that, and no residual structure is called an effect, even one its test flags
+    (here every candidate is made to flag)."""
+    from dataclasses import replace
+
+    from envi_py.diagnose import run
+    from envi_py.diagnose.run import diagnose
+    from envi_py.diagnose.validate import _logs
+    from envi_py.train import train
+
+    case = BY_NAME["none_pid"]
+    fit = _logs(case, 15, 100, 0)
+    ckpt = train("bc", fit[:12], fit[12:], seed=0, epochs=40, lr=1e-3, history=8)
+    flagged = run.run_candidates
+    monkeypatch.setattr(run, "run_candidates",
+                        lambda *a, **k: [replace(f, significant=True) for f in flagged(*a, **k)])
+    d = diagnose(ckpt, _logs(case, 16, 100, 1), train_logs=fit[:12], val_logs=fit[12:], runs=2, retrain=True)
+    assert d.no_gap and d.significant == [] and d.shrink is None
+    assert "no closed-loop gap to attribute" in d.verdict()

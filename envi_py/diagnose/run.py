@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Sequence
 
 import numpy as np
@@ -40,6 +40,11 @@ class Diagnosis:
     def significant(self) -> list[Finding]:
         return [f for f in self.findings if f.significant]
 
+    @property
+    def no_gap(self) -> bool:
+        """True when every goal metric of every controller version is within its real-vs-real floor."""
+        return not has_gap(self.gaps)
+
     def verdict(self) -> str:
         """One paragraph a person reads first."""
         gaps = [g["gaps"][0] for g in self.gaps]
@@ -48,6 +53,10 @@ class Diagnosis:
                 f"Simulated runs leave the band of real runs after a median of {self.horizon[0]['median_exit_step']:.0f} "
                 f"steps; {self.coverage['outside_share']:.0%} of simulated windows lie outside the training data. ")
         sig = self.significant
+        if self.no_gap:
+            return text + ("Every goal metric is within its real-vs-real floor: there is no closed-loop gap to "
+                           "attribute, so no candidate effect is called significant (their tests are listed "
+                           "for information).")
         if self.misfit >= 0.5:
             text += (f"{self.misfit:.0%} of the one-step residual is a smooth function of the window: the model is "
                      f"wrong where it has seen similar windows, as when these logs come from a world the training "
@@ -81,6 +90,14 @@ def split_choose_confirm(logs: Sequence[Log], seed: int) -> tuple[list[Log], lis
     return choose, confirm
 
 
+def has_gap(gaps: Sequence[dict[str, Any]]) -> bool:
+    """Is any goal metric of any controller version beyond its real-vs-real floor? Without such a
+    gap an effect may be detectable in the one-step residuals yet causes nothing worth fixing: a
+    negative control of a robot that never leaves its set-point (every metric equal in every run)
+    otherwise shows residual structure of a thousandth of a colour unit as an effect."""
+    return any(row["ratio"] > 1.0 for g in gaps for row in g["gaps"])
+
+
 def diagnose(ckpt: Checkpoint, real: Sequence[Log], confirm: Sequence[Log] | None = None,
              train_logs: Sequence[Log] | None = None, val_logs: Sequence[Log] | None = None,
              metric: MetricConfig = MetricConfig(), runs: int = 10, top: int = 2, retrain: bool = True,
@@ -88,9 +105,11 @@ def diagnose(ckpt: Checkpoint, real: Sequence[Log], confirm: Sequence[Log] | Non
     """Diagnose ``ckpt`` on ``real`` logs; effects are confirmed on ``confirm`` (default: half of ``real``)."""
     choose, confirm_l = (list(real), list(confirm)) if confirm else split_choose_confirm(real, seed)
     res = one_step_residuals(ckpt, choose)
-    findings = run_candidates(res, ckpt, alpha, min_share)
     groups = simulate_groups(ckpt, choose, runs, seed)
     gaps = [{"controller": label, "gaps": metric_gaps(r, s, metric, seed=seed)} for label, r, s in groups]
+    findings = run_candidates(res, ckpt, alpha, min_share)
+    if not has_gap(gaps):
+        findings = [replace(f, significant=False) for f in findings]
     horizon = [{"controller": label, **horizon_gap(r, s, metric.skip, seed)} for label, r, s in groups]
     train_logs = list(train_logs) if train_logs is not None else load_recorded(ckpt.record.data, ckpt)
     if val_logs is None:
