@@ -131,6 +131,9 @@ def test_backlash_beyond_a_leading_memory_is_named_first():
     assert _nested_first([memory, drift, weak], 0.05) == [memory, drift, weak]
     # Memory not leading (another effect explains more): the order stands.
     assert _nested_first([drift, memory, backlash], 0.05) == [drift, memory, backlash]
+    # Memory leading by its what-if (the commands lag): that is its form, backlash does not take over.
+    lagging = Finding("memory_delay", 1.0, 1e-20, 0.01, "", {}, 1e-20, True, what_if=0.97)
+    assert _nested_first([lagging, drift, backlash], 0.05) == [lagging, drift, backlash]
 
 
 def test_holm():

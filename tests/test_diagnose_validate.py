@@ -31,6 +31,14 @@ def test_verification_mode_names_a_worn_battery_and_locates_it_late_in_the_affec
     assert r["where"]["worst_fifth"] == 4
 
 
+def test_verification_mode_names_a_lagging_actuator_by_its_what_if():
+    """Trained on a clean robot, verified on one whose steering lags: the residual is all misfit,
+    which the pair tests cannot see; feeding the model lagged commands removes most of it."""
+    r = trial(BY_NAME["lag"], seed=0, mode="verification", size=TINY, shrink=False)
+    assert r["top"] == "memory_delay", r["findings"]
+    assert r["findings"]["memory_delay"]["what_if"] > 0.5, r["findings"]
+
+
 def test_adding_the_diagnosed_noise_shrinks_the_gap():
     r = trial(BY_NAME["noise"], seed=0, size=TINY, shrink=True)
     s = r["shrink"]

@@ -12,13 +12,13 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from ..metrics import METRIC_NAMES  # noqa: E402
-from .effects import CANDIDATES, MIN_SHARE  # noqa: E402
+from .effects import CANDIDATES, MIN_SHARE, WHAT_IF_BAR  # noqa: E402
 from .run import Diagnosis  # noqa: E402
 
 
-def _higher_bars() -> str:
-    """The candidates whose share bar is above the common one, for the report's legend."""
-    return ", ".join(f"{c.min_share:.0%} for {c.name}" for c in CANDIDATES if c.min_share > MIN_SHARE)
+def _own_bars() -> str:
+    """The candidates whose share bar is not the common one, for the report's legend."""
+    return ", ".join(f"{c.min_share:.0%} for {c.name}" for c in CANDIDATES if c.min_share is not None)
 
 
 def _residual_map_png(d: Diagnosis, path: Path) -> None:
@@ -103,12 +103,16 @@ def write_diagnosis(d: Diagnosis, out: Path) -> Path:
              "Each one-step residual is compared with the residual of the most similar window of another run "
              "(the model's misfit cancels there, an unmodelled effect does not). Holm-corrected p-values; "
              "*share* is the part of those differences' mean square the effect accounts for; "
-             f"significant = p_holm < 0.05 and share >= {MIN_SHARE:.0%} ({_higher_bars()}); backlash, a specific memory, is also significant "
-             "(and named first) when memory leads and backlash explains something beyond the rows before the window.", "",
-             "| effect | significant | p (Holm) | share | evidence |", "|---|---|---:|---:|---|"]
+             "*what-if* is the part of the one-step residual mean square removed by feeding the model its inputs "
+             "as the effect would have changed them (no retraining; it sees a misfit the pairs cannot); "
+             f"significant = p_holm < 0.05 and share >= {MIN_SHARE:.0%} ({_own_bars()}) or what-if >= "
+             f"{WHAT_IF_BAR:.0%}; backlash, a specific memory, is also significant "
+             "(and named first) when memory leads by its share and backlash explains something beyond the rows "
+             "before the window.", "",
+             "| effect | significant | p (Holm) | share | what-if | evidence |", "|---|---|---:|---:|---:|---|"]
     for f in d.findings:
         lines.append(f"| {f.effect} | {'**yes**' if f.significant else 'no'} | {f.p_holm:.2g} | {f.share:.1%} | "
-                     f"{f.detail} |")
+                     f"{f.what_if:.1%} | {f.detail} |")
     if d.shrink:
         _shrink_png(d, out / "shrink.png")
         s = d.shrink

@@ -63,7 +63,8 @@ class Diagnosis:
                      f"logs do not show; training on such logs, not an added effect, closes that part. ")
         if not sig:
             return text + "No candidate effect explains a significant share of the one-step residuals."
-        names = ", ".join(f"{f.effect} ({f.share:.0%} of residual mean square)" for f in sig)
+        names = ", ".join(f"{f.effect} ({f.share:.0%} of residual mean square)" if f.share >= f.what_if else
+                          f"{f.effect} (its what-if removes {f.what_if:.0%} of the residual mean square)" for f in sig)
         text += f"Significant candidate effects, most important first: {names}. "
         if self.shrink and self.shrink["after"]:
             best = max(self.shrink["after"], key=lambda a: a["shrink"])
@@ -107,7 +108,7 @@ def diagnose(ckpt: Checkpoint, real: Sequence[Log], confirm: Sequence[Log] | Non
     res = one_step_residuals(ckpt, choose)
     groups = simulate_groups(ckpt, choose, runs, seed)
     gaps = [{"controller": label, "gaps": metric_gaps(r, s, metric, seed=seed)} for label, r, s in groups]
-    findings = run_candidates(res, ckpt, alpha, min_share)
+    findings = run_candidates(res, ckpt, alpha, min_share, logs=choose)
     if not has_gap(gaps):
         findings = [replace(f, significant=False) for f in findings]
     horizon = [{"controller": label, **horizon_gap(r, s, metric.skip, seed)} for label, r, s in groups]

@@ -139,7 +139,7 @@ def trial(case: Case, seed: int, mode: str = "withheld", size: Size = Size(), sh
     out: dict[str, Any] = {
         "case": case.name, "seed": seed, "mode": mode, "expected": case.expected,
         "top": sig[0] if sig else None, "significant": sig,
-        "findings": {f.effect: {"share": f.share, "p_holm": f.p_holm, "statistic": f.statistic}
+        "findings": {f.effect: {"share": f.share, "what_if": f.what_if, "p_holm": f.p_holm, "statistic": f.statistic}
                      for f in d.findings},
         "residual_rms": d.residual_map["rmse"], "misfit": d.misfit, "gap_ratio": d.gaps[0]["gaps"][0]["ratio"], "gap_metric": d.gaps[0]["gaps"][0]["metric"],
     }
