@@ -365,7 +365,7 @@ class Candidate:
     fix: Callable[[ModelConfig, Residuals], dict[str, Any]]
     twin_effects: tuple[str, ...] = field(default=())  # twin effects this candidate stands for
     min_share: float | None = None  # its own share bar instead of the common one (:data:`MIN_SHARE`)
-    what_if: Callable[[Checkpoint, Sequence[Log]], WhatIf] | None = None  # see :mod:`.what_if`
+    what_if: Callable[[Checkpoint, Sequence[Log], Residuals], WhatIf] | None = None  # see :mod:`.what_if`
 
     def bar(self, common: float) -> float:
         """The share a significant finding of this candidate must reach."""
@@ -374,7 +374,7 @@ class Candidate:
 
 CANDIDATES: tuple[Candidate, ...] = (
     Candidate("memory_delay", "missing memory or actuation delay", test_memory, _longer_history,
-              ("delay", "lag", "lowpass"), what_if=lambda ckpt, logs: input_what_if(ckpt, logs, ACTUATOR_LAGS)),
+              ("delay", "lag", "lowpass"), what_if=lambda ckpt, logs, res: input_what_if(ckpt, logs, res, ACTUATOR_LAGS)),
     Candidate("noise", "unmodelled noise", test_noise, lambda c, r: {"head": "gaussian"}, ("noise", "glitch")),
     Candidate("quantisation", "sensor quantisation", test_quantisation, lambda c, r: {"round_to": (lattice_step(r.real_next) or 1.0,) * c.n_state},
               ("quantise",)),
@@ -436,7 +436,7 @@ def run_candidates(res: Residuals, ckpt: Checkpoint, alpha: float = 0.05, min_sh
     for c in candidates:
         stat, p, share, detail = c.test(res, ckpt)
         fix = c.fix(ckpt.config, res)
-        w = c.what_if(ckpt, logs) if c.what_if is not None and logs is not None else None
+        w = c.what_if(ckpt, logs, res) if c.what_if is not None and logs is not None else None
         if w is not None:
             p = min(1.0, 2 * min(p, w.p))
             detail += f"; feeding the model the commands through {w.label} removes {w.share:.1%} of the residual " \

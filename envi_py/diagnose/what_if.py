@@ -23,6 +23,7 @@ from scipy import stats
 
 from ..logs import Log
 from ..model import Checkpoint
+from .residuals import Residuals, one_step_residuals
 
 #: A transform of one log's action columns, (T, n_action) -> (T, n_action), and its description.
 Transform = tuple[str, Callable[[np.ndarray], np.ndarray]]
@@ -64,23 +65,22 @@ ACTUATOR_LAGS: tuple[Transform, ...] = tuple(
     + [(f"a first-order lag of {tau:g} rows", lambda a, tau=tau: lagged(a, tau)) for tau in LAG_ROWS])
 
 
-def per_run_ms(ckpt: Checkpoint, logs: Sequence[Log]) -> np.ndarray:
-    """Mean square one-step residual of each log."""
-    from .residuals import one_step_residuals
-
-    res = one_step_residuals(ckpt, logs)
-    return np.array([np.mean(res.r[res.run == i] ** 2) for i in range(len(logs))])
+def per_run_ms(res: Residuals, runs: int) -> np.ndarray:
+    """Mean square one-step residual of each of ``runs`` logs."""
+    return np.array([np.mean(res.r[res.run == i] ** 2) for i in range(runs)])
 
 
-def input_what_if(ckpt: Checkpoint, logs: Sequence[Log], transforms: Sequence[Transform]) -> WhatIf:
+def input_what_if(ckpt: Checkpoint, logs: Sequence[Log], res: Residuals,
+                  transforms: Sequence[Transform]) -> WhatIf:
     """Feed the model each transform of the logged commands; keep the one that removes the most of
-    the residual mean square. Runs are independent, so the p-value pairs the per-run mean squares."""
+    the residual mean square (``res``: the residuals of the untransformed ``logs``). Runs are
+    independent, so the p-value pairs the per-run mean squares."""
     if len(logs) < 3:
         return WhatIf.none("too few runs")
-    base = per_run_ms(ckpt, logs)
+    base = per_run_ms(res, len(logs))
     best = WhatIf.none("no transform of the commands helps the model")
     for label, fn in transforms:
-        ms = per_run_ms(ckpt, [replace(lg, actions=fn(lg.actions)) for lg in logs])
+        ms = per_run_ms(one_step_residuals(ckpt, [replace(lg, actions=fn(lg.actions)) for lg in logs]), len(logs))
         gain = base - ms
         sd = float(gain.std(ddof=1))
         t = float(gain.mean()) / (sd / np.sqrt(len(gain))) if sd > 0 else 0.0
