@@ -100,7 +100,7 @@ def test_saturation_when_real_readings_pile_up_at_a_limit():
     res.real_next = np.clip(res.predicted + res.r, 20, 60)
     res.r = res.real_next - res.predicted
     finding = next(f for f in run_candidates(res, ckpt()) if f.effect == "saturation")
-    assert finding.significant and finding.fix == {"limits": ((20.0, 60.0),)}
+    assert finding.significant and finding.fix == {"limits": ((20.0, 60.0),), "history": 20}
 
 
 def test_no_saturation_for_a_smooth_response_reaching_its_extremes():
