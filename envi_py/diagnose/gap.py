@@ -148,8 +148,7 @@ def by_version(groups: Sequence[tuple[str, np.ndarray, np.ndarray]], cfg: Metric
 def by_run(res: Residuals, names: Sequence[str]) -> list[dict[str, Any]]:
     """Per log: one-step residual RMS and its ratio to the median log's, largest first. A gap that
     lives in some runs only (a worn battery, a slippery patch) shows as a few logs far above 1."""
-    ms = np.array([float(np.mean(res.r[res.run == i] ** 2)) if np.any(res.run == i) else np.nan
-                   for i in range(len(names))])
+    ms = res.ms_by_run(len(names))
     med = float(np.nanmedian(ms)) or 1e-12
     rows = [{"log": names[i], "rms": float(np.sqrt(ms[i])), "ratio": float(ms[i] / med)}
             for i in range(len(names)) if np.isfinite(ms[i])]

@@ -45,6 +45,11 @@ class Residuals:
     def __len__(self) -> int:
         return int(self.r.shape[0])
 
+    def ms_by_run(self, runs: int) -> np.ndarray:
+        """Mean square residual of each of ``runs`` logs (NaN for a log without residuals)."""
+        return np.array([float(np.mean(self.r[self.run == i] ** 2)) if np.any(self.run == i) else np.nan
+                         for i in range(runs)])
+
     @cached_property
     def pairs(self) -> "Pairs":
         """Each residual matched with its nearest window from another run (see :class:`Pairs`)."""

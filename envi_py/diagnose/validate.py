@@ -108,7 +108,7 @@ def _where(ckpt: Any, case: Case, size: Size, seed: int) -> dict[str, Any]:
     affected = _logs(case, k, size.steps, seed + 3_000_000)
     clean = _logs(case, k, size.steps, seed + 4_000_000, effects={})
     res = one_step_residuals(ckpt, affected + clean)
-    ms = np.array([np.mean(res.r[res.run == i] ** 2) for i in range(2 * k)])
+    ms = res.ms_by_run(2 * k)
     hit = np.arange(2 * k) < k
     auc = float(np.mean(ms[hit][:, None] > ms[~hit][None, :]) + 0.5 * np.mean(ms[hit][:, None] == ms[~hit][None, :]))
     sel = res.run < k
@@ -258,7 +258,7 @@ def to_markdown(scores: Sequence[Score], size: Size) -> str:
     """The validation report: confusion matrix, top-1, false alarms and shrink per mode."""
     own = "; ".join(f"{c.history} for {c.name}" for c in CASES if c.history) or "all cases"
     lines = ["# Diagnosis validation on the twin", "",
-             f"Clean twin (`TwinProfile()`), one effect injected per case; BC model of history {size.history}, "
+             f"Clean twin (`TwinProfile()`), one effect injected per case; BC model of history {size.history} "
              f"({own}), {size.train} training / {size.val} validation logs of {size.steps} rows, {size.epochs} epochs at lr "
              f"{size.lr:g}; diagnosis on {size.diagnose} fresh logs (half choose, half confirm), blind.", ""]
     for s in scores:

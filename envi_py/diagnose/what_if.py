@@ -65,11 +65,6 @@ ACTUATOR_LAGS: tuple[Transform, ...] = tuple(
     + [(f"a first-order lag of {tau:g} rows", lambda a, tau=tau: lagged(a, tau)) for tau in LAG_ROWS])
 
 
-def per_run_ms(res: Residuals, runs: int) -> np.ndarray:
-    """Mean square one-step residual of each of ``runs`` logs."""
-    return np.array([np.mean(res.r[res.run == i] ** 2) for i in range(runs)])
-
-
 def input_what_if(ckpt: Checkpoint, logs: Sequence[Log], res: Residuals,
                   transforms: Sequence[Transform]) -> WhatIf:
     """Feed the model each transform of the logged commands; keep the one that removes the most of
@@ -77,10 +72,10 @@ def input_what_if(ckpt: Checkpoint, logs: Sequence[Log], res: Residuals,
     independent, so the p-value pairs the per-run mean squares."""
     if len(logs) < 3:
         return WhatIf.none("too few runs")
-    base = per_run_ms(res, len(logs))
+    base = res.ms_by_run(len(logs))
     best = WhatIf.none("no transform of the commands helps the model")
     for label, fn in transforms:
-        ms = per_run_ms(one_step_residuals(ckpt, [replace(lg, actions=fn(lg.actions)) for lg in logs]), len(logs))
+        ms = one_step_residuals(ckpt, [replace(lg, actions=fn(lg.actions)) for lg in logs]).ms_by_run(len(logs))
         gain = base - ms
         sd = float(gain.std(ddof=1))
         t = float(gain.mean()) / (sd / np.sqrt(len(gain))) if sd > 0 else 0.0
