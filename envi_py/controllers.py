@@ -1,23 +1,41 @@
 """Controllers under verification, declared once as ``{"name": ..., "params": {...}}``.
 
-The same declarative spec drives the Python controllers here, the C++ runtime and the brick
+The same declarative spec drives the Python controllers here, the C++ runtime (``cpp/src/
+controller.cpp``, checked against these by ``tests/test_controller_parity.py``) and the brick
 program, so a controller is written down in one place and the other forms are tested against it.
-Controllers are batched: they map states of N simulations at once, shape (N, |s|), to actions
-(N, |a|), and may keep per-simulation memory (a PID's integral) between ``reset`` calls.
+
+The protocol every controller follows (registered or a user's class):
+
+- ``reset(n)``: forget all memory; ``n`` runs are about to be simulated side by side.
+- ``warmup(states, actions)``: replay the initial window sigma_0, states (n, l, |s|) and the logged
+  actions (n, l, |a|), so that memory (a PID's integral and previous error) matches the real
+  controller's when simulation starts at row l. The default replays the states through
+  ``__call__`` and discards the answers.
+- ``__call__(states)``: states (n, |s|) -> actions (n, |a|). The width is checked: a controller that
+  answers with another number of columns than the model has actions is an error naming it, never
+  broadcast.
+
+Built-ins: ``bang-bang`` (the paper's Algorithm 1 on any state channel; ``lane-keeping`` is the
+paper's robot, threshold 40 on channel 0), ``pid`` (one loop: P, I, D, output limits, clamping
+anti-windup, an output offset) and ``combine`` (one loop per action channel, in action order). A
+user's controller is ``package.module:name``: a class following the protocol, or a plain function
+``f(states, **params) -> actions`` (stateless).
 """
 
 from __future__ import annotations
 
 import importlib
 import inspect
+import json
 from dataclasses import dataclass, field
-from typing import Any, Callable, Protocol
+from typing import Any, Callable, Protocol, runtime_checkable
 
 import numpy as np
 
 
+@runtime_checkable
 class Controller(Protocol):
-    """What the simulator needs from a controller."""
+    """What the simulator needs from a controller (see the module docstring)."""
 
     def reset(self, n: int) -> None: ...
 
@@ -32,75 +50,194 @@ class ControllerSpec:
     params: dict[str, Any] = field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
-        return {"name": self.name, "params": dict(self.params)}
+        return {"name": self.name, "params": json.loads(json.dumps(self.params))}
 
     @staticmethod
-    def from_json(d: dict[str, Any]) -> "ControllerSpec":
-        return ControllerSpec(str(d["name"]), dict(d.get("params", {})))
+    def from_json(d: Any) -> "ControllerSpec":
+        if not isinstance(d, dict) or not isinstance(d.get("name"), str):
+            raise ValueError(f"controller spec must be an object with a 'name', not {d!r:.80}")
+        params = d.get("params") or {}
+        if not isinstance(params, dict):
+            raise ValueError(f"controller {d['name']!r}: 'params' must be an object")
+        return ControllerSpec(d["name"], dict(params))
 
-    def build(self) -> Controller:
-        return make_controller(self)
+    @property
+    def key(self) -> str:
+        """A stable text key (sorted JSON): logs of one controller version share it."""
+        return json.dumps(self.to_json(), sort_keys=True)
 
-    def __hash__(self) -> int:  # params is a dict; hash its sorted items
-        return hash((self.name, tuple(sorted((k, str(v)) for k, v in self.params.items()))))
+    def label(self) -> str:
+        """``name(k=v, ...)`` for tables; nested loops shown by their own labels."""
+        return _label(self.name, self.params)
+
+    def build(self, n_state: int | None = None, n_action: int | None = None,
+              period_ms: float | None = None) -> Controller:
+        """A fresh controller. With ``n_state``/``n_action`` its widths are checked against the
+        model's; ``period_ms`` is the control period a PID integrates over unless it sets ``dt``."""
+        return make_controller(self, n_state, n_action, period_ms)
+
+    def __hash__(self) -> int:
+        return hash(self.key)
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, ControllerSpec) and self.key == other.key
 
 
-class LaneKeeping:
-    """Paper, Algorithm 1: steer +x when brighter than the threshold, -x when darker, 0 on it.
+def _label(name: str, params: dict[str, Any]) -> str:
+    parts = []
+    for k, v in params.items():
+        if isinstance(v, list) and all(isinstance(e, dict) and "name" in e for e in v):
+            parts.append(f"{k}=[" + ", ".join(_label(e["name"], e.get("params", {})) for e in v) + "]")
+        elif isinstance(v, float) and v.is_integer():
+            parts.append(f"{k}={int(v)}")
+        else:
+            parts.append(f"{k}={v:g}" if isinstance(v, (int, float)) else f"{k}={v}")
+    return f"{name}({', '.join(parts)})"
 
-    The threshold is 40 for the real robot (midpoint of black 5 and white 75); the paper's text
-    says 50 (gray), but the logs satisfy ``angle == sign(color - 40) * x`` on every row.
-    """
 
-    defaults = {"x": 30.0, "threshold": 40.0}
+class WidthError(ValueError):
+    """A controller whose inputs or outputs do not fit the model's states and actions."""
 
-    def __init__(self, x: float = 30.0, threshold: float = 40.0) -> None:
-        self.x = float(x)
-        self.threshold = float(threshold)
+
+def _channel(name: str, value: Any, n_state: int | None) -> int:
+    try:
+        idx = int(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"controller {name!r}: 'input' must be a state channel index, not {value!r}") from None
+    if idx < 0 or (n_state is not None and idx >= n_state):
+        raise WidthError(f"controller {name!r}: reads state channel {idx}, the model has {n_state} state(s)")
+    return idx
+
+
+class Loop:
+    """One output channel computed from one state channel; the pieces ``combine`` assembles."""
+
+    name = "loop"
+    outputs = 1
+
+    def __init__(self, input: int) -> None:
+        self.input = input
 
     def reset(self, n: int) -> None:
-        """Stateless: nothing to reset."""
+        """Stateless by default."""
 
-    def __call__(self, states: np.ndarray) -> np.ndarray:
-        return np.sign(states[:, :1] - self.threshold) * self.x
+    def warmup(self, states: np.ndarray, actions: np.ndarray) -> None:
+        """Replay sigma_0's states through the loop, discarding its answers."""
+        for t in range(states.shape[1]):
+            self(states[:, t])
 
 
-class PID:
-    """Discrete PID on the first state channel toward ``setpoint``, output clamped to limits.
+class BangBang(Loop):
+    """Paper, Algorithm 1: +x when the input is above the threshold, -x below it, 0 on it.
 
-    Uses the backward-Euler integral with anti-windup by clamping (the integral stops growing while
-    the output saturates), the usual choice on small embedded controllers.
+    For the lane-keeping robot the threshold is 40 (midpoint of black 5 and white 75); the paper's
+    text says 50 (gray), but the real logs satisfy ``angle == sign(color - 40) * x`` on every row.
     """
 
-    defaults = {"kp": 1.0, "ki": 0.0, "kd": 0.0, "setpoint": 40.0, "dt": 0.04,
-                "out_min": -90.0, "out_max": 90.0}
+    name = "bang-bang"
+    defaults: dict[str, float] = {"x": 30.0, "threshold": 40.0, "input": 0}
+
+    def __init__(self, x: float = 30.0, threshold: float = 40.0, input: int = 0) -> None:
+        super().__init__(input)
+        self.x, self.threshold = float(x), float(threshold)
+
+    def __call__(self, states: np.ndarray) -> np.ndarray:
+        return np.sign(states[:, self.input:self.input + 1] - self.threshold) * self.x
+
+
+class PID(Loop):
+    """Discrete PID toward ``setpoint`` on one state channel: ``offset + kp e + ki I + kd de/dt``
+    with ``e = state - setpoint``, clamped to [out_min, out_max].
+
+    Backward-Euler integral with anti-windup by clamping (the integral stops growing while the
+    output saturates), the usual choice on small embedded controllers. ``dt`` in seconds; by
+    default the control period of the logs. The first call after a reset has no previous error,
+    so its derivative is 0: which is why the simulator warms a PID up on sigma_0 first.
+    ``terms`` holds the last call's P, I and D contributions, (n, 3), as a brick logs them.
+    """
+
+    name = "pid"
+    defaults: dict[str, float | None] = {"kp": 1.0, "ki": 0.0, "kd": 0.0, "setpoint": 40.0, "dt": None,
+                                         "out_min": -90.0, "out_max": 90.0, "offset": 0.0, "input": 0}
 
     def __init__(self, kp: float = 1.0, ki: float = 0.0, kd: float = 0.0, setpoint: float = 40.0,
-                 dt: float = 0.04, out_min: float = -90.0, out_max: float = 90.0) -> None:
-        if out_min > out_max:
+                 dt: float | None = None, out_min: float = -90.0, out_max: float = 90.0, offset: float = 0.0,
+                 input: int = 0, period_ms: float | None = None) -> None:
+        super().__init__(input)
+        if dt is None:
+            dt = (period_ms or 40.0) / 1000.0
+        if not float(out_min) <= float(out_max):
             raise ValueError(f"pid: out_min {out_min} > out_max {out_max}")
-        if dt <= 0:
+        if not float(dt) > 0:
             raise ValueError(f"pid: dt must be positive, got {dt}")
         self.kp, self.ki, self.kd = float(kp), float(ki), float(kd)
-        self.setpoint, self.dt = float(setpoint), float(dt)
+        self.setpoint, self.dt, self.offset = float(setpoint), float(dt), float(offset)
         self.out_min, self.out_max = float(out_min), float(out_max)
         self.reset(0)
 
     def reset(self, n: int) -> None:
         self._integral = np.zeros((n, 1))
         self._prev: np.ndarray | None = None
+        self.terms = np.zeros((n, 3))
 
     def __call__(self, states: np.ndarray) -> np.ndarray:
-        err = states[:, :1] - self.setpoint
+        err = states[:, self.input:self.input + 1] - self.setpoint
         if self._integral.shape[0] != err.shape[0]:
             self.reset(err.shape[0])
         deriv = np.zeros_like(err) if self._prev is None else (err - self._prev) / self.dt
         self._prev = err.copy()
         integral = self._integral + err * self.dt
-        raw = self.kp * err + self.ki * integral + self.kd * deriv
+        raw = self.offset + self.kp * err + self.ki * integral + self.kd * deriv
         out = np.clip(raw, self.out_min, self.out_max)
-        unsaturated = out == raw
-        self._integral = np.where(unsaturated, integral, self._integral)
+        self._integral = np.where(out == raw, integral, self._integral)
+        self.terms = np.concatenate([self.kp * err, self.ki * integral, self.kd * deriv], axis=1)
+        return out
+
+
+class Combine:
+    """One loop per action channel, in action order: a two-loop vehicle is steering + speed."""
+
+    def __init__(self, loops: list[Loop]) -> None:
+        self.loops = loops
+        self.outputs = len(loops)
+
+    def reset(self, n: int) -> None:
+        for lp in self.loops:
+            lp.reset(n)
+
+    def warmup(self, states: np.ndarray, actions: np.ndarray) -> None:
+        for lp in self.loops:
+            lp.warmup(states, actions)
+
+    def __call__(self, states: np.ndarray) -> np.ndarray:
+        return np.concatenate([lp(states) for lp in self.loops], axis=1)
+
+
+class Checked:
+    """A controller whose answers are checked for width and finiteness on every call."""
+
+    def __init__(self, inner: Any, name: str, n_action: int | None) -> None:
+        self.inner, self.name, self.n_action = inner, name, n_action
+
+    def reset(self, n: int) -> None:
+        self.inner.reset(n)
+
+    def warmup(self, states: np.ndarray, actions: np.ndarray) -> None:
+        if hasattr(self.inner, "warmup"):
+            self.inner.warmup(states, actions)
+        else:
+            for t in range(states.shape[1]):
+                self.inner(states[:, t])
+
+    def __call__(self, states: np.ndarray) -> np.ndarray:
+        out = np.asarray(self.inner(states), dtype=np.float64)
+        if out.ndim == 1 and out.shape[0] == states.shape[0]:
+            out = out[:, None]
+        if out.ndim != 2 or out.shape[0] != states.shape[0] or (
+                self.n_action is not None and out.shape[1] != self.n_action):
+            want = f"({states.shape[0]}, {self.n_action})" if self.n_action is not None else f"({states.shape[0]}, k)"
+            raise WidthError(f"controller {self.name!r} answered shape {tuple(out.shape)} for {states.shape[0]} "
+                             f"run(s); the model needs {want}")
         return out
 
 
@@ -114,11 +251,13 @@ class FunctionController:
         """Plain functions carry no memory."""
 
     def __call__(self, states: np.ndarray) -> np.ndarray:
-        out = np.asarray(self.fn(states, **self.params), dtype=np.float64)
-        return out.reshape(states.shape[0], -1)
+        return np.asarray(self.fn(states, **self.params), dtype=np.float64)
 
 
-REGISTRY: dict[str, type] = {"lane-keeping": LaneKeeping, "pid": PID}
+#: Registered loops by name; ``lane-keeping`` is the paper's bang-bang with its robot's defaults.
+LOOPS: dict[str, type[Loop]] = {"bang-bang": BangBang, "lane-keeping": BangBang, "pid": PID}
+#: Every registered controller name (the native runtime runs exactly these).
+REGISTRY: tuple[str, ...] = (*LOOPS, "combine")
 
 
 def _import(path: str) -> Any:
@@ -131,24 +270,62 @@ def _import(path: str) -> Any:
         raise ValueError(f"controller {path!r}: cannot import ({exc})") from exc
 
 
-def make_controller(spec: ControllerSpec) -> Controller:
+def _number(name: str, key: str, value: Any) -> float | None:
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, float, str)):
+        raise ValueError(f"controller {name!r}: parameter {key!r} must be a number, not {value!r:.40}")
+    try:
+        return float(value)
+    except ValueError:
+        raise ValueError(f"controller {name!r}: parameter {key!r} must be a number, not {value!r:.40}") from None
+
+
+def _loop(spec: ControllerSpec, n_state: int | None, period_ms: float | None) -> Loop:
+    cls = LOOPS.get(spec.name)
+    if cls is None:
+        raise ValueError(f"combine: loop {spec.name!r} is not one of {', '.join(LOOPS)}")
+    unknown = set(spec.params) - set(cls.defaults)
+    if unknown:
+        raise ValueError(f"controller {spec.name!r}: unknown parameter(s) {', '.join(sorted(unknown))}; "
+                         f"known: {', '.join(cls.defaults)}")
+    kwargs: dict[str, Any] = {k: _number(spec.name, k, v) for k, v in spec.params.items() if k != "input"}
+    kwargs["input"] = _channel(spec.name, spec.params.get("input", 0), n_state)
+    if cls is PID:
+        kwargs["period_ms"] = period_ms
+    return cls(**kwargs)
+
+
+def make_controller(spec: ControllerSpec, n_state: int | None = None, n_action: int | None = None,
+                    period_ms: float | None = None) -> Controller:
     """Instantiate a registered controller, or a user's by import path ``package.module:name``."""
-    if spec.name in REGISTRY:
-        cls = REGISTRY[spec.name]
-        unknown = set(spec.params) - set(cls.defaults)
-        if unknown:
-            raise ValueError(f"controller {spec.name!r}: unknown parameter(s) {', '.join(sorted(unknown))}; "
-                             f"known: {', '.join(cls.defaults)}")
-        return cls(**{k: float(v) for k, v in spec.params.items()})
-    if ":" in spec.name:
+    if spec.name in LOOPS:
+        inner: Any = _loop(spec, n_state, period_ms)
+        outputs: int | None = 1
+    elif spec.name == "combine":
+        loops = spec.params.get("loops")
+        if set(spec.params) != {"loops"} or not isinstance(loops, list) or not loops:
+            raise ValueError("controller 'combine': params must be {'loops': [spec, ...]}, one loop per action")
+        inner = Combine([_loop(ControllerSpec.from_json(lp), n_state, period_ms) for lp in loops])
+        outputs = len(loops)
+    elif ":" in spec.name:
         obj = _import(spec.name)
         if inspect.isclass(obj):
-            return obj(**spec.params)
-        if callable(obj):
-            return FunctionController(obj, spec.params)
-        raise ValueError(f"controller {spec.name!r}: not callable")
-    raise ValueError(f"unknown controller {spec.name!r}; registered: {', '.join(REGISTRY)}, "
-                     "or give 'package.module:function'")
+            inner = obj(**spec.params)
+        elif callable(obj):
+            inner = FunctionController(obj, spec.params)
+        else:
+            raise ValueError(f"controller {spec.name!r}: not callable")
+        if not callable(getattr(inner, "reset", None)):
+            raise ValueError(f"controller {spec.name!r}: has no reset(n) method (see envi_py.controllers)")
+        outputs = None
+    else:
+        raise ValueError(f"unknown controller {spec.name!r}; registered: {', '.join(REGISTRY)}, "
+                         "or give 'package.module:function'")
+    if outputs is not None and n_action is not None and outputs != n_action:
+        raise WidthError(f"controller {spec.label()!r} drives {outputs} action channel(s), the model has "
+                         f"{n_action}; use 'combine' with one loop per action")
+    return Checked(inner, spec.name, n_action)
 
 
 def parse_params(items: list[str] | None) -> dict[str, Any]:

@@ -23,6 +23,10 @@ from typing import Any, Iterable, Sequence
 
 import numpy as np
 
+from .system import Channel, LogSchema, lane_keeping, pattern_regex
+
+__all__ = ["Channel", "LogSchema", "pattern_regex"]
+
 SCHEMA_VERSION = 1
 SOURCES = ("fot", "sim", "twin", "hil")
 
@@ -31,54 +35,9 @@ class LogError(ValueError):
     """A log file (or a set of logs) that cannot be used; the message names file and row."""
 
 
-@dataclass(frozen=True)
-class Channel:
-    """One logged quantity: its column name, unit and physically valid range."""
-
-    name: str
-    unit: str = ""
-    low: float = -math.inf
-    high: float = math.inf
-
-    def to_json(self) -> dict[str, Any]:
-        return {"name": self.name, "unit": self.unit, "range": [self.low, self.high]}
-
-    @staticmethod
-    def from_json(d: dict[str, Any]) -> "Channel":
-        low, high = d.get("range", [-math.inf, math.inf])
-        return Channel(str(d["name"]), str(d.get("unit", "")), float(low), float(high))
-
-
-@dataclass(frozen=True)
-class LogSchema:
-    """Which columns are states and which are actions. Time (ms) always comes first."""
-
-    states: tuple[Channel, ...]
-    actions: tuple[Channel, ...]
-
-    @property
-    def columns(self) -> list[str]:
-        return ["time"] + [c.name for c in self.states] + [c.name for c in self.actions]
-
-    @property
-    def channels(self) -> tuple[Channel, ...]:
-        return self.states + self.actions
-
-    def to_json(self) -> dict[str, Any]:
-        return {"states": [c.to_json() for c in self.states], "actions": [c.to_json() for c in self.actions]}
-
-    @staticmethod
-    def from_json(d: dict[str, Any]) -> "LogSchema":
-        return LogSchema(tuple(Channel.from_json(c) for c in d["states"]),
-                         tuple(Channel.from_json(c) for c in d["actions"]))
-
-
 #: The lane-keeping robot: a reflected-light colour reading (0 = black, 100 = white) and a
-#: steering angle in degrees. The angle range covers every controller version of the paper.
-LANE_KEEPING_SCHEMA = LogSchema(
-    states=(Channel("color", "%", 0.0, 100.0),),
-    actions=(Channel("angle", "deg", -90.0, 90.0),),
-)
+#: steering angle in degrees, as its shipped system description declares them.
+LANE_KEEPING_SCHEMA = lane_keeping().schema
 
 
 @dataclass
@@ -123,13 +82,19 @@ class LogMeta:
 
 @dataclass
 class Log:
-    """One run: time in ms (shape T), states (T, |s|), actions (T, |a|) and its metadata."""
+    """One run: time in ms (shape T), states (T, |s|), actions (T, |a|), its metadata, and the
+    logged-only columns the schema declares (T, n_logged), which travel with it unmodelled."""
 
     path: Path | None
     time: np.ndarray
     states: np.ndarray
     actions: np.ndarray
     meta: LogMeta
+    logged: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.logged is None:
+            self.logged = np.zeros((len(self.time), 0))
 
     @property
     def name(self) -> str:
@@ -223,8 +188,9 @@ def read_log(path: str | os.PathLike, meta: LogMeta | None = None, min_length: i
     if bad.size:
         r = int(bad[0]) + 3
         raise LogError(f"{path}: row {r}: time {data[r - 2, 0]:g} does not increase (previous {data[r - 3, 0]:g})")
-    ns = len(meta.schema.states)
-    return Log(path, data[:, 0].copy(), data[:, 1:1 + ns].copy(), data[:, 1 + ns:].copy(), meta)
+    ns, nc = len(meta.schema.states), len(meta.schema.channels)
+    return Log(path, data[:, 0].copy(), data[:, 1:1 + ns].copy(), data[:, 1 + ns:1 + nc].copy(), meta,
+               data[:, 1 + nc:].copy())
 
 
 def _atomic_write(path: Path, text: str) -> None:
@@ -251,25 +217,18 @@ def write_log(log: Log, path: str | os.PathLike) -> Path:
     """Write ``log`` as CSV plus sidecar, each atomically (sidecar first, then the CSV it describes)."""
     path = Path(path)
     lines = [",".join(log.meta.schema.columns)]
-    for t, s, a in zip(log.time, log.states, log.actions):
-        lines.append(",".join(_fmt(v) for v in (t, *s, *a)))
+    n_logged = len(log.meta.schema.logged)
+    if log.logged is None or log.logged.shape != (len(log), n_logged):
+        raise ValueError(f"{path}: the log holds {0 if log.logged is None else log.logged.shape[1]} logged "
+                         f"column(s), its schema declares {n_logged}")
+    for t, s, a, extra in zip(log.time, log.states, log.actions, log.logged):
+        lines.append(",".join(_fmt(v) for v in (t, *s, *a, *extra)))
     _atomic_write(sidecar_path(path), json.dumps(log.meta.to_json(), indent=1) + "\n")
     _atomic_write(path, "\n".join(lines) + "\n")
     return path
 
 
 # ---------------------------------------------------------------- datasets of many logs
-
-def pattern_regex(pattern: str) -> re.Pattern[str]:
-    """``log_{x}_{run}.csv`` -> a regex with one named group per field (numbers or words)."""
-    out, pos = [], 0
-    for m in re.finditer(r"\{(\w+)\}", pattern):
-        out.append(re.escape(pattern[pos:m.start()]))
-        out.append(f"(?P<{m.group(1)}>[-+\\w.]+?)")
-        pos = m.end()
-    out.append(re.escape(pattern[pos:]))
-    return re.compile("^" + "".join(out) + "$")
-
 
 def _number(text: str) -> float | int | str:
     for cast in (int, float):

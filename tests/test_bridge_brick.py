@@ -186,7 +186,7 @@ def test_stop_ends_a_run_and_run_end_is_repeated_on_request() -> None:
 def test_brick_controller_matches_envi(color: float, angle: float) -> None:
     import numpy as np
 
-    from envi_py.controllers import LaneKeeping as EnviLK
+    from envi_py.controllers import BangBang as EnviLK
 
     assert LaneKeeping(30)(color) == angle == EnviLK(30)(np.array([[color]]))[0, 0]
 

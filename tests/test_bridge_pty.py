@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import torch
 
-from envi_py.controllers import LaneKeeping
+from envi_py.controllers import BangBang
 from envi_py.dataset import Normaliser
 from envi_py.logs import LANE_KEEPING_SCHEMA, load_logs, read_log
 from envi_py.model import Checkpoint, EnvModel, ModelConfig, TrainingRecord
@@ -64,7 +64,7 @@ def meta(path: Path) -> dict:
 
 
 def check_rows_follow_controller(log) -> None:
-    want = LaneKeeping(x=log.param["x"], threshold=log.param["threshold"])(log.states)
+    want = BangBang(x=log.param["x"], threshold=log.param["threshold"])(log.states)
     np.testing.assert_array_equal(log.actions, want)
 
 

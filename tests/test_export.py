@@ -55,7 +55,7 @@ def test_file_is_self_contained_opset17(tmp_path):
 def test_metadata_describes_the_model(tmp_path):
     ck = paper_ckpt(round_to=(1.0,))
     meta = read_metadata(export(ck, tmp_path / "m.onnx"))
-    assert meta["envi.schema"]["states"] == [{"name": "color", "unit": "%", "range": [0.0, 100.0]}]
+    assert meta["envi.schema"]["states"] == [{"name": "color", "unit": "%", "range": [0.0, 100.0], "resolution": 1.0}]
     assert meta["envi.schema"]["actions"][0]["name"] == "angle"
     np.testing.assert_array_equal(meta["envi.normaliser"]["low"], ck.norm.low)
     np.testing.assert_array_equal(meta["envi.normaliser"]["high"], ck.norm.high)

@@ -1,6 +1,6 @@
 """The controller under verification as the brick runs it: lane keeping (paper, Algorithm 1).
 
-Mirrors ``envi_py.controllers.LaneKeeping``: ``angle = sign(color - threshold) * x``. The host
+Mirrors ``envi_py.controllers.BangBang``: ``angle = sign(color - threshold) * x``. The host
 checks every recorded row against the envi controller, so the two cannot silently differ.
 """
 

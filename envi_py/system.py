@@ -1,0 +1,440 @@
+"""The system description: one TOML file that says what a system's logs hold and what its goals are.
+
+It travels with the data and is recorded in every checkpoint, export, manifest and report, so a
+model can always say which signals it reads and writes. It declares
+
+- ``[system]``: a name and the nominal control period;
+- ``[[signals]]``: every logged column but ``time``, with its role (``state``: a sensor reading the
+  model predicts; ``action``: what the controller commands; ``logged``: kept with the log but not
+  modelled, e.g. a PID's internal terms; ``ignore``: dropped on read), unit, valid range, sensor
+  resolution and whether the sensor saturates at its range (an out-of-range reading is then
+  clipped there, else it is an error);
+- ``[versions]``: how a log says which controller version produced it, from a file-name
+  ``pattern`` (``log_{x}_{run}.csv``: fields become controller parameters, ``run`` the run id) or
+  from sidecars; ``params`` names the version parameters, ``map`` routes a field into a nested
+  controller parameter (``kp_steer = "loops.0.params.kp"``);
+- ``[controller]``: the controller's registered name or import path and its fixed parameters;
+- ``[[goals]]`` and ``[[requirements]]``: goal metrics over the signals, and requirements with the
+  probability they must hold with (``envi_py.goals``); ``preset`` names a shipped set of goals.
+
+The lane-keeping robot and the car following a lead vehicle are shipped descriptions
+(``envi_py/systems/*.toml``); ``envi init --logs DIR`` drafts one from a folder of logs.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+import sys
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any, Iterable
+
+from .controllers import ControllerSpec
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover - Python 3.10
+    import tomli as tomllib
+
+ROLES = ("state", "action", "logged", "ignore")
+SHIPPED_DIR = Path(__file__).resolve().parent / "systems"
+
+
+@dataclass(frozen=True)
+class Channel:
+    """One logged quantity: its column name, unit, physically valid range and sensor resolution.
+
+    ``saturates``: the sensor clips at its range (an ultrasonic sensor reads its maximum when
+    nothing is in range), so a value beyond the range is clipped on read, not refused."""
+
+    name: str
+    unit: str = ""
+    low: float = -math.inf
+    high: float = math.inf
+    resolution: float | None = None
+    saturates: bool = False
+
+    def to_json(self) -> dict[str, Any]:
+        d: dict[str, Any] = {"name": self.name, "unit": self.unit, "range": [self.low, self.high]}
+        if self.resolution is not None:
+            d["resolution"] = self.resolution
+        if self.saturates:
+            d["saturates"] = True
+        return d
+
+    @staticmethod
+    def from_json(d: Any) -> "Channel":
+        if not isinstance(d, dict) or not isinstance(d.get("name"), str) or not d["name"]:
+            raise ValueError(f"a channel must be an object with a 'name', not {d!r:.60}")
+        rng = d.get("range", [-math.inf, math.inf])
+        if not isinstance(rng, (list, tuple)) or len(rng) != 2:
+            raise ValueError(f"channel {d['name']!r}: 'range' must be [low, high]")
+        try:
+            low, high = (float(v) for v in rng)
+        except (TypeError, ValueError):
+            raise ValueError(f"channel {d['name']!r}: 'range' must hold two numbers") from None
+        if math.isnan(low) or math.isnan(high) or not low < high:
+            raise ValueError(f"channel {d['name']!r}: range [{low:g}, {high:g}] is empty")
+        res = d.get("resolution")
+        if res is not None:
+            if isinstance(res, bool) or not isinstance(res, (int, float)) or not (res > 0 and math.isfinite(res)):
+                raise ValueError(f"channel {d['name']!r}: resolution must be a positive number")
+            res = float(res)
+        return Channel(d["name"], str(d.get("unit", "")), low, high, res, bool(d.get("saturates", False)))
+
+
+@dataclass(frozen=True)
+class LogSchema:
+    """Which columns are states, actions and logged-only. ``time`` (ms) always comes first; the
+    model reads states and actions, ``logged`` columns travel with the log unmodelled."""
+
+    states: tuple[Channel, ...]
+    actions: tuple[Channel, ...]
+    logged: tuple[Channel, ...] = ()
+
+    @property
+    def columns(self) -> list[str]:
+        return ["time"] + [c.name for c in self.channels + self.logged]
+
+    @property
+    def channels(self) -> tuple[Channel, ...]:
+        """The model's channels: states then actions."""
+        return self.states + self.actions
+
+    def state_index(self, name: str) -> int:
+        for i, c in enumerate(self.states):
+            if c.name == name:
+                return i
+        raise ValueError(f"no state signal {name!r}; states: {', '.join(c.name for c in self.states)}")
+
+    def to_json(self) -> dict[str, Any]:
+        d: dict[str, Any] = {"states": [c.to_json() for c in self.states],
+                             "actions": [c.to_json() for c in self.actions]}
+        if self.logged:
+            d["logged"] = [c.to_json() for c in self.logged]
+        return d
+
+    @staticmethod
+    def from_json(d: Any) -> "LogSchema":
+        if not isinstance(d, dict):
+            raise ValueError("a schema must be an object with 'states' and 'actions'")
+        parts = []
+        for key in ("states", "actions", "logged"):
+            items = d.get(key, [] if key == "logged" else None)
+            if not isinstance(items, list) or (key != "logged" and not items):
+                raise ValueError(f"schema '{key}' must be a non-empty list of channels")
+            parts.append(tuple(Channel.from_json(c) for c in items))
+        schema = LogSchema(*parts)
+        names = schema.columns
+        dup = sorted({n for n in names if names.count(n) > 1})
+        if dup:
+            raise ValueError(f"schema names column(s) {', '.join(dup)} twice")
+        return schema
+
+
+@dataclass(frozen=True)
+class Versions:
+    """How a log says which controller version made it (see the module docstring)."""
+
+    pattern: str | None = None
+    params: tuple[str, ...] = ()
+    map: dict[str, str] = field(default_factory=dict)
+
+    def to_json(self) -> dict[str, Any]:
+        return {"pattern": self.pattern, "params": list(self.params), "map": dict(self.map)}
+
+
+@dataclass(frozen=True)
+class GoalSpec:
+    """A goal metric: a library metric (or ``package.module:function``) on one signal."""
+
+    name: str
+    metric: str
+    signal: str
+    params: dict[str, Any] = field(default_factory=dict)
+
+    def to_json(self) -> dict[str, Any]:
+        return {"name": self.name, "metric": self.metric, "signal": self.signal, "params": dict(self.params)}
+
+
+@dataclass(frozen=True)
+class RequirementSpec:
+    """A requirement: ``expr`` is a goal-metric comparison (``max_abs_dev(color, 40) <= 35``) or,
+    with ``kind = "stl"``, a Signal Temporal Logic formula over the signals; it must hold with
+    probability at least ``probability``."""
+
+    name: str
+    expr: str
+    kind: str = "metric"
+    probability: float = 0.9
+
+    def to_json(self) -> dict[str, Any]:
+        return {"name": self.name, "expr": self.expr, "kind": self.kind, "probability": self.probability}
+
+
+@dataclass(frozen=True)
+class SystemDescription:
+    """What a system's logs hold, how versions are told apart, its controller and its goals."""
+
+    name: str
+    schema: LogSchema
+    period_ms: float | None = None
+    versions: Versions = field(default_factory=Versions)
+    controller: ControllerSpec | None = None
+    ignore: tuple[str, ...] = ()
+    preset: str | None = None
+    goals: tuple[GoalSpec, ...] = ()
+    requirements: tuple[RequirementSpec, ...] = ()
+    source: str | None = None  # the file it was read from, for messages
+
+    # ------------------------------------------------------------------ versions of a log
+
+    def controller_for(self, fields: dict[str, Any]) -> ControllerSpec | None:
+        """The controller of a log whose file name gave ``fields`` (version parameters)."""
+        if self.controller is None:
+            return None
+        params = json.loads(json.dumps(self.controller.params))
+        for key, value in fields.items():
+            _set_path(params, self.versions.map.get(key, key), value)
+        return ControllerSpec(self.controller.name, params)
+
+    def with_pattern(self, pattern: str | None) -> "SystemDescription":
+        """The same description reading version parameters from ``pattern`` (a command-line
+        ``--pattern``); a different pattern declared in the file is a conflict, not overridden."""
+        if pattern is None or pattern == self.versions.pattern:
+            return self
+        if self.versions.pattern is not None:
+            raise ValueError(f"--pattern {pattern!r} contradicts the system description's pattern "
+                             f"{self.versions.pattern!r} ({self.source or self.name})")
+        fields = tuple(f for f in pattern_fields(pattern) if f != "run")
+        return replace(self, versions=replace(self.versions, pattern=pattern,
+                                              params=self.versions.params or fields))
+
+    # ------------------------------------------------------------------ (de)serialisation
+
+    def to_json(self) -> dict[str, Any]:
+        return {"name": self.name, "period_ms": self.period_ms, "schema": self.schema.to_json(),
+                "ignore": list(self.ignore), "versions": self.versions.to_json(),
+                "controller": None if self.controller is None else self.controller.to_json(),
+                "preset": self.preset, "goals": [g.to_json() for g in self.goals],
+                "requirements": [r.to_json() for r in self.requirements]}
+
+    @staticmethod
+    def from_json(d: Any, where: str = "system description") -> "SystemDescription":
+        """From :meth:`to_json`'s form (as recorded in checkpoints, manifests and reports)."""
+        if not isinstance(d, dict):
+            raise ValueError(f"{where}: not an object")
+        try:
+            v = d.get("versions") or {}
+            return _validated(SystemDescription(
+                name=str(d.get("name", "system")), schema=LogSchema.from_json(d.get("schema")),
+                period_ms=_opt_float(d.get("period_ms"), "period_ms"),
+                versions=Versions(v.get("pattern"), tuple(v.get("params") or ()), dict(v.get("map") or {})),
+                controller=None if d.get("controller") is None else ControllerSpec.from_json(d["controller"]),
+                ignore=tuple(d.get("ignore") or ()), preset=d.get("preset"),
+                goals=tuple(_goal(g) for g in d.get("goals") or ()),
+                requirements=tuple(_requirement(r, i) for i, r in enumerate(d.get("requirements") or ())),
+                source=where), where)
+        except (AttributeError, TypeError, ValueError) as exc:
+            raise ValueError(f"{where}: {exc}") from None
+
+    @staticmethod
+    def from_toml_text(text: str, where: str) -> "SystemDescription":
+        try:
+            doc = tomllib.loads(text)
+        except tomllib.TOMLDecodeError as exc:
+            raise ValueError(f"{where}: not valid TOML ({exc})") from None
+        try:
+            return _from_toml(doc, where)
+        except (AttributeError, TypeError, ValueError) as exc:
+            raise ValueError(f"{where}: {exc}") from None
+
+    @staticmethod
+    def load(path: str | Path) -> "SystemDescription":
+        path = Path(path)
+        try:
+            text = path.read_text(encoding="utf-8-sig")
+        except OSError as exc:
+            raise ValueError(f"{path}: cannot read system description ({exc.strerror})") from None
+        except UnicodeDecodeError:
+            raise ValueError(f"{path}: not a UTF-8 text file") from None
+        return SystemDescription.from_toml_text(text, str(path))
+
+
+def _opt_float(v: Any, what: str) -> float | None:
+    if v is None:
+        return None
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v > 0):
+        raise ValueError(f"'{what}' must be a positive number, not {v!r:.40}")
+    return float(v)
+
+
+def _set_path(params: dict[str, Any], path: str, value: Any) -> None:
+    """Set ``loops.0.kp`` in nested params (dicts and lists)."""
+    keys = path.split(".")
+    node: Any = params
+    for k in keys[:-1]:
+        node = node[int(k)] if isinstance(node, list) else node.setdefault(k, {})
+    if isinstance(node, list):
+        node[int(keys[-1])] = value
+    else:
+        node[keys[-1]] = value
+
+
+def _goal(g: Any) -> GoalSpec:
+    if not isinstance(g, dict):
+        raise ValueError(f"a goal must be a table, not {g!r:.40}")
+    for key in ("metric", "signal"):
+        if not isinstance(g.get(key), str):
+            raise ValueError(f"goal {g.get('name', '?')!r}: '{key}' must be a string")
+    params = g["params"] if "params" in g else {k: v for k, v in g.items() if k not in ("name", "metric", "signal")}
+    if not isinstance(params, dict):
+        raise ValueError(f"goal {g.get('name', '?')!r}: 'params' must be a table")
+    return GoalSpec(str(g.get("name") or f"{g['metric']}({g['signal']})"), g["metric"], g["signal"], dict(params))
+
+
+def _requirement(r: Any, i: int) -> RequirementSpec:
+    if isinstance(r, str):
+        r = {"expr": r}
+    if not isinstance(r, dict) or not isinstance(r.get("expr"), str):
+        raise ValueError(f"requirement {i + 1}: needs an 'expr' string")
+    kind = r.get("kind", "metric")
+    if kind not in ("metric", "stl"):
+        raise ValueError(f"requirement {i + 1}: kind must be 'metric' or 'stl', not {kind!r}")
+    p = r.get("probability", 0.9)
+    if isinstance(p, bool) or not isinstance(p, (int, float)) or not 0 < p < 1:
+        raise ValueError(f"requirement {i + 1}: probability must lie strictly between 0 and 1")
+    return RequirementSpec(str(r.get("name") or f"R{i + 1}"), r["expr"], kind, float(p))
+
+
+def _from_toml(doc: dict[str, Any], where: str) -> SystemDescription:
+    sysd = doc.get("system", {})
+    if not isinstance(sysd, dict):
+        raise ValueError("[system] must be a table")
+    signals = doc.get("signals")
+    if not isinstance(signals, list) or not signals:
+        raise ValueError("no [[signals]] declared")
+    groups: dict[str, list[Channel]] = {r: [] for r in ROLES}
+    for s in signals:
+        if not isinstance(s, dict):
+            raise ValueError("each [[signals]] entry must be a table")
+        role = s.get("role")
+        if role not in ROLES:
+            raise ValueError(f"signal {s.get('name', '?')!r}: role must be one of {', '.join(ROLES)}, not {role!r}")
+        groups[role].append(Channel.from_json(s))
+    schema = LogSchema(tuple(groups["state"]), tuple(groups["action"]), tuple(groups["logged"]))
+    if not schema.states or not schema.actions:
+        raise ValueError("at least one 'state' and one 'action' signal are needed")
+    v = doc.get("versions", {})
+    if not isinstance(v, dict):
+        raise ValueError("[versions] must be a table")
+    pattern = v.get("pattern")
+    if pattern is not None:
+        pattern_regex(pattern)  # a bad pattern is this file's error, not a traceback later
+    params = v.get("params")
+    if params is None:
+        params = [f for f in pattern_fields(pattern) if f != "run"] if pattern else []
+    c = doc.get("controller")
+    controller = None
+    if c is not None:
+        if not isinstance(c, dict):
+            raise ValueError("[controller] must be a table")
+        controller = ControllerSpec.from_json({"name": c.get("name"), "params": c.get("params", {})})
+    desc = SystemDescription(
+        name=str(sysd.get("name", Path(where).stem)), schema=schema,
+        period_ms=_opt_float(sysd.get("period_ms"), "period_ms"),
+        versions=Versions(pattern, tuple(str(p) for p in params), {str(k): str(m) for k, m in (v.get("map") or {}).items()}),
+        controller=controller, ignore=tuple(s["name"] for s in signals if s.get("role") == "ignore"),
+        preset=doc.get("goals_preset") or sysd.get("goals_preset"),
+        goals=tuple(_goal(g) for g in doc.get("goals", [])),
+        requirements=tuple(_requirement(r, i) for i, r in enumerate(doc.get("requirements", []))),
+        source=where)
+    return _validated(desc, where)
+
+
+def _validated(desc: SystemDescription, where: str) -> SystemDescription:
+    names = desc.schema.columns + list(desc.ignore)
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup or "time" in names[1:]:
+        raise ValueError(f"{where}: signal(s) {', '.join(dup or ['time'])} declared twice")
+    known = {c.name for c in desc.schema.states + desc.schema.actions + desc.schema.logged}
+    for g in desc.goals:
+        if g.signal not in known:
+            raise ValueError(f"{where}: goal {g.name!r} reads signal {g.signal!r}, which is not declared")
+    return desc
+
+
+# ---------------------------------------------------------------------- file-name patterns
+
+def pattern_fields(pattern: str) -> list[str]:
+    return re.findall(r"\{(\w+)\}", pattern)
+
+
+def pattern_regex(pattern: str) -> re.Pattern[str]:
+    """``log_{x}_{run}.csv`` -> a regex with one named group per field (numbers or words).
+
+    A field named twice, an empty name or a stray brace is an error naming the pattern."""
+    if not isinstance(pattern, str) or not pattern:
+        raise ValueError("a file-name pattern must be a non-empty string")
+    fields = pattern_fields(pattern)
+    dup = sorted({f for f in fields if fields.count(f) > 1})
+    if dup:
+        raise ValueError(f"pattern {pattern!r}: field {{{dup[0]}}} appears twice")
+    if re.sub(r"\{\w+\}", "", pattern).count("{") or re.sub(r"\{\w+\}", "", pattern).count("}"):
+        raise ValueError(f"pattern {pattern!r}: a brace that is not a {{field}}")
+    out, pos = [], 0
+    for m in re.finditer(r"\{(\w+)\}", pattern):
+        out.append(re.escape(pattern[pos:m.start()]))
+        out.append(f"(?P<{m.group(1)}>[-+\\w.]+?)")
+        pos = m.end()
+    out.append(re.escape(pattern[pos:]))
+    return re.compile("^" + "".join(out) + "$")
+
+
+# ---------------------------------------------------------------------- shipped descriptions
+
+def shipped() -> dict[str, Path]:
+    """Shipped descriptions by name (``lane-keeping``, ``car``)."""
+    return {p.stem: p for p in sorted(SHIPPED_DIR.glob("*.toml"))}
+
+
+def load_system(name_or_path: str | Path) -> SystemDescription:
+    """A shipped description by name, or a TOML file."""
+    known = shipped()
+    if str(name_or_path) in known:
+        return SystemDescription.load(known[str(name_or_path)])
+    path = Path(name_or_path)
+    if not path.is_file():
+        raise ValueError(f"{path}: no such system description; shipped: {', '.join(known)}")
+    return SystemDescription.load(path)
+
+
+def lane_keeping() -> SystemDescription:
+    """The paper's LEGO lane-keeping robot: the default for logs with neither sidecar nor description."""
+    return load_system("lane-keeping")
+
+
+def describe_schema(schema: LogSchema) -> SystemDescription:
+    """A minimal description of logs that carry their own schema (twin, simulated, HIL sidecars)."""
+    return SystemDescription(name="from-sidecars", schema=schema)
+
+
+def toml_value(v: Any) -> str:
+    """One TOML value (numbers, strings, lists, inline tables) for drafts the user edits."""
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (int, float)):
+        return repr(v) if math.isfinite(v) else ("inf" if v > 0 else "-inf")
+    if isinstance(v, str):
+        return json.dumps(v)
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(toml_value(e) for e in v) + "]"
+    if isinstance(v, dict):
+        return "{" + ", ".join(f"{k} = {toml_value(e)}" for k, e in v.items()) + "}"
+    raise TypeError(f"no TOML form for {v!r}")
+
+
+def names(channels: Iterable[Channel]) -> list[str]:
+    return [c.name for c in channels]
