@@ -24,7 +24,8 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from envi_py.logs import DatasetSpec, load_logs  # noqa: E402
+from envi_py.logs import load_logs  # noqa: E402
+from envi_py.system import lane_keeping  # noqa: E402
 from envi_py.train.common import Selector, closed_loop_score, model_config, new_checkpoint  # noqa: E402
 
 DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "lane-keeping-fot"
@@ -32,10 +33,9 @@ DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "lane-k
 
 def time_bc(logs, epochs: int) -> float:
     from envi_py.train.bc import bc_loss
-    from envi_py.train.common import dataset_for
 
     ckpt = new_checkpoint("bc", logs, [], model_config(logs), 0, {})
-    data = dataset_for(ckpt, logs)
+    data = ckpt.dataset(logs)
     xs, ys = [torch.tensor(x) for x in data.X], [torch.tensor(y) for y in data.Y]
     opt = torch.optim.Adam(ckpt.model.parameters(), lr=5e-5)
     t0 = time.perf_counter()
@@ -69,7 +69,7 @@ def main() -> int:
     ap.add_argument("--out", default="bench_training.json")
     args = ap.parse_args()
     torch.set_num_threads(1)
-    pool = load_logs(args.data, DatasetSpec(pattern="log_{x}_{run}.csv"), where={"x": [30]}, min_length=11)
+    pool = load_logs(args.data, lane_keeping().with_pattern("log_{x}_{run}.csv"), where={"x": [30]}, min_length=11)
     logs, val = pool[:30], pool[30:33]
     rows = {"bc": time_bc(logs, args.epochs), "gail": time_gail(logs, args.epochs, 0.0),
             "bcxgail": time_gail(logs, args.epochs, 1.0)}
@@ -86,7 +86,7 @@ def main() -> int:
         print(f"{k:<10} {v:>9.4f} {a if a is not None else '-':>9}")
     print(f"closed-loop validation on {len(val)} logs: {eval_s:.3f} s (every 10 epochs)")
     if args.grid_reps > 0:
-        from envi_py.experiments import run_experiment
+        from envi_py.experiments.run import run_experiment
 
         t0 = time.perf_counter()
         run_experiment(pool, ["tovk"], Path(args.out).with_suffix("") / "grid", reps=args.grid_reps,

@@ -9,16 +9,18 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import json
 import sys
 import time
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 from .controllers import ControllerSpec, parse_params
 from .dataset import EXTRA_CHANNELS
-from .logs import DatasetSpec, Log, LogError, load_logs, write_log
-from .metrics import MetricConfig
+from .logs import Log, LogError, load_logs, write_log, write_manifest
+from .system import SystemDescription, load_system
+
+if TYPE_CHECKING:
+    from .metrics import MetricConfig
 
 #: Subcommands contributed by other parts of the project: "module:function" taking the subparsers.
 PLUGINS: tuple[str, ...] = (
@@ -46,18 +48,26 @@ def add_log_args(p: argparse.ArgumentParser, flag: str = "--logs", required: boo
     dest = flag.lstrip("-").replace("-", "_")
     p.add_argument(flag, dest=dest, nargs="+", required=required,
                    help=help or "log files, folders or manifest .json files (sorted, validated)")
+    p.add_argument("--system", default=None, metavar="NAME|FILE",
+                   help="system description (TOML, or a shipped one: lane-keeping, car) for logs without "
+                        "sidecar; 'envi init --logs DIR' drafts one (default: sidecars, else lane-keeping)")
     p.add_argument("--pattern", default=None,
                    help="file name pattern for logs without sidecar, e.g. 'log_{x}_{run}.csv' "
                         "(fields become controller parameters; 'run' the run id)")
-    p.add_argument("--controller-name", default="lane-keeping",
-                   help="controller that produced logs without sidecar (default lane-keeping)")
     p.add_argument("--where", nargs="*", default=None, help="keep logs whose parameters match, e.g. x=10,30,50")
     p.add_argument("--skip-bad", action="store_true", help="skip (with a warning) logs that fail validation")
 
 
+def system_of(args: argparse.Namespace) -> SystemDescription | None:
+    """The system description the command line names (with its --pattern), if any."""
+    system = load_system(args.system) if getattr(args, "system", None) else None
+    if args.pattern:
+        system = (system or load_system("lane-keeping")).with_pattern(args.pattern)
+    return system
+
+
 def read_logs(args: argparse.Namespace, attr: str = "logs", min_length: int = 1) -> list[Log]:
-    spec = DatasetSpec(pattern=args.pattern, controller=args.controller_name)
-    return load_logs(getattr(args, attr), spec, min_length=min_length, skip_bad=args.skip_bad,
+    return load_logs(getattr(args, attr), system_of(args), min_length=min_length, skip_bad=args.skip_bad,
                      where=parse_where(args.where))
 
 
@@ -67,62 +77,109 @@ def add_metric_args(p: argparse.ArgumentParser) -> None:
 
 
 def metric_config(args: argparse.Namespace, skip: int) -> MetricConfig:
+    from .metrics import MetricConfig
+
     return MetricConfig(centre=args.centre, band=args.band, skip=skip)
 
 
-def write_manifest(path: Path, logs: Sequence[Log], args: argparse.Namespace) -> None:
-    manifest = {"controller": args.controller_name, "logs": [str(Path(lg.path).resolve()) for lg in logs if lg.path]}
-    if args.pattern:
-        manifest["pattern"] = args.pattern
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(manifest, indent=1) + "\n")
+# ------------------------------------------------------------------------------------ init
+
+def cmd_init(args: argparse.Namespace) -> int:
+    """Draft a system description from a folder of logs for the user to edit."""
+    from .draft import draft_system
+
+    out = Path(args.output)
+    if out.exists() and not args.force:
+        raise ValueError(f"{out}: exists; choose another --output or pass --force")
+    text = draft_system(Path(args.logs), args.pattern)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(text)
+    SystemDescription.load(out)  # what was drafted must read back
+    print(f"drafted {out}: check each signal's role, range and resolution, the controller and the goals")
+    return 0
 
 
 # ------------------------------------------------------------------------------------ split
 
+def _take(group: list[Log], n_train: int | None, n_val: int, n_test: int, mode: str,
+          rng: Any) -> tuple[list[Log], list[Log], list[Log]]:
+    """train / val / test of one set of logs: ``blocks`` keeps file order (test from the end,
+    validation before it, training from the start), ``random`` draws them."""
+    order = list(range(len(group))) if mode == "blocks" else [int(i) for i in rng.permutation(len(group))]
+    if mode == "blocks":
+        test, rest = order[len(order) - n_test:] if n_test else [], order[:len(order) - n_test]
+    else:
+        test, rest = order[:n_test], order[n_test:]
+    val, rest = (rest[len(rest) - n_val:], rest[:len(rest) - n_val]) if n_val else ([], rest)
+    train = rest if n_train is None else rest[:n_train]
+    return ([group[i] for i in sorted(train)], [group[i] for i in sorted(val)], [group[i] for i in sorted(test)])
+
+
 def cmd_split(args: argparse.Namespace) -> int:
-    """Choose disjoint train / validation / test logs (whole logs, seeded) and write three manifests."""
+    """Choose disjoint train / validation / test logs (whole logs, seeded) and write three manifests.
+
+    The counts are per controller version (each version keeps its own blocks apart), or totals
+    over all matched logs with ``--total``."""
     import numpy as np
 
+    from .logs import group_by_controller
+
+    for flag in ("train", "val", "test"):
+        v = getattr(args, flag)
+        if v is not None and v < 0:
+            raise ValueError(f"--{flag} must not be negative, got {v}")
     logs = read_logs(args)
-    want = {"test": args.test, "val": args.val, "train": args.train}
-    fixed = sum(v for v in want.values() if v is not None)
-    if fixed > len(logs):
-        raise ValueError(f"asked for {fixed} logs but only {len(logs)} match")
-    if args.mode == "blocks":
-        order = np.arange(len(logs))  # natural order: test from the end, train from the start
-        test_idx = order[len(logs) - (args.test or 0):]
-        rest = order[: len(logs) - (args.test or 0)]
-    else:
-        order = np.random.default_rng(args.seed).permutation(len(logs))
-        test_idx, rest = order[: args.test or 0], order[args.test or 0:]
-    val_idx = rest[len(rest) - (args.val or 0):]
-    rest = rest[: len(rest) - (args.val or 0)]
-    train_idx = rest if args.train is None else rest[: args.train]
+    rng = np.random.default_rng(args.seed)
+    groups = {"all logs": logs} if args.total else {k.label(): g for k, g in group_by_controller(logs).items()}
+    parts: dict[str, list[Log]] = {"train": [], "val": [], "test": []}
+    for label, group in groups.items():
+        fixed = sum(v for v in (args.train, args.val, args.test) if v is not None)
+        if fixed > len(group):
+            raise ValueError(f"{label}: asked for {fixed} logs but only {len(group)} match")
+        for name, part in zip(("train", "val", "test"), _take(group, args.train, args.val, args.test, args.mode, rng)):
+            parts[name] += part
+    if not parts["train"]:
+        raise ValueError("the split leaves no training logs")
     out = Path(args.out)
-    for name, idx in (("train", train_idx), ("val", val_idx), ("test", test_idx)):
-        write_manifest(out / f"{name}.json", [logs[i] for i in sorted(idx)], args)
-        print(f"{name}: {len(idx)} logs -> {out / (name + '.json')}")
+    system = system_of(args)
+    for name, part in parts.items():
+        write_manifest(out / f"{name}.json", part, system)
+        per = f" ({len(part) // len(groups)} per version)" if len(groups) > 1 and part else ""
+        print(f"{name}: {len(part)} logs{per} -> {out / (name + '.json')}")
     return 0
 
 
 # ------------------------------------------------------------------------------------ train
 
+def _positive(args: argparse.Namespace, *names: str) -> None:
+    for name in names:
+        v = getattr(args, name)
+        if v is not None and v < 1:
+            raise ValueError(f"--{name.replace('_', '-')} must be at least 1, got {v}")
+
+
 def cmd_train(args: argparse.Namespace) -> int:
     from .train import train
 
+    _positive(args, "epochs", "history", "eval_every")
+    hidden = [int(h) for h in args.hidden.split(",") if h.strip()]
+    if any(h < 1 for h in hidden):
+        raise ValueError(f"--hidden widths must be at least 1, got {args.hidden}")
     logs = read_logs(args, min_length=args.history + 1)
     val = read_logs(args, "val_logs", min_length=args.history + 1) if args.val_logs else []
     kwargs: dict[str, Any] = {"seed": args.seed, "history": args.history, "progress": not args.quiet,
                               "metric": metric_config(args, args.history)}
     if args.algorithm != "random":
-        kwargs.update(epochs=args.epochs, hidden=[int(h) for h in args.hidden.split(",") if h],
-                      head=args.head, eval_every=args.eval_every, extras=tuple(args.extras),
+        kwargs.update(epochs=args.epochs, hidden=hidden, eval_every=args.eval_every, extras=tuple(args.extras),
                       play_width=args.play_width, context=args.context)
+        if args.algorithm == "bc":
+            kwargs["head"] = args.head
+        elif args.head == "deterministic":
+            raise ValueError(f"--head deterministic: {args.algorithm} trains a Gaussian policy (PPO needs one)")
         if args.lr is not None:
             kwargs["lr"] = args.lr
     t0 = time.perf_counter()
-    ckpt = train(args.algorithm, logs, val, **kwargs)
+    ckpt = train(args.algorithm, logs, val, system=system_of(args), **kwargs)
     path = ckpt.save(args.output)
     sel = ckpt.record.selection
     print(f"trained {args.algorithm} on {len(logs)} logs ({len(val)} validation) in "
@@ -133,26 +190,39 @@ def cmd_train(args: argparse.Namespace) -> int:
 # ------------------------------------------------------------------------------------ simulate
 
 def cmd_simulate(args: argparse.Namespace) -> int:
+    from .logs import group_by_controller
     from .model import Checkpoint
-    from .simulate import choose_engine, simulate_logs
-    from .verify import controller_of, group_by_controller
+    from .simulate import choose_engine, simulate_versions
 
+    _positive(args, "runs")
+    if args.steps is not None and not 0 <= args.steps <= 10_000_000:
+        raise ValueError(f"--steps must lie in 0..10000000, got {args.steps}")
     ckpt = Checkpoint.load(args.model)
     init = read_logs(args, "init_logs", min_length=ckpt.config.history)
     out = Path(args.out)
-    if args.controller:
-        groups = {"given": (ControllerSpec(args.controller, parse_params(args.param)), init)}
-    else:
-        groups = {k: (controller_of(g[0]), g) for k, g in group_by_controller(init).items()}
-    n = 0
+    given = ControllerSpec(args.controller, parse_params(args.param)) if args.controller else None
+    specs = [given] if given else list(group_by_controller(init))
+    engines = {choose_engine(ckpt, spec, args.engine) for spec in specs}
+    if args.engine == "auto" and "torch" in engines:
+        from .native import unsupported
+
+        for spec in specs:
+            why = unsupported(ckpt, spec)
+            if why:
+                print(f"envi simulate: the native engine cannot run {spec.label()} ({why}); using PyTorch",
+                      file=sys.stderr)
     t0 = time.perf_counter()
-    engines = set()
-    for spec, logs in groups.values():
-        engines.add(choose_engine(ckpt, spec, args.engine))
-        for lg in simulate_logs(ckpt, spec, logs, steps=args.steps, runs=args.runs, seed=args.seed,
-                                engine=args.engine):
-            write_log(lg, out / f"{lg.meta.run_id}.csv")
-            n += 1
+    written: set[str] = set()
+    n = 0
+    for lg in simulate_versions(ckpt, init, runs=args.runs, seed=args.seed, engine=args.engine, steps=args.steps,
+                                controller=given):
+        name = f"{lg.meta.run_id}.csv"
+        if name in written:
+            raise ValueError(f"two simulated runs would both be written as {out / name}: initial logs from different "
+                             "folders share a file name; simulate them into separate --out folders")
+        written.add(name)
+        write_log(lg, out / name)
+        n += 1
     print(f"simulated {n} runs in {time.perf_counter() - t0:.2f} s ({'+'.join(sorted(engines))} engine) -> {out}")
     return 0
 
@@ -182,17 +252,44 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+class _Help(argparse.HelpFormatter):
+    """``--help`` shows each option's default, unless it has none or its text already says it."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        if (not action.option_strings or action.default is None or action.default is False
+                or action.default == argparse.SUPPRESS or "default" in text.lower()):
+            return text
+        return f"{text} (default: %(default)s)".strip()
+
+
+class _Parser(argparse.ArgumentParser):
+    """Every (sub)command shows its defaults in ``--help``."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        kwargs.setdefault("formatter_class", _Help)
+        super().__init__(**kwargs)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="envi", description="Learn an environment model from field logs "
+    parser = _Parser(prog="envi", description="Learn an environment model from field logs "
                                      "and verify a controller against it.")
     parser.add_argument("--debug", action="store_true", help="show tracebacks")
-    sub = parser.add_subparsers(dest="command", required=True)
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
+
+    p = sub.add_parser("init", help="draft a system description (TOML) from a folder of logs")
+    p.add_argument("--logs", required=True, help="a folder of CSV logs")
+    p.add_argument("--pattern", default=None, help="file name pattern, e.g. 'log_{x}_{run}.csv' (default: guessed)")
+    p.add_argument("-o", "--output", default="system.toml", help="file to write (default system.toml)")
+    p.add_argument("--force", action="store_true", help="overwrite an existing file")
+    p.set_defaults(func=cmd_init)
 
     p = sub.add_parser("split", help="choose train/validation/test logs; writes train.json, val.json, test.json")
     add_log_args(p)
-    p.add_argument("--train", type=int, default=None, help="number of training logs (default: all the rest)")
-    p.add_argument("--val", type=int, default=0, help="number of validation logs (model selection)")
-    p.add_argument("--test", type=int, default=0, help="number of test logs (verification)")
+    p.add_argument("--train", type=int, default=None, help="training logs per version (default: all the rest)")
+    p.add_argument("--val", type=int, default=0, help="validation logs per version (model selection)")
+    p.add_argument("--test", type=int, default=0, help="test logs per version (verification)")
+    p.add_argument("--total", action="store_true", help="the counts are totals over all versions, not per version")
     p.add_argument("--mode", choices=("random", "blocks"), default="random",
                    help="random: seeded draw; blocks: test logs are the last ones in file order (the real "
                         "logs are consecutive slices of one run, so blocks keeps neighbours apart)")
@@ -203,19 +300,22 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("train", help="train an environment model")
     add_log_args(p, help="training logs")
     p.add_argument("--val-logs", nargs="*", default=None, help="validation logs for closed-loop model selection")
-    p.add_argument("--algorithm", choices=("bc", "gail", "bcxgail", "random"), default="bc")
-    p.add_argument("--epochs", type=int, default=300)
+    p.add_argument("--algorithm", choices=("bc", "gail", "bcxgail", "random"), default="bc",
+                   help="bc: behaviour cloning; gail, bcxgail: adversarial (PPO); random: the paper's baseline")
+    p.add_argument("--epochs", type=int, default=300, help="training epochs")
     p.add_argument("--lr", type=float, default=None, help="learning rate (default: the algorithm's, BC 5e-5)")
     p.add_argument("--history", type=int, default=10, help="window length l")
     p.add_argument("--hidden", default="256,256", help="hidden widths")
-    p.add_argument("--head", choices=("deterministic", "gaussian"), default="deterministic")
+    p.add_argument("--head", choices=("deterministic", "gaussian"), default="gaussian",
+                   help="gaussian: mean and spread of the next state, simulated by sampling (reproduces the "
+                        "real runs' spread); deterministic: the mean only (bc only)")
     p.add_argument("--extras", nargs="*", choices=EXTRA_CHANNELS, default=[],
                    help="derived input channels (what a diagnosis' fix may add): dt, phase, play")
     p.add_argument("--play-width", type=float, default=0.0,
                    help="the play channel's full width, a fraction of the action range")
     p.add_argument("--context", action="store_true", help="append the per-run context of the initial window")
     p.add_argument("--eval-every", type=int, default=10, help="epochs between closed-loop validations")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="seed of initialisation and sampling")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     add_metric_args(p)
     p.add_argument("-o", "--output", required=True, help="checkpoint file to write")
@@ -228,7 +328,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="controller name or package.module:function (default: each log's own controller)")
     p.add_argument("--param", nargs="*", default=None, help="controller parameters, e.g. x=30")
     p.add_argument("--runs", type=int, default=1, help="runs per initial window")
-    p.add_argument("--steps", type=int, default=None, help="steps after the window (default: the log's length)")
+    p.add_argument("--steps", type=int, default=None,
+                   help="steps after the window (default: each initial log's length minus the window)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--engine", choices=("auto", "native", "torch"), default="auto",
                    help="auto (default): the C++ engine when it can run the model, else PyTorch")

@@ -10,10 +10,10 @@ from __future__ import annotations
 from pathlib import Path
 
 from .controllers import ControllerSpec
-from .logs import load_logs, write_log
+from .logs import group_by_controller, load_logs, write_log
 from .train import train
-from .simulate import simulate_logs
-from .verify import controller_of, group_by_controller, to_text, verify, write_report
+from .simulate import simulate_versions
+from .verify import to_text, verify, write_report
 
 
 def run_demo(out: Path, seed: int = 0, epochs: int = 300, runs_per_version: int = 30) -> Path:
@@ -35,9 +35,7 @@ def run_demo(out: Path, seed: int = 0, epochs: int = 300, runs_per_version: int 
           f"validating on {len(val_logs)}, verifying on {len(test_logs)} (all five versions)")
     ckpt = train("bc", train_logs, val_logs, seed=seed, epochs=epochs, progress=True)
     ckpt.save(out / "model.pt")
-    sims = []
-    for group in group_by_controller(test_logs).values():
-        sims += simulate_logs(ckpt, controller_of(group[0]), group, runs=10, seed=seed)
+    sims = simulate_versions(ckpt, test_logs, runs=10, seed=seed)
     for lg in sims:
         write_log(lg, out / "sim" / f"{lg.meta.run_id}_{lg.param.get('x', 0):g}.csv")
     results = verify(test_logs, sims, seed=seed)

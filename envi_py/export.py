@@ -32,10 +32,10 @@ PARITY_TOL = 1e-5
 
 
 def post_processing(ckpt: Checkpoint) -> dict[str, Any]:
-    """The simulator's output post-processing with the limits resolved, as ``simulate.post_process`` does."""
+    """The simulator's output post-processing with the limits resolved, as ``Checkpoint.post_process`` does."""
     cfg = ckpt.config
-    limits = cfg.limits or [(c.low, c.high) for c in ckpt.schema.states]
-    return {"clamp": bool(cfg.clamp), "limits": [[float(lo), float(hi)] for lo, hi in limits],
+    low, high = ckpt.limits()
+    return {"clamp": bool(cfg.clamp), "limits": [[float(lo), float(hi)] for lo, hi in zip(low, high)],
             "round_to": None if cfg.round_to is None else list(cfg.round_to)}
 
 

@@ -1,34 +1,44 @@
 """Field and simulated logs: one CSV per run plus an optional ``<name>.meta.json`` sidecar.
 
-A log is ``time`` in milliseconds, then the state columns, then the action columns. Real
-field-test (FOT) logs, twin logs, hardware-in-the-loop logs and simulated traces are all written
-and read through this module, so every downstream tool treats them alike. The reader is strict:
-every problem is reported with the file and the row, because a silently mangled log poisons every
-model trained on it.
+A log is ``time`` in milliseconds, then the state columns, the action columns and any logged-only
+columns (a PID's internal terms, say) its system description declares. Real field-test (FOT) logs,
+twin logs, hardware-in-the-loop logs and simulated traces are all written and read through this
+module, so every downstream tool treats them alike. The reader is strict: every problem is reported
+with the file (and row and column where there is one), because a silently mangled log poisons
+every model trained on it. Which controller version made a log (its :class:`ControllerSpec`) is
+read here too, from the sidecar or from the file name through the system description, and logs are
+grouped by it here, once.
 """
 
 from __future__ import annotations
 
 import csv
 import hashlib
+import io
 import json
 import math
 import os
 import re
+import stat
 import tempfile
 import warnings
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable, Sequence
+from typing import Any
 
 import numpy as np
 
-from .system import Channel, LogSchema, lane_keeping, pattern_regex
+from .controllers import ControllerSpec
+from .system import Channel, LogSchema, SystemDescription, describe_schema, lane_keeping, pattern_regex
 
 __all__ = ["Channel", "LogSchema", "pattern_regex"]
 
 SCHEMA_VERSION = 1
 SOURCES = ("fot", "sim", "twin", "hil")
+#: Run ids become file names: letters, digits, '.', '_' and '-', not starting with a dot.
+RUN_ID = re.compile(r"^[A-Za-z0-9_-][A-Za-z0-9._-]{0,119}$")
+MAX_SIDECAR_BYTES = 1 << 20
 
 
 class LogError(ValueError):
@@ -40,12 +50,20 @@ class LogError(ValueError):
 LANE_KEEPING_SCHEMA = lane_keeping().schema
 
 
+def safe_run_id(value: Any, where: str) -> str:
+    """A run id that is safe as a file name (no path, no traversal); anything else is an error."""
+    text = str(value)
+    if isinstance(value, (dict, list, bool)) or value is None or not RUN_ID.match(text):
+        raise LogError(f"{where}: run_id {text[:60]!r} is not a plain name (letters, digits, '.', '_', '-')")
+    return text
+
+
 @dataclass
 class LogMeta:
     """What the sidecar records. Everything but the schema is optional for a field log."""
 
     schema: LogSchema = LANE_KEEPING_SCHEMA
-    controller: dict[str, Any] | None = None  # {"name": ..., "params": {...}}
+    controller: dict[str, Any] | None = None  # ControllerSpec.to_json()
     period_ms: float | None = None
     run_id: str | None = None
     source: str = "fot"
@@ -63,21 +81,31 @@ class LogMeta:
         }
 
     @staticmethod
-    def from_json(d: dict[str, Any], where: str) -> "LogMeta":
+    def from_json(d: Any, where: str) -> LogMeta:
+        """A sidecar's content, every field checked for its type: a wrong one is a LogError."""
+        if not isinstance(d, dict):
+            raise LogError(f"{where}: a sidecar must be a JSON object, not {type(d).__name__}")
         version = d.get("schema_version")
         if version != SCHEMA_VERSION:
-            raise LogError(f"{where}: sidecar schema_version {version!r} is not supported (expected {SCHEMA_VERSION})")
+            raise LogError(f"{where}: sidecar schema_version {version!r:.40} is not supported (expected {SCHEMA_VERSION})")
         source = d.get("source", "fot")
         if source not in SOURCES:
-            raise LogError(f"{where}: sidecar source {source!r} is not one of {', '.join(SOURCES)}")
+            raise LogError(f"{where}: sidecar source {source!r:.40} is not one of {', '.join(SOURCES)}")
         try:
             schema = LogSchema.from_json(d)
-        except (KeyError, TypeError, ValueError) as exc:
-            raise LogError(f"{where}: sidecar has no valid states/actions declaration ({exc})") from exc
+            controller = None if d.get("controller") is None else ControllerSpec.from_json(d["controller"]).to_json()
+        except ValueError as exc:
+            raise LogError(f"{where}: sidecar {exc}") from None
         period = d.get("period_ms")
-        return LogMeta(schema=schema, controller=d.get("controller"),
-                       period_ms=None if period is None else float(period),
-                       run_id=d.get("run_id"), source=source, provenance=dict(d.get("provenance") or {}))
+        if period is not None and (isinstance(period, bool) or not isinstance(period, (int, float))
+                                   or not (math.isfinite(period) and period > 0)):
+            raise LogError(f"{where}: sidecar period_ms {period!r:.40} is not a positive number")
+        run_id = None if d.get("run_id") is None else safe_run_id(d["run_id"], where)
+        provenance = d.get("provenance") or {}
+        if not isinstance(provenance, dict):
+            raise LogError(f"{where}: sidecar provenance must be an object")
+        return LogMeta(schema=schema, controller=controller, period_ms=None if period is None else float(period),
+                       run_id=run_id, source=source, provenance=dict(provenance))
 
 
 @dataclass
@@ -113,6 +141,23 @@ class Log:
         """Controller parameters (empty when unknown)."""
         return dict((self.meta.controller or {}).get("params", {}))
 
+    @property
+    def controller(self) -> ControllerSpec:
+        """The controller version that produced this log; an error when the log does not say."""
+        if not self.meta.controller:
+            raise LogError(f"{self.name}: the log does not say which controller produced it (give a "
+                           "system description with a [controller], or a file-name --pattern with its version)")
+        return ControllerSpec.from_json(self.meta.controller)
+
+    def signal(self, name: str) -> np.ndarray:
+        """One column by name: a state, an action or a logged-only column, (T,)."""
+        schema = self.meta.schema
+        for arr, chans in ((self.states, schema.states), (self.actions, schema.actions), (self.logged, schema.logged)):
+            for i, c in enumerate(chans):
+                if c.name == name:
+                    return arr[:, i]
+        raise KeyError(f"{self.name}: no signal {name!r}; it has {', '.join(schema.columns[1:])}")
+
     def sha256(self) -> str:
         """Hash of the numeric content, so a checkpoint can name exactly what it was trained on."""
         h = hashlib.sha256()
@@ -125,62 +170,142 @@ def sidecar_path(csv_path: Path) -> Path:
     return csv_path.with_name(csv_path.stem + ".meta.json")
 
 
-def _parse_cell(text: str, path: Path, row: int, col: str) -> float:
+def _regular_file(path: Path) -> None:
+    """Refuse FIFOs, devices and links to them before opening: reading one would hang or never end."""
     try:
-        value = float(text)
-    except ValueError:
-        raise LogError(f"{path}: row {row}: column '{col}' has non-numeric value {text!r}") from None
+        st = path.stat()
+    except OSError as exc:
+        raise LogError(f"{path}: cannot read ({exc.strerror})") from None
+    if not stat.S_ISREG(st.st_mode):
+        raise LogError(f"{path}: not a regular file (a pipe, device or folder cannot be a log)")
+
+
+def read_sidecar(side: Path) -> LogMeta:
+    _regular_file(side)
+    if side.stat().st_size > MAX_SIDECAR_BYTES:
+        raise LogError(f"{side}: sidecar larger than {MAX_SIDECAR_BYTES >> 20} MiB")
+    try:
+        d = json.loads(side.read_text(encoding="utf-8-sig"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise LogError(f"{side}: not valid JSON ({exc})") from None
+    except RecursionError:
+        raise LogError(f"{side}: not valid JSON (nested too deeply)") from None
+    except OSError as exc:
+        raise LogError(f"{side}: cannot read ({exc.strerror})") from None
+    return LogMeta.from_json(d, str(side))
+
+
+_NUMBER = re.compile(r"^[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?$")  # ASCII digits only
+
+
+def _parse_cell(text: str, path: Path, row: int, col: str) -> float:
+    if not _NUMBER.match(text):
+        low = text.lower().lstrip("+-")
+        if low in ("nan", "inf", "infinity"):
+            raise LogError(f"{path}: row {row}: column '{col}' is {text!r} (NaN/inf are not valid readings)")
+        raise LogError(f"{path}: row {row}: column '{col}' has non-numeric value {text!r}")
+    value = float(text)
     if not math.isfinite(value):
-        raise LogError(f"{path}: row {row}: column '{col}' is {text!r} (NaN/inf are not valid readings)")
+        raise LogError(f"{path}: row {row}: column '{col}' is {text!r} (out of the float range)")
     return value
 
 
-def read_log(path: str | os.PathLike, meta: LogMeta | None = None, min_length: int = 1) -> Log:
-    """Read and validate one CSV log.
-
-    ``meta`` describes a log that has no sidecar (e.g. the real lane-keeping logs); a sidecar, when
-    present, wins. ``min_length`` is the history window: a shorter log cannot give one training pair.
-    Row numbers in errors count the header as row 1, as a spreadsheet shows them.
-    """
-    path = Path(path)
-    side = sidecar_path(path)
-    if side.exists():
-        try:
-            meta = LogMeta.from_json(json.loads(side.read_text()), str(side))
-        except json.JSONDecodeError as exc:
-            raise LogError(f"{side}: not valid JSON ({exc})") from exc
-    meta = meta or LogMeta()
-    expected = meta.schema.columns
-    try:
-        with open(path, newline="") as fh:
-            rows = list(csv.reader(fh))
-    except OSError as exc:
-        raise LogError(f"{path}: cannot read ({exc.strerror})") from exc
-    except (UnicodeDecodeError, csv.Error) as exc:
-        raise LogError(f"{path}: not a text CSV file ({exc})") from exc
-    if not rows:
+def _header(path: Path, text: str, expected: list[str], ignore: Sequence[str]) -> tuple[list[str], list[int]]:
+    first = text.split("\n", 1)[0].rstrip("\r")
+    header = [h.strip() for h in next(csv.reader([first]))] if first else []
+    if not header:
         raise LogError(f"{path}: empty file (expected header {','.join(expected)})")
-    header = [h.strip() for h in rows[0]]
+    dup = sorted({h for h in header if header.count(h) > 1})
+    if dup:
+        raise LogError(f"{path}: row 1: column(s) {', '.join(dup)} appear twice in the header")
     missing = [c for c in expected if c not in header]
-    extra = [c for c in header if c not in expected]
+    extra = [c for c in header if c not in expected and c not in ignore]
     if missing or extra:
         parts = []
         if missing:
             parts.append("missing column(s) " + ", ".join(missing))
         if extra:
-            parts.append("unexpected column(s) " + ", ".join(extra))
+            parts.append("unexpected column(s) " + ", ".join(extra) + " (declare them in the system description "
+                         "with role 'logged' or 'ignore')")
         raise LogError(f"{path}: row 1: {'; '.join(parts)} (expected {','.join(expected)})")
-    order = [header.index(c) for c in expected]
-    data = np.empty((len(rows) - 1, len(expected)), dtype=np.float64)
-    n = 0
-    for i, row in enumerate(rows[1:], start=2):
-        if not row or all(not c.strip() for c in row):
-            continue  # a trailing blank line is not a reading
+    return header, [header.index(c) for c in expected]
+
+
+def _parse_rows(path: Path, text: str, header: list[str], order: list[int], expected: list[str]) -> np.ndarray:
+    """The data rows as floats in ``expected`` order. A fast vectorised parse for well-formed files;
+    any failure re-reads row by row so the error names the row and column."""
+    body = text.split("\n", 1)[1] if "\n" in text else ""
+    if text.isascii():
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("error")  # an empty file body warns; treat it as the slow path
+                data = np.loadtxt(io.StringIO(body), delimiter=",", dtype=np.float64, comments=None, ndmin=2,
+                                  quotechar='"')
+            if data.shape[1] == len(header) and np.isfinite(data).all():
+                return data[:, order]
+        except (ValueError, UserWarning):
+            pass
+    data_rows = []
+    for i, row in enumerate(csv.reader(io.StringIO(body)), start=2):
+        if not row:
+            continue  # a blank line is not a reading
+        if all(not c.strip() for c in row):
+            raise LogError(f"{path}: row {i}: an empty row (only separators)")
         if len(row) != len(header):
             raise LogError(f"{path}: row {i}: {len(row)} cells, header has {len(header)}")
-        data[n] = [_parse_cell(row[j].strip(), path, i, expected[k]) for k, j in enumerate(order)]
-        n += 1
-    data = data[:n]
+        data_rows.append([_parse_cell(row[j].strip(), path, i, expected[k]) for k, j in enumerate(order)])
+    return np.array(data_rows, dtype=np.float64).reshape(len(data_rows), len(order))
+
+
+def _check_ranges(path: Path, data: np.ndarray, schema: LogSchema) -> np.ndarray:
+    """Declared valid ranges, enforced: a sensor that saturates is clipped at its range, any other
+    value outside it is an error naming row, column and range (one 1e308 poisons a model)."""
+    for k, ch in enumerate(schema.channels + schema.logged, start=1):
+        col = data[:, k]
+        bad = np.flatnonzero((col < ch.low) | (col > ch.high))
+        if not bad.size:
+            continue
+        if ch.saturates:
+            data[:, k] = np.clip(col, ch.low, ch.high)
+            continue
+        r = int(bad[0])
+        raise LogError(f"{path}: row {r + 2}: column '{ch.name}' is {col[r]:g}, outside its valid range "
+                       f"[{ch.low:g}, {ch.high:g}]")
+    return data
+
+
+def read_log(path: str | os.PathLike, meta: LogMeta | None = None, min_length: int = 1,
+             ignore: Sequence[str] = ()) -> Log:
+    """Read and validate one CSV log.
+
+    ``meta`` describes a log that has no sidecar (e.g. the real lane-keeping logs); a sidecar, when
+    present, wins (:func:`load_logs` checks that the two agree). ``ignore`` names columns that may be
+    present and are dropped. ``min_length`` is the history window: a shorter log cannot give one
+    training pair. UTF-8 with or without BOM and CRLF line ends are read as is. Row numbers in
+    errors count the header as row 1, as a spreadsheet shows them.
+    """
+    path = Path(path)
+    side = sidecar_path(path)
+    if side.exists() or side.is_symlink():
+        meta = read_sidecar(side)
+    meta = meta or LogMeta()
+    expected = meta.schema.columns
+    _regular_file(path)
+    try:
+        with open(path, encoding="utf-8-sig", newline="") as fh:
+            text = fh.read().replace("\r\n", "\n").replace("\r", "\n")
+    except OSError as exc:
+        raise LogError(f"{path}: cannot read ({exc.strerror})") from None
+    except UnicodeDecodeError as exc:
+        raise LogError(f"{path}: not a UTF-8 text CSV file ({exc.reason} at byte {exc.start})") from None
+    if "\x00" in text:
+        raise LogError(f"{path}: not a text CSV file (it holds NUL bytes)")
+    header, order = _header(path, text, expected, ignore)
+    try:
+        data = _parse_rows(path, text, header, order, expected)
+    except csv.Error as exc:
+        raise LogError(f"{path}: not a valid CSV file ({exc})") from None
+    n = data.shape[0]
     if n < max(min_length, 1):
         raise LogError(f"{path}: {n} data rows, shorter than the {min_length} the history window needs")
     dt = np.diff(data[:, 0])
@@ -188,6 +313,7 @@ def read_log(path: str | os.PathLike, meta: LogMeta | None = None, min_length: i
     if bad.size:
         r = int(bad[0]) + 3
         raise LogError(f"{path}: row {r}: time {data[r - 2, 0]:g} does not increase (previous {data[r - 3, 0]:g})")
+    data = _check_ranges(path, data, meta.schema)
     ns, nc = len(meta.schema.states), len(meta.schema.channels)
     return Log(path, data[:, 0].copy(), data[:, 1:1 + ns].copy(), data[:, 1 + ns:1 + nc].copy(), meta,
                data[:, 1 + nc:].copy())
@@ -243,94 +369,133 @@ def _natural_key(p: Path) -> list[Any]:
     return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", p.name)]
 
 
-@dataclass
-class DatasetSpec:
-    """How to read a folder of logs that may lack sidecars.
-
-    ``pattern`` fields become controller parameters, except ``run`` which becomes the run id;
-    ``controller`` names the controller that produced the logs.
-    """
-
-    pattern: str | None = None
-    controller: str = "lane-keeping"
-    schema: LogSchema = LANE_KEEPING_SCHEMA
-    period_ms: float | None = None
-    source: str = "fot"
-    fixed_params: dict[str, Any] = field(default_factory=dict)
-
-
-def _meta_for(path: Path, spec: DatasetSpec, rx: re.Pattern[str] | None) -> LogMeta | None:
-    if rx is None:
-        return LogMeta(schema=spec.schema, controller={"name": spec.controller, "params": dict(spec.fixed_params)},
-                       period_ms=spec.period_ms, run_id=path.stem, source=spec.source)
-    m = rx.match(path.name)
-    if m is None:
-        return None
-    fields = {k: _number(v) for k, v in m.groupdict().items()}
-    run = fields.pop("run", path.stem)
-    params = {**spec.fixed_params, **fields}
-    return LogMeta(schema=spec.schema, controller={"name": spec.controller, "params": params},
-                   period_ms=spec.period_ms, run_id=str(run), source=spec.source,
+def _meta_for(path: Path, system: SystemDescription, rx: re.Pattern[str] | None) -> LogMeta | None:
+    """The metadata a log without sidecar gets from the system description (None: the file does
+    not match the pattern)."""
+    fields: dict[str, Any] = {}
+    run: Any = path.stem
+    if rx is not None:
+        m = rx.match(path.name)
+        if m is None:
+            return None
+        fields = {k: _number(v) for k, v in m.groupdict().items()}
+        run = fields.pop("run", path.stem)
+    spec = system.controller_for(fields)
+    return LogMeta(schema=system.schema, controller=None if spec is None else spec.to_json(),
+                   period_ms=system.period_ms, run_id=safe_run_id(run, str(path)), source="fot",
                    provenance={"file": path.name})
 
 
-def list_log_files(folder: Path, spec: DatasetSpec) -> list[Path]:
+def _agree(log: Log, expected: LogMeta | None, system: SystemDescription | None) -> None:
+    """A sidecar must agree with the system description and the file-name pattern: a conflict is an
+    error naming both, never a silent override."""
+    if system is not None and log.meta.schema.columns != system.schema.columns:
+        raise LogError(f"{sidecar_path(log.path) if log.path else log.name}: sidecar declares columns "
+                       f"{','.join(log.meta.schema.columns)}, the system description "
+                       f"{system.source or system.name} {','.join(system.schema.columns)}")
+    if expected is None or expected.controller is None or log.meta.controller is None:
+        return
+    pattern_params = {k: v for k, v in expected.controller["params"].items()
+                      if system is not None and k in system.versions.params}
+    side_params = log.meta.controller.get("params", {})
+    for k, v in pattern_params.items():
+        if k in side_params and str(side_params[k]) != str(v) and _number(str(side_params[k])) != v:
+            raise LogError(f"{log.path}: the file name says {k}={v}, its sidecar says {k}={side_params[k]}")
+
+
+def list_log_files(folder: Path, pattern: str | None) -> list[Path]:
     """Log files of a folder in a stable, natural order (log_30_2 before log_30_10)."""
     if not folder.is_dir():
         raise LogError(f"{folder}: not a folder")
-    rx = pattern_regex(spec.pattern) if spec.pattern else None
+    rx = pattern_regex(pattern) if pattern else None
     files = [p for p in folder.iterdir() if p.suffix == ".csv" and not p.name.startswith(".")]
     if rx is not None:
         files = [p for p in files if rx.match(p.name)]
     return sorted(files, key=_natural_key)
 
 
-def load_manifest(path: Path) -> tuple[DatasetSpec, list[Path]]:
-    """A manifest is JSON: {"schema": {...}?, "controller": name, "pattern": ..., "logs": [files]?}."""
+def _manifest_error(path: Path, why: str) -> LogError:
+    return LogError(f"{path}: not a valid manifest ({why})")
+
+
+def load_manifest(path: Path) -> tuple[SystemDescription | None, list[Path]]:
+    """A manifest is JSON ``{"system": {...}, "logs": [files]}`` as :func:`write_manifest` writes it
+    (older ones: ``{"pattern": ..., "schema": ..., "logs": ...}``). Paths are relative to it."""
+    _regular_file(path)
     try:
-        d = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise LogError(f"{path}: cannot read manifest ({exc})") from exc
-    spec = DatasetSpec(pattern=d.get("pattern"), controller=d.get("controller", "lane-keeping"),
-                       schema=LogSchema.from_json(d["schema"]) if "schema" in d else LANE_KEEPING_SCHEMA,
-                       period_ms=d.get("period_ms"), source=d.get("source", "fot"),
-                       fixed_params=dict(d.get("params", {})))
-    files = [path.parent / f for f in d["logs"]] if "logs" in d else list_log_files(path.parent, spec)
-    return spec, files
+        d = json.loads(path.read_text(encoding="utf-8-sig"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise _manifest_error(path, str(exc)) from None
+    except RecursionError:
+        raise _manifest_error(path, "nested too deeply") from None
+    if not isinstance(d, dict):
+        raise _manifest_error(path, f"a JSON object is needed, not {type(d).__name__}")
+    system = None
+    try:
+        if d.get("system") is not None:
+            system = SystemDescription.from_json(d["system"], f"{path}: system")
+        elif "schema" in d or "pattern" in d:
+            base = describe_schema(LogSchema.from_json(d["schema"])) if "schema" in d else lane_keeping()
+            system = base.with_pattern(d.get("pattern"))
+    except ValueError as exc:
+        raise _manifest_error(path, str(exc)) from None
+    logs = d.get("logs")
+    if logs is None:
+        return system, list_log_files(path.parent, system.versions.pattern if system else None)
+    if not isinstance(logs, list) or not all(isinstance(f, str) and f for f in logs):
+        raise _manifest_error(path, "'logs' must be a list of file names")
+    return system, [path.parent / f for f in logs]
 
 
-def load_logs(sources: Sequence[str | os.PathLike] | str | os.PathLike, spec: DatasetSpec | None = None,
+def write_manifest(path: Path, logs: Sequence[Log], system: SystemDescription | None) -> None:
+    """The exact set of logs with the description that reads them, so a manifest reads back alone."""
+    manifest = {"system": None if system is None else system.to_json(),
+                "logs": [str(Path(lg.path).resolve()) for lg in logs if lg.path]}
+    _atomic_write(path, json.dumps(manifest, indent=1) + "\n")
+
+
+def load_logs(sources: Sequence[str | os.PathLike] | str | os.PathLike, system: SystemDescription | None = None,
               min_length: int = 1, skip_bad: bool = False,
               where: dict[str, Any] | None = None) -> list[Log]:
-    """Load logs from files, folders or a ``*.json`` manifest; sorted, validated, one schema.
+    """Load logs from files, folders or ``*.json`` manifests; sorted, validated, one schema.
 
-    ``where`` keeps only logs whose controller parameters match (e.g. ``{"x": [10, 30, 50]}``).
-    With ``skip_bad`` a broken file is reported as a warning and skipped; by default it stops.
+    ``system`` describes logs without sidecar (columns, version parameters from the file name, the
+    controller) and is checked against those with one; without it, logs must carry sidecars, except
+    that the paper's lane-keeping robot is assumed for a bare ``time,color,angle`` log. ``where``
+    keeps only logs whose controller parameters match (e.g. ``{"x": [10, 30, 50]}``). With
+    ``skip_bad`` a broken file is reported as a warning and skipped; by default it stops.
     """
     if isinstance(sources, (str, os.PathLike)):
         sources = [sources]
-    spec = spec or DatasetSpec()
-    entries: list[tuple[Path, DatasetSpec]] = []
+    entries: list[tuple[Path, SystemDescription | None]] = []
     for src in sources:
         p = Path(src)
         if p.suffix == ".json" and p.is_file():
-            mspec, files = load_manifest(p)
-            entries += [(f, mspec) for f in files]
+            msys, files = load_manifest(p)
+            if system is not None and msys is not None and msys.schema.columns != system.schema.columns:
+                raise LogError(f"{p}: the manifest's system ({','.join(msys.schema.columns)}) differs from the "
+                               f"one given ({','.join(system.schema.columns)})")
+            entries += [(f, msys or system) for f in files]
         elif p.is_dir():
-            entries += [(f, spec) for f in list_log_files(p, spec)]
-        elif p.is_file():
-            entries.append((p, spec))
+            entries += [(f, system) for f in list_log_files(p, system.versions.pattern if system else None)]
+        elif p.exists():
+            entries.append((p, system))
         else:
             raise LogError(f"{p}: no such file or folder")
     logs: list[Log] = []
-    for f, fspec in entries:
-        rx = pattern_regex(fspec.pattern) if fspec.pattern else None
+    for f, fsys in entries:
         try:
-            meta = _meta_for(f, fspec, rx)
-            log = read_log(f, meta, min_length=min_length)
-        except LogError as exc:
+            if fsys is None and not sidecar_path(f).exists():
+                fsys = lane_keeping()
+            rx = pattern_regex(fsys.versions.pattern) if fsys is not None and fsys.versions.pattern else None
+            meta = _meta_for(f, fsys, rx) if fsys is not None else None
+            if fsys is not None and meta is None:
+                raise LogError(f"{f}: the file name does not match the pattern {fsys.versions.pattern!r}")
+            log = read_log(f, meta, min_length=min_length, ignore=fsys.ignore if fsys else ())
+            _agree(log, meta, fsys if sidecar_path(f).exists() and fsys is not None and fsys is system else None)
+        except (LogError, ValueError) as exc:
             if not skip_bad:
-                raise
+                raise LogError(str(exc)) from None
             warnings.warn(f"skipping bad log: {exc}", stacklevel=2)
             continue
         logs.append(log)
@@ -361,3 +526,12 @@ def group_by_param(logs: Iterable[Log], key: str) -> dict[Any, list[Log]]:
     for lg in logs:
         out.setdefault(lg.param.get(key), []).append(lg)
     return dict(sorted(out.items(), key=lambda kv: (str(type(kv[0])), kv[0])))
+
+
+def group_by_controller(logs: Iterable[Log]) -> dict[ControllerSpec, list[Log]]:
+    """Logs per controller version (name and parameters), in a stable order: a metric distribution
+    only means something for one version. Every log must say its controller."""
+    out: dict[ControllerSpec, list[Log]] = {}
+    for lg in logs:
+        out.setdefault(lg.controller, []).append(lg)
+    return dict(sorted(out.items(), key=lambda kv: kv[0].key))

@@ -13,18 +13,22 @@ Checkpoints are a ``torch.save`` of plain tensors, numbers and strings, loaded w
 
 from __future__ import annotations
 
+import hashlib
+import json
 import platform
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 import torch
 from torch import nn
 
 from . import __version__
-from .dataset import Normaliser
-from .logs import LogSchema
+from .dataset import Dataset, Normaliser, actuator_position, context_of, extra_channels, play_offsets
+from .logs import Log
+from .system import LogSchema, SystemDescription
 
 CHECKPOINT_FORMAT = "envi-model"
 CHECKPOINT_VERSION = 1
@@ -144,8 +148,8 @@ class TrainingRecord:
     algorithm: str
     seed: int
     hyper: dict[str, Any] = field(default_factory=dict)
-    data: list[dict[str, str]] = field(default_factory=list)  # [{"file", "sha256"}]
-    validation: list[dict[str, str]] = field(default_factory=list)
+    data: list[dict[str, Any]] = field(default_factory=list)  # [{"file", "sha256", "controller"}]
+    validation: list[dict[str, Any]] = field(default_factory=list)
     controllers: list[dict[str, Any]] = field(default_factory=list)
     period_ms: float | None = None
     selection: dict[str, Any] = field(default_factory=dict)  # which epoch won and why
@@ -154,31 +158,158 @@ class TrainingRecord:
         "python": platform.python_version()})
 
 
+def _content_hash(config: dict[str, Any], norm: dict[str, Any], state_dict: dict[str, torch.Tensor]) -> str:
+    """What a checkpoint's numbers hash to: a flipped byte anywhere in the weights is caught on load."""
+    h = hashlib.sha256(json.dumps({"config": config, "norm": norm}, sort_keys=True, default=str).encode())
+    for k in sorted(state_dict):
+        h.update(k.encode())
+        h.update(state_dict[k].detach().cpu().contiguous().numpy().tobytes())
+    return h.hexdigest()
+
+
 @dataclass
 class Checkpoint:
-    """A trained model with its normaliser, log schema and training record."""
+    """A trained model with its normaliser, log schema, system description and training record.
+
+    It owns what the model sees and says: :meth:`encode_rows` turns physical log rows into the
+    model's normalised rows (derived channels included), :meth:`decode_states` turns its output into
+    physical states after the declared post-processing, :meth:`next_state` steps it. Every engine
+    (simulation, GAIL rollouts, the diagnosis, hardware-in-the-loop) goes through these, so what
+    one engine feeds the model is what every other feeds it.
+    """
 
     model: EnvModel
     norm: Normaliser
     schema: LogSchema
     record: TrainingRecord
+    system: SystemDescription | None = None
 
     @property
     def config(self) -> ModelConfig:
         return self.model.config
 
+    @property
+    def period_ms(self) -> float:
+        """The control period the model was trained at (its logs' median interval)."""
+        return self.record.period_ms or (self.system.period_ms if self.system and self.system.period_ms else 40.0)
+
+    # ------------------------------------------------------------------ what the model sees
+
+    def encode_rows(self, values: np.ndarray, first_row: int = 0, rng: np.random.Generator | None = None,
+                    previous: np.ndarray | None = None) -> np.ndarray:
+        """Physical rows (B, n, C) -> the model's normalised rows (B, n, W), derived channels appended.
+
+        ``phase`` follows the row index. ``dt`` is drawn per run and row from the training logs'
+        intervals (``config.intervals``) with ``rng``: a model told the interval must be simulated
+        with intervals like the real ones, or a jittery robot is simulated as a punctual one.
+        Without recorded intervals every interval is the nominal one (``dt`` = 0). ``play``
+        continues the backlash filter from the actuator position of the ``previous`` model rows
+        (B, m, W), or starts it at the first row's command, as :class:`~envi_py.dataset.Dataset`
+        does for a log.
+        """
+        cfg = self.config
+        z = self.norm.encode(values)
+        if not cfg.extras:
+            return z.astype(np.float32)
+        b, n = values.shape[:2]
+        period = self.period_ms
+        clock = [name for name in cfg.extras if name != "play"]
+        ex = np.zeros((b, n, len(cfg.extras)))
+        ex[..., [cfg.extras.index(name) for name in clock]] = extra_channels(
+            period * np.arange(n), clock, period, cfg.phase_rows, first_row)
+        if "dt" in cfg.extras and cfg.intervals is not None and rng is not None:
+            q = np.asarray(cfg.intervals)
+            ex[..., cfg.extras.index("dt")] = np.interp(rng.random((b, n)), np.linspace(0, 1, len(q)), q)
+        if "play" in cfg.extras:
+            start = None if previous is None else actuator_position(previous, cfg.n_state, cfg.channels, cfg.extras)
+            ex[..., cfg.extras.index("play")] = play_offsets(z[..., cfg.n_state], 2.0 * cfg.play_width, start)
+        return np.concatenate([z, ex], axis=2).astype(np.float32)
+
+    def context(self, rows: np.ndarray) -> np.ndarray | None:
+        """The per-run context of the encoded initial window(s) (B, l, W), when the model takes one."""
+        return context_of(rows, self.config.n_state).astype(np.float32) if self.config.context else None
+
+    def model_input(self, window: torch.Tensor, context: torch.Tensor | None) -> torch.Tensor:
+        """Encoded window rows (B, l, W) [+ context] -> the network's input (B, in_features)."""
+        x = window.reshape(window.shape[0], -1)
+        return x if context is None else torch.cat([x, context], dim=1)
+
+    def dataset(self, logs: Sequence[Log]) -> Dataset:
+        """Training pairs of ``logs`` laid out as this model sees them (derived channels, context)."""
+        cfg = self.config
+        return Dataset.build(logs, cfg.history, self.norm, cfg.extras, self.period_ms, cfg.phase_rows,
+                             cfg.context, cfg.play_width)
+
+    # ------------------------------------------------------------------ what the model says
+
+    def limits(self) -> tuple[np.ndarray, np.ndarray]:
+        """Per-state (low, high) physical limits simulated states are clamped to: the observed range
+        recorded at training when there is one, else the declared valid range."""
+        lim = self.config.limits or [(c.low, c.high) for c in self.schema.states]
+        return np.array([lo for lo, _ in lim], dtype=np.float64), np.array([hi for _, hi in lim], dtype=np.float64)
+
+    def post_process(self, states: np.ndarray) -> np.ndarray:
+        """Physical-unit output post-processing declared by the model: clamp, then round."""
+        cfg = self.config
+        if cfg.clamp:
+            states = np.clip(states, *self.limits())
+        if cfg.round_to is not None:
+            res = np.asarray(cfg.round_to)
+            states = np.round(states / res) * res
+        return states
+
+    def decode_states(self, z: np.ndarray) -> np.ndarray:
+        """The model's normalised next states (B, |s|) -> physical states, post-processed."""
+        ns = self.config.n_state
+        return self.post_process(np.asarray(z, dtype=np.float64) * self.norm.half[:ns] + self.norm.centre[:ns])
+
+    def decode_states_torch(self, z: torch.Tensor) -> torch.Tensor:
+        """:meth:`decode_states` in torch (float64), for GAIL's rollouts; tested against the numpy form."""
+        cfg, ns = self.config, self.config.n_state
+        s = z.double() * torch.from_numpy(self.norm.half[:ns]) + torch.from_numpy(self.norm.centre[:ns])
+        if cfg.clamp:
+            low, high = self.limits()
+            s = torch.maximum(torch.minimum(s, torch.from_numpy(high)), torch.from_numpy(low))
+        if cfg.round_to is not None:
+            res = torch.tensor(cfg.round_to, dtype=torch.float64)
+            s = torch.round(s / res) * res
+        return s
+
+    @torch.no_grad()
+    def next_state(self, x: torch.Tensor, generator: torch.Generator | None = None) -> np.ndarray:
+        """One step of the model on its input (B, in_features): the physical next states (B, |s|),
+        sampled when the head is Gaussian and a generator is given, else the mean."""
+        return self.decode_states(self.model.eval().step(x, generator).numpy())
+
+    # ------------------------------------------------------------------ files
+
+    def check_finite(self, where: str) -> None:
+        """Weights and normaliser must be finite, with non-empty ranges: a model with a NaN weight
+        would be scored as a perfect steady state."""
+        for k, v in self.model.state_dict().items():
+            if not torch.isfinite(v).all():
+                raise ValueError(f"{where}: damaged model: weight {k!r} holds NaN or inf")
+        if not (np.isfinite(self.norm.low).all() and np.isfinite(self.norm.high).all()
+                and (self.norm.high > self.norm.low).all()):
+            raise ValueError(f"{where}: damaged model: the normaliser has an empty or non-finite range")
+
     def save(self, path: str | Path) -> Path:
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
+        self.check_finite(str(path))
         cfg = asdict(self.config)
+        norm = self.norm.to_json()
+        state = {k: v.detach().clone() for k, v in self.model.state_dict().items()}
         blob = {
             "format": CHECKPOINT_FORMAT,
             "version": CHECKPOINT_VERSION,
             "config": cfg,
-            "norm": self.norm.to_json(),
+            "norm": norm,
             "schema": self.schema.to_json(),
+            "system": None if self.system is None else json.dumps(self.system.to_json()),
             "record": asdict(self.record),
-            "state_dict": {k: v.detach().clone() for k, v in self.model.state_dict().items()},
+            "state_dict": state,
+            "sha256": _content_hash(cfg, norm, state),
         }
         tmp = path.with_name("." + path.name + ".tmp")
         torch.save(blob, tmp)
@@ -186,13 +317,15 @@ class Checkpoint:
         return path
 
     @staticmethod
-    def load(path: str | Path) -> "Checkpoint":
+    def load(path: str | Path) -> Checkpoint:
         path = Path(path)
+        if path.exists() and not path.is_file():
+            raise ValueError(f"{path}: not a regular file")
         try:
             blob = torch.load(path, map_location="cpu", weights_only=True)
         except FileNotFoundError:
             raise ValueError(f"{path}: no such model file") from None
-        except Exception as exc:  # torch raises many types for a foreign or corrupt file
+        except Exception as exc:  # noqa: BLE001 - torch raises many types for a foreign or corrupt file
             raise ValueError(f"{path}: not an envi model checkpoint ({type(exc).__name__}: {exc})") from None
         if not isinstance(blob, dict) or blob.get("format") != CHECKPOINT_FORMAT:
             raise ValueError(f"{path}: not an envi model checkpoint (no '{CHECKPOINT_FORMAT}' header)")
@@ -200,12 +333,17 @@ class Checkpoint:
             raise ValueError(f"{path}: checkpoint version {blob.get('version')} is not supported")
         try:
             cfg = blob["config"]
-            cfg["hidden"] = tuple(cfg["hidden"])
-            cfg["extras"] = tuple(cfg.get("extras", ()))
+            want = blob.get("sha256")
+            if want is not None and _content_hash(cfg, blob["norm"], blob["state_dict"]) != want:
+                raise ValueError("its content does not match its hash (a changed or corrupted file)")
+            cfg = dict(cfg, hidden=tuple(cfg["hidden"]), extras=tuple(cfg.get("extras", ())))
             model = EnvModel(ModelConfig(**cfg))
             model.load_state_dict(blob["state_dict"])
             rec = TrainingRecord(**blob["record"])
-            return Checkpoint(model.eval(), Normaliser.from_json(blob["norm"]),
-                              LogSchema.from_json(blob["schema"]), rec)
-        except (KeyError, TypeError, RuntimeError, ValueError) as exc:
+            system = blob.get("system")
+            ckpt = Checkpoint(model.eval(), Normaliser.from_json(blob["norm"]), LogSchema.from_json(blob["schema"]),
+                              rec, None if system is None else SystemDescription.from_json(json.loads(system)))
+        except (KeyError, TypeError, RuntimeError, ValueError, AttributeError) as exc:
             raise ValueError(f"{path}: damaged envi checkpoint ({exc})") from None
+        ckpt.check_finite(str(path))
+        return ckpt

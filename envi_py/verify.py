@@ -16,30 +16,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from .controllers import ControllerSpec
-from .logs import Log
+from .logs import Log, group_by_controller
 from .metrics import METRIC_NAMES, Distances, MetricConfig, distances, driving_metrics, floor
-
-
-def controller_key(log: Log) -> str:
-    """A stable text key of a log's controller, for grouping."""
-    c = log.meta.controller or {"name": "unknown", "params": {}}
-    params = {k: v for k, v in c.get("params", {}).items()}
-    return json.dumps({"name": c.get("name"), "params": params}, sort_keys=True)
-
-
-def controller_of(log: Log) -> ControllerSpec:
-    """The controller that produced a log, from its metadata; float parameters as the registry wants."""
-    if not log.meta.controller:
-        raise ValueError(f"{log.name}: the log does not say which controller produced it")
-    return ControllerSpec.from_json(log.meta.controller)
-
-
-def group_by_controller(logs: Sequence[Log]) -> dict[str, list[Log]]:
-    out: dict[str, list[Log]] = {}
-    for lg in logs:
-        out.setdefault(controller_key(lg), []).append(lg)
-    return dict(sorted(out.items()))
 
 
 def traces(logs: Sequence[Log], channel: int = 0) -> np.ndarray:
@@ -82,15 +60,16 @@ def verify(real: Sequence[Log], sim: Sequence[Log], cfg: MetricConfig = MetricCo
     """Compare real and simulated logs per controller. A controller with no simulated runs is an error."""
     real_g, sim_g = group_by_controller(real), group_by_controller(sim)
     results = []
-    for key, rl in real_g.items():
-        if key not in sim_g:
-            raise ValueError(f"no simulated runs for controller {key}; simulated: {', '.join(sim_g) or 'none'}")
-        sl = sim_g[key]
+    for spec, rl in real_g.items():
+        if spec not in sim_g:
+            raise ValueError(f"no simulated runs for controller {spec.label()}; simulated: "
+                             f"{', '.join(s.label() for s in sim_g) or 'none'}")
+        sl = sim_g[spec]
         rt, st = traces(rl, cfg.channel), traces(sl, cfg.channel)
         t = min(rt.shape[1], st.shape[1])
         rt, st = rt[:, :t], st[:, :t]
         fl = floor(rt, cfg, floor_splits, seed) if floor_splits > 0 and len(rl) >= 4 else None
-        results.append(GroupResult(json.loads(key), len(rl), len(sl), driving_metrics(rt, cfg).mean(axis=0),
+        results.append(GroupResult(spec.to_json(), len(rl), len(sl), driving_metrics(rt, cfg).mean(axis=0),
                                    driving_metrics(st, cfg).mean(axis=0), distances(rt, st, cfg), fl,
                                    [lg.name for lg in rl]))
     return results

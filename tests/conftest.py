@@ -7,7 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from envi_py.logs import DatasetSpec, Log, LogMeta, load_logs
+from envi_py.logs import Log, LogMeta, load_logs
+from envi_py.system import lane_keeping
 
 REAL_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "lane-keeping-fot"
 REAL_PATTERN = "log_{x}_{run}.csv"
@@ -22,7 +23,7 @@ def real_dir() -> Path:
 
 @pytest.fixture(scope="session")
 def real_logs(real_dir: Path) -> list[Log]:
-    return load_logs(real_dir, DatasetSpec(pattern=REAL_PATTERN), min_length=11)
+    return load_logs(real_dir, lane_keeping().with_pattern(REAL_PATTERN), min_length=11)
 
 
 def make_log(color: np.ndarray, x: float = 30.0, period: float = 40.0, run: str = "r") -> Log:

@@ -58,3 +58,81 @@ def test_unknown_controller_and_parameters_are_errors():
     with pytest.raises(ValueError, match="cannot import"):
         ControllerSpec("no_such_module:fn").build()
     assert parse_params(["x=30", "mode=fast"]) == {"x": 30.0, "mode": "fast"}
+
+
+# ------------------------------------------------------------ the protocol: widths, memory, warm-up
+
+def test_a_one_output_controller_on_a_two_action_model_is_an_error_naming_it():
+    from envi_py.controllers import WidthError
+
+    with pytest.raises(WidthError, match="'pid\\(kp=1\\)' drives 1 action channel\\(s\\), the model has 2"):
+        ControllerSpec("pid", {"kp": 1}).build(n_state=2, n_action=2)
+    with pytest.raises(WidthError, match="reads state channel 3"):
+        ControllerSpec("pid", {"input": 3}).build(n_state=2, n_action=1)
+    ctrl = ControllerSpec("tests.test_controllers:user_controller").build(n_state=1, n_action=2)
+    with pytest.raises(WidthError, match="answered shape \\(2, 1\\) for 2 run\\(s\\); the model needs \\(2, 2\\)"):
+        ctrl(np.array([[1.0], [2.0]]))
+
+
+def test_combine_drives_one_action_per_loop_from_its_own_input():
+    spec = ControllerSpec("combine", {"loops": [{"name": "bang-bang", "params": {"x": 20, "threshold": 40}},
+                                               {"name": "pid", "params": {"input": 1, "kp": 2.0, "setpoint": 30,
+                                                                          "offset": 100, "out_min": 0,
+                                                                          "out_max": 720}}]})
+    ctrl = spec.build(n_state=2, n_action=2, period_ms=40)
+    ctrl.reset(2)
+    out = ctrl(np.array([[50.0, 40.0], [30.0, 10.0]]))
+    np.testing.assert_allclose(out, [[20.0, 120.0], [-20.0, 60.0]])
+
+
+def test_warm_up_on_sigma0_gives_the_memory_of_a_controller_that_ran_from_the_start():
+    rng = np.random.default_rng(0)
+    states = rng.uniform(0, 100, (3, 12, 1))
+    spec = ControllerSpec("pid", {"kp": 0.7, "ki": 3.0, "kd": 0.05, "out_min": -30, "out_max": 30})
+    whole = spec.build(1, 1, 40.0)
+    whole.reset(3)
+    answers = [whole(states[:, t]) for t in range(12)]
+    warm = spec.build(1, 1, 40.0)
+    warm.reset(3)
+    warm.warmup(states[:, :10], np.zeros((3, 10, 1)))
+    np.testing.assert_array_equal(warm(states[:, 10]), answers[10])
+    np.testing.assert_array_equal(warm(states[:, 11]), answers[11])
+    cold = spec.build(1, 1, 40.0)
+    cold.reset(3)
+    assert not np.array_equal(cold(states[:, 10]), answers[10])  # without warm-up: empty integral, no derivative
+
+
+def test_pid_dt_defaults_to_the_period_it_is_built_for():
+    fast = ControllerSpec("pid", {"kp": 0.0, "ki": 1.0, "setpoint": 0.0}).build(1, 1, period_ms=10.0)
+    fast.reset(1)
+    assert float(fast(np.array([[1.0]]))[0, 0]) == pytest.approx(0.01)
+
+
+class CountingController:
+    """A user's controller with memory, following the documented protocol."""
+
+    def __init__(self, gain: float = 1.0) -> None:
+        self.gain = gain
+
+    def reset(self, n: int) -> None:
+        self.seen = np.zeros((n, 1))
+
+    def warmup(self, states: np.ndarray, actions: np.ndarray) -> None:
+        self.seen += states.shape[1]
+
+    def __call__(self, states: np.ndarray) -> np.ndarray:
+        self.seen += 1
+        return self.gain * self.seen
+
+
+def test_rollout_warms_the_controller_up_on_sigma0(tmp_path):
+    from envi_py.simulate import rollout
+    from envi_py.train.common import model_config, new_checkpoint
+
+    from .conftest import make_log
+
+    logs = [make_log(np.linspace(20, 60, 30), run=str(i)) for i in range(2)]
+    ck = new_checkpoint("bc", logs, [], model_config(logs, history=10, hidden=(8,)), 0, {})
+    out = rollout(ck, ControllerSpec("tests.test_controllers:CountingController", {"gain": 2.0}),
+                  np.stack([lg.values[:10] for lg in logs]), steps=3)
+    assert out[:, 10:, 1].tolist() == [[22.0, 24.0, 26.0]] * 2  # 10 warm-up rows, then 11, 12, 13

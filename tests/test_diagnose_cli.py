@@ -16,7 +16,7 @@ def test_diagnose_names_noise_and_retrains_with_a_gaussian_head(tmp_path, capsys
     write_logs(generate(lane, 15, 100, {"noise": 3.0}, seed=1, profile=TwinProfile()), tmp_path / "fit")
     write_logs(generate(lane, 24, 100, {"noise": 3.0}, seed=2, profile=TwinProfile()), tmp_path / "real")
     fit = load_logs(tmp_path / "fit")
-    ckpt = train("bc", fit[:12], fit[12:], seed=0, epochs=80, lr=1e-3, history=4)
+    ckpt = train("bc", fit[:12], fit[12:], seed=0, epochs=80, lr=1e-3, history=4, head="deterministic")
     ckpt.save(tmp_path / "bc.pt")
     out = tmp_path / "diag"
     assert main(["diagnose", "--model", str(tmp_path / "bc.pt"), "--real", str(tmp_path / "real"), "--runs", "2",

@@ -99,7 +99,7 @@ def test_a_robot_that_never_leaves_its_setpoint_has_no_gap_to_attribute(monkeypa
 
     case = BY_NAME["none_pid"]
     fit = _logs(case, 15, 100, 0)
-    ckpt = train("bc", fit[:12], fit[12:], seed=0, epochs=40, lr=1e-3, history=8)
+    ckpt = train("bc", fit[:12], fit[12:], seed=0, epochs=40, lr=1e-3, history=8, head="deterministic")
     flagged = run.run_candidates
     monkeypatch.setattr(run, "run_candidates",
                         lambda *a, **k: [replace(f, significant=True) for f in flagged(*a, **k)])

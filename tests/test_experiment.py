@@ -6,7 +6,8 @@ import json
 
 import pytest
 
-from envi_py.experiments import make_jobs, run_experiment
+from envi_py.experiments.grid import make_jobs
+from envi_py.experiments.run import run_experiment
 from envi_py.experiments.executor import DaskExecutor, LocalExecutor
 from envi_py.experiments.grid import version_of
 

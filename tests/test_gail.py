@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from envi_py.train.common import closed_loop_score, dataset_for, model_config, new_checkpoint
+from envi_py.train.common import closed_loop_score, model_config, new_checkpoint
 from envi_py.train.discriminator import Discriminator, bce_loss
 from envi_py.train.gail import GailConfig, _Trainer, train_gail
 from envi_py.train.gail_env import WindowEnv
@@ -69,7 +69,7 @@ def test_short_gail_run_moves_a_wrong_model_toward_the_data() -> None:
         ckpt.model.mean.bias.fill_(1.5)
     trainer = _Trainer(ckpt, logs, GailConfig(lr=3e-3, disc_lr=3e-3, horizon=15, stride=10, minibatch=256,
                                               disc_hidden=(32, 32), value_hidden=(32, 32)), seed=0)
-    x, y = (torch.from_numpy(a) for a in dataset_for(ckpt, logs).stacked())
+    x, y = (torch.from_numpy(a) for a in ckpt.dataset(logs).stacked())
     metric = MetricConfig()
 
     def one_step() -> float:

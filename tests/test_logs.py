@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from envi_py.logs import (DatasetSpec, LogError, LogMeta, load_logs, pattern_regex, read_log, sidecar_path,
-                          write_log)
+from envi_py.logs import LogError, LogMeta, load_logs, pattern_regex, read_log, sidecar_path, write_log
+from envi_py.system import lane_keeping
 
 from .conftest import REAL_PATTERN, make_log
 
@@ -34,7 +34,7 @@ def test_real_logs_load_with_pattern_fields(real_logs):
 
 
 def test_where_filters_parameters(real_dir):
-    logs = load_logs(real_dir, DatasetSpec(pattern=REAL_PATTERN), where={"x": [10, 50]})
+    logs = load_logs(real_dir, lane_keeping().with_pattern(REAL_PATTERN), where={"x": [10, 50]})
     assert {lg.param["x"] for lg in logs} == {10, 50}
     assert len(logs) == 40 + 66
 
@@ -119,3 +119,143 @@ def test_manifest(tmp_path):
     man.write_text(json.dumps({"pattern": REAL_PATTERN, "logs": ["log_20_0.csv"]}))
     logs = load_logs(man)
     assert len(logs) == 1 and logs[0].param == {"x": 20}
+
+
+# ------------------------------------------------------------ the reader against hostile and unlucky input
+
+@pytest.mark.parametrize("text, expect", [
+    ("time,color,color,angle\n0,1,1,2\n", "appear twice in the header"),
+    ("time,color,angle\n0,71,30\n,,\n", "row 3: an empty row"),
+    ("time,color,angle\n0,71,30\n41,\u0661\u0662,30\n", "row 3: column 'color' has non-numeric value"),
+    ("time,color,angle\n0,71,30\n41,1e308,30\n", "row 3: column 'color' is 1e+308, outside its valid range [0, 100]"),
+    ("time,color,angle\n0,71,30\n41,70,-200\n", "column 'angle' is -200, outside its valid range [-90, 90]"),
+    ("time,color,angle\n0,71,30\n41,70,1e999\n", "out of the float range"),
+    ("time,color,angle\n0,71,30\n41,70,30\x00\n", "NUL bytes"),
+])
+def test_hostile_cells_name_file_row_and_column(tmp_path, text, expect):
+    p = write(tmp_path, "bad.csv", text)
+    with pytest.raises(LogError) as err:
+        read_log(p)
+    assert str(p) in str(err.value) and expect in str(err.value)
+
+
+def test_bom_and_crlf_files_are_read(tmp_path):
+    p = tmp_path / "excel.csv"
+    p.write_bytes("\ufefftime,color,angle\r\n0,71,30\r\n41,60,30\r\n".encode("utf-8"))
+    log = read_log(p)
+    assert log.states[:, 0].tolist() == [71, 60] and log.time.tolist() == [0, 41]
+    side = sidecar_path(p)
+    side.write_bytes(("\ufeff" + json.dumps(make_log(np.array([71.0, 60])).meta.to_json())).encode("utf-8"))
+    assert read_log(p).meta.run_id == "r"
+
+
+def test_fifo_and_device_links_are_refused_not_read(tmp_path):
+    import os
+
+    os.mkfifo(tmp_path / "pipe.csv")
+    with pytest.raises(LogError, match="not a regular file"):
+        read_log(tmp_path / "pipe.csv")
+    (tmp_path / "zero.csv").symlink_to("/dev/zero")
+    with pytest.raises(LogError, match="not a regular file"):
+        read_log(tmp_path / "zero.csv")
+    write(tmp_path, "ok.csv", GOOD)
+    os.mkfifo(tmp_path / "ok.meta.json")
+    with pytest.raises(LogError, match="ok.meta.json: not a regular file"):
+        read_log(tmp_path / "ok.csv")
+
+
+@pytest.mark.parametrize("sidecar, expect", [
+    ([1, 2], "must be a JSON object"),
+    ("text", "must be a JSON object"),
+    ({"schema_version": 1, "states": "color", "actions": []}, "sidecar"),
+    ({**make_log(np.array([1.0])).meta.to_json(), "period_ms": [40]}, "period_ms"),
+    ({**make_log(np.array([1.0])).meta.to_json(), "run_id": "../../X"}, "not a plain name"),
+    ({**make_log(np.array([1.0])).meta.to_json(), "run_id": "/abs/path"}, "not a plain name"),
+    ({**make_log(np.array([1.0])).meta.to_json(), "controller": "pid"}, "controller spec must be an object"),
+    ({**make_log(np.array([1.0])).meta.to_json(), "provenance": [1]}, "provenance must be an object"),
+])
+def test_sidecars_of_the_wrong_type_are_one_clear_error(tmp_path, sidecar, expect):
+    p = write(tmp_path, "a.csv", GOOD)
+    sidecar_path(p).write_text(json.dumps(sidecar))
+    with pytest.raises(LogError) as err:
+        read_log(p)
+    assert str(sidecar_path(p)) in str(err.value) and expect in str(err.value)
+
+
+def test_deeply_nested_sidecar_is_an_error_not_a_recursion(tmp_path):
+    p = write(tmp_path, "a.csv", GOOD)
+    sidecar_path(p).write_text("[" * 100000 + "]" * 100000)
+    with pytest.raises(LogError, match="a.meta.json"):
+        read_log(p)
+    with pytest.warns(UserWarning, match="a.meta.json"):
+        with pytest.raises(LogError, match="no logs found"):
+            load_logs(tmp_path, skip_bad=True)
+
+
+def test_declared_logged_and_ignored_columns(tmp_path):
+    from envi_py.system import SystemDescription
+
+    sysfile = write(tmp_path, "sys.toml", """
+[[signals]]
+name = "color"
+role = "state"
+range = [0, 100]
+[[signals]]
+name = "angle"
+role = "action"
+[[signals]]
+name = "p_term"
+role = "logged"
+[[signals]]
+name = "note"
+role = "ignore"
+[controller]
+name = "lane-keeping"
+[versions]
+pattern = "run_{x}_{run}.csv"
+""")
+    system = SystemDescription.load(sysfile)
+    d = tmp_path / "logs"
+    d.mkdir()
+    write(d, "run_30_0.csv", "time,note,angle,color,p_term\n0,a,30,71,1.5\n40,b,30,60,2.5\n")
+    (log,) = load_logs(d, system)
+    assert log.param == {"x": 30} and log.logged[:, 0].tolist() == [1.5, 2.5]
+    assert log.signal("p_term").tolist() == [1.5, 2.5] and log.signal("color").tolist() == [71, 60]
+    back = read_log(write_log(log, tmp_path / "out" / "copy.csv"))
+    assert back.meta.schema.columns == ["time", "color", "angle", "p_term"] and back.logged.tolist() == log.logged.tolist()
+    write(d, "run_30_1.csv", "time,angle,color,extra\n0,30,71,1\n40,30,60,1\n")
+    with pytest.raises(LogError, match="unexpected column\\(s\\) extra \\(declare them"):
+        load_logs(d, system)
+
+
+def test_a_sidecar_contradicting_the_file_name_is_an_error(tmp_path):
+    log = make_log(np.array([71.0, 60, 35]), x=20)
+    write_log(log, tmp_path / "log_30_0.csv")
+    with pytest.raises(LogError, match="the file name says x=30, its sidecar says x=20"):
+        load_logs(tmp_path, lane_keeping().with_pattern(REAL_PATTERN))
+
+
+def test_saturating_sensor_is_clipped_not_refused(tmp_path):
+    from dataclasses import replace
+
+    from envi_py.system import Channel, LogSchema
+
+    schema = LogSchema((Channel("distance", "cm", 0, 255, 1.0, saturates=True),), (Channel("speed", "", 0, 720),))
+    meta = LogMeta(schema=schema, controller={"name": "pid", "params": {}}, run_id="r")
+    p = write(tmp_path, "d.csv", "time,distance,speed\n0,300,100\n40,20,100\n")
+    assert read_log(p, meta).states[:, 0].tolist() == [255, 20]
+    with pytest.raises(LogError, match="outside its valid range"):
+        read_log(p, replace(meta, schema=LogSchema((replace(schema.states[0], saturates=False),), schema.actions)))
+
+
+def test_split_manifests_carry_the_system_and_read_back_alone(real_dir, tmp_path):
+    from envi_py.cli import main
+
+    assert main(["split", "--logs", str(real_dir), "--pattern", REAL_PATTERN, "--where", "x=10,30,50",
+                 "--train", "5", "--val", "2", "--test", "3", "--mode", "blocks", "--out", str(tmp_path)]) == 0
+    train, test = load_logs(tmp_path / "train.json"), load_logs(tmp_path / "test.json")
+    assert sorted({lg.param["x"] for lg in train}) == [10, 30, 50] and len(train) == 15
+    assert sorted({lg.param["x"] for lg in test}) == [10, 30, 50] and len(test) == 9
+    # blocks: each version's test logs are its last files, training its first
+    assert max(int(lg.meta.run_id) for lg in train if lg.param["x"] == 10) < \
+        min(int(lg.meta.run_id) for lg in test if lg.param["x"] == 10)

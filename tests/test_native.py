@@ -17,7 +17,8 @@ import torch
 from envi_py import native
 from envi_py.controllers import ControllerSpec
 from envi_py.export import export, to_onnx
-from envi_py.logs import DatasetSpec, load_logs, read_log, sidecar_path, write_log
+from envi_py.logs import load_logs, read_log, sidecar_path, write_log
+from envi_py.system import lane_keeping
 from envi_py.metrics import MetricConfig, driving_metrics
 from envi_py.simulate import initial_windows, rollout
 
@@ -44,8 +45,8 @@ def trained(real_dir):
     """A model briefly trained by BC on the real x=30 logs, and those logs."""
     from envi_py.train.bc import train_bc
 
-    logs = load_logs(real_dir, DatasetSpec(pattern="log_{x}_{run}.csv"), where={"x": [30]}, min_length=11)
-    return train_bc(logs[:40], epochs=15, lr=1e-3, seed=0), logs
+    logs = load_logs(real_dir, lane_keeping().with_pattern("log_{x}_{run}.csv"), where={"x": [30]}, min_length=11)
+    return train_bc(logs[:40], epochs=15, lr=1e-3, seed=0, head="deterministic"), logs
 
 
 @pytest.mark.parametrize("spec", [LANE, PID], ids=["lane-keeping", "pid"])
@@ -238,7 +239,7 @@ def test_envi_sim_writes_logs_and_metrics_like_python(tmp_path, real_dir):
            "--runs", "2", "--threads", "2", "--seed", "4"]
     subprocess.run(cmd + ["--out", str(tmp_path / "sim"), "--metrics", str(tmp_path / "m.json")], check=True)
     logs = [read_log(tmp_path / "sim" / f"log_30_{i}-sim{r}.csv") for i in (0, 1) for r in (0, 1)]
-    real = load_logs(files, DatasetSpec(pattern="log_{x}_{run}.csv"))
+    real = load_logs(files, lane_keeping().with_pattern("log_{x}_{run}.csv"))
     traces = native.rollout(ck, LANE, initial_windows(real, 10), 50, runs=2)
     for lg, tr in zip(logs, traces):
         assert lg.meta.source == "sim" and lg.meta.controller == LANE.to_json() and len(lg) == 60

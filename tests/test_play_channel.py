@@ -12,7 +12,7 @@ from envi_py.controllers import ControllerSpec
 from envi_py.dataset import Dataset, play_offsets
 from envi_py.model import ModelConfig
 from envi_py.simulate import rollout
-from envi_py.train.common import dataset_for, model_config, new_checkpoint
+from envi_py.train.common import model_config, new_checkpoint
 
 from .conftest import make_log
 
@@ -71,7 +71,7 @@ def test_rollout_feeds_the_model_the_rows_a_log_of_its_own_trajectory_gives():
     sim_logs = [make_log(tr[:, 0], run=f"s{i}") for i, tr in enumerate(traj)]
     for lg, tr in zip(sim_logs, traj):
         lg.actions[:, 0] = tr[:, 1]
-    ds = dataset_for(ck, sim_logs)
+    ds = ck.dataset(sim_logs)
     inputs = torch.stack(seen, 1).numpy()  # (runs, steps, in_features)
     for r in range(len(logs)):
         np.testing.assert_allclose(inputs[r], ds.X[r][:25], atol=1e-5)

@@ -59,7 +59,7 @@ def test_a_model_told_the_interval_is_simulated_with_intervals_like_the_real_one
     from them (seeded), instead of pretending every period is the nominal one."""
     import torch
 
-    from envi_py.simulate import _model_rows, rollout
+    from envi_py.simulate import rollout
     from envi_py.train.common import model_config, new_checkpoint
 
     rng = np.random.default_rng(0)
@@ -70,7 +70,7 @@ def test_a_model_told_the_interval_is_simulated_with_intervals_like_the_real_one
     q = np.asarray(ck.config.intervals)
     assert ck.record.period_ms == pytest.approx(np.median([np.median(np.diff(lg.time)) for lg in logs]))
     assert len(q) == 101 and np.all(np.diff(q) >= 0) and q[-1] > 0.5
-    rows = _model_rows(ck, np.repeat(logs[0].values[None, :1], 4000, axis=0), 0, np.random.default_rng(1))
+    rows = ck.encode_rows(np.repeat(logs[0].values[None, :1], 4000, axis=0), 0, np.random.default_rng(1))
     drawn = rows[:, 0, -1]
     real = np.concatenate([np.diff(lg.time) for lg in logs]) / ck.record.period_ms - 1
     assert abs(drawn.mean() - real.mean()) < 0.03 and abs(drawn.std() - real.std()) < 0.03

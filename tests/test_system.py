@@ -31,7 +31,7 @@ def test_car_declares_two_states_two_actions_and_logged_pid_terms():
 def test_version_fields_from_a_pattern_become_controller_parameters():
     d = load_system("lane-keeping").with_pattern("log_{x}_{run}.csv")
     assert d.versions.params == ("x",)
-    assert d.controller_for({"x": 30}) == ControllerSpec("lane-keeping", {"threshold": 40, "x": 30})
+    assert d.controller_for({"x": 30}) == ControllerSpec("lane-keeping", {"x": 30})
 
 
 def test_a_contradicting_pattern_is_an_error_not_an_override():

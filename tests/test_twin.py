@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from envi_py.controllers import ControllerSpec
-from envi_py.logs import DatasetSpec, load_logs, read_log
+from envi_py.logs import load_logs, read_log
+from envi_py.system import lane_keeping
 from envi_py.twin import EFFECTS, TwinProfile, TwinWorld, default_profile, generate, parse_effects, resolve, write_logs
 from envi_py.twin.cli import register
 
@@ -64,7 +65,7 @@ def test_logs_round_trip_through_the_validator(tmp_path):
         assert prov["effects"]["delay"]["ticks"] == 2 and prov["effects"]["noise"]["sigma"] == 1.5
         assert prov["injected"] == ["delay", "noise"] and prov["seed"] == 1
         assert back.meta.controller == {"name": "lane-keeping", "params": {"x": 30}}
-    assert load_logs(tmp_path, DatasetSpec(pattern="twin_{x}_{run}.csv"))[0].param["x"] == 30
+    assert load_logs(tmp_path, lane_keeping().with_pattern("twin_{x}_{run}.csv"))[0].param["x"] == 30
 
 
 def test_thousands_of_runs_in_seconds():

@@ -73,7 +73,7 @@ def register(sub: Any) -> None:
     p.add_argument("--out", default="diagnosis", help="output folder")
     p.set_defaults(func=_cmd_diagnose, parser=p)
 
-    from .validate import Size, default_jobs
+    from .size import Size, default_jobs
 
     modes = p.add_subparsers(dest="diagnose_mode", metavar="validate")
     v = modes.add_parser("validate", help="score the diagnosis on twin data whose effect is known and withheld")

@@ -17,8 +17,6 @@ import torch
 from ..dataset import play_offsets
 from ..logs import Log
 from ..model import Checkpoint
-from ..simulate import post_process
-from ..train.common import dataset_for
 
 #: How many rows before the window the memory/delay test looks at.
 BEYOND = 6
@@ -101,15 +99,14 @@ PLAY_WIDTHS = tuple(round(0.05 * 2 ** (k / 2), 4) for k in range(9))
 def one_step_residuals(ckpt: Checkpoint, logs: Sequence[Log]) -> Residuals:
     """Feed every real window of ``logs`` to the model and collect the residuals."""
     cfg = ckpt.config
-    data = dataset_for(ckpt, logs)
+    data = ckpt.dataset(logs)
     hist, ns, ch = cfg.history, cfg.n_state, cfg.channels
     parts: dict[str, list[np.ndarray]] = {k: [] for k in Residuals.__dataclass_fields__}
     scale = ckpt.norm.half[:ns]
     for i, (lg, x) in enumerate(zip(logs, data.X)):
         mean, log_std = ckpt.model(torch.from_numpy(np.ascontiguousarray(x)))
         mean = mean.numpy().astype(np.float64)
-        phys = ckpt.norm.decode(np.concatenate([mean, np.zeros((len(mean), ch - ns))], axis=1))[:, :ns]
-        pred = post_process(phys, ckpt)[:, 0]
+        pred = ckpt.decode_states(mean)[:, 0]
         n = len(pred)
         rows = np.arange(hist, hist + n)
         real_next = lg.states[hist:, 0]

@@ -8,12 +8,10 @@ from typing import Any, Sequence
 import numpy as np
 
 from ..dataset import split_logs
-from ..logs import Log
+from ..logs import Log, group_by_controller
 from ..metrics import MetricConfig
 from ..model import Checkpoint
-from ..train.common import dataset_for
 from ..simulate import initial_windows, rollout
-from ..verify import controller_of, group_by_controller
 from .effects import MIN_SHARE, Finding, misfit_share, run_candidates
 from .gap import by_run, by_version, coverage, horizon_gap, metric_gaps, residual_map, windows_of
 from .residuals import one_step_residuals
@@ -116,10 +114,10 @@ def diagnose(ckpt: Checkpoint, real: Sequence[Log], confirm: Sequence[Log] | Non
     if val_logs is None:
         val_logs = load_recorded(ckpt.record.validation, ckpt) if ckpt.record.validation else []
     hist = ckpt.config.history
-    train_w = np.concatenate(dataset_for(ckpt, train_logs).X)[:, :hist * ckpt.config.row_width]
+    train_w = np.concatenate(ckpt.dataset(train_logs).X)[:, :hist * ckpt.config.row_width]
     sims_full = []
-    for group in group_by_controller(choose).values():
-        sims_full.append(rollout(ckpt, controller_of(group[0]), initial_windows(group, hist),
+    for spec, group in group_by_controller(choose).items():
+        sims_full.append(rollout(ckpt, spec, initial_windows(group, hist),
                                  min(len(g) for g in group) - hist, runs=1, seed=seed))
     sim_w = np.concatenate([windows_of(s, ckpt.norm.encode, hist, metric.skip) for s in sims_full])
     cov = coverage(train_w, sim_w.astype(np.float32), seed) if ckpt.config.plain else \

@@ -9,12 +9,12 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from ..logs import Log, LogError, LogMeta, read_log, sidecar_path
+from ..logs import Log, LogError, LogMeta, group_by_controller, read_log, sidecar_path
 from ..metrics import MetricConfig
 from ..model import Checkpoint
 from ..simulate import simulate_logs
 from ..train import train
-from ..verify import controller_of, group_by_controller, traces
+from ..verify import traces
 from .effects import Finding
 from .gap import metric_gaps
 
@@ -26,20 +26,23 @@ def load_recorded(entries: Sequence[dict[str, str]], ckpt: Checkpoint) -> list[L
         path = Path(e["file"])
         if not path.exists():
             raise LogError(f"{path}: recorded in the model's training data but missing; pass --train-logs")
-        lg = _read_recorded(path, ckpt)
+        lg = _read_recorded(path, ckpt, e.get("controller"))
         if lg.sha256() != e["sha256"]:
             raise LogError(f"{path}: content differs from the log the model was trained on (hash mismatch)")
         out.append(lg)
     return out
 
 
-def _read_recorded(path: Path, ckpt: Checkpoint) -> Log:
-    """Read a recorded log; a log without sidecar gets the model's controller when it had only one."""
+def _read_recorded(path: Path, ckpt: Checkpoint, controller: dict[str, Any] | None) -> Log:
+    """Read a recorded log; a log without sidecar gets the controller recorded for it at training
+    (older checkpoints: the model's controller when it had only one)."""
     meta = None
     if not sidecar_path(path).exists():
         ctrls = ckpt.record.controllers
-        meta = LogMeta(schema=ckpt.schema, controller=ctrls[0] if len(ctrls) == 1 else None, run_id=path.stem)
-    return read_log(path, meta)
+        if controller is None and len(ctrls) == 1:
+            controller = ctrls[0]
+        meta = LogMeta(schema=ckpt.schema, controller=controller, run_id=path.stem)
+    return read_log(path, meta, ignore=ckpt.system.ignore if ckpt.system else ())
 
 
 def retrain_with(ckpt: Checkpoint, finding: Finding, train_logs: Sequence[Log], val_logs: Sequence[Log]) -> Checkpoint:
@@ -54,13 +57,11 @@ def retrain_with(ckpt: Checkpoint, finding: Finding, train_logs: Sequence[Log], 
 def simulate_groups(ckpt: Checkpoint, logs: Sequence[Log], runs: int, seed: int) -> list[tuple[str, np.ndarray, np.ndarray]]:
     """(label, real traces, simulated traces) per controller version."""
     out = []
-    for key, group in group_by_controller(logs).items():
-        spec = controller_of(group[0])
+    for spec, group in group_by_controller(logs).items():
         sims = simulate_logs(ckpt, spec, group, runs=runs, seed=seed)
         real, sim = traces(group), traces(sims)
         t = min(real.shape[1], sim.shape[1])
-        params = ",".join(f"{k}={v:g}" for k, v in spec.params.items())
-        out.append((f"{spec.name}({params})", real[:, :t], sim[:, :t]))
+        out.append((spec.label(), real[:, :t], sim[:, :t]))
     return out
 
 

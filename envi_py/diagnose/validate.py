@@ -21,7 +21,6 @@ any significant candidate.
 from __future__ import annotations
 
 import json
-import os
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -32,6 +31,7 @@ import numpy as np
 from ..controllers import ControllerSpec
 from ..logs import Log
 from .effects import CANDIDATES
+from .size import Size
 
 LANE = ControllerSpec("lane-keeping", {"x": 30})
 #: A PID steering law: its commands vary continuously, so a dead band in the steering shows.
@@ -77,20 +77,6 @@ CASES: tuple[Case, ...] = (
 )
 
 
-@dataclass(frozen=True)
-class Size:
-    """How big one trial is: logs per role, rows per log, training budget, simulated runs."""
-
-    train: int = 20
-    val: int = 5
-    diagnose: int = 40
-    steps: int = 100
-    epochs: int = 150
-    lr: float = 5e-4
-    history: int = 4
-    runs: int = 5
-
-
 def _logs(case: Case, n: int, steps: int, seed: int, effects: dict[str, Any] | None = None) -> list[Log]:
     """``n`` logs of a clean twin with the case's effects (or ``effects``) on."""
     from ..twin import TwinProfile, generate
@@ -131,7 +117,7 @@ def trial(case: Case, seed: int, mode: str = "withheld", size: Size = Size(), sh
     diag = _logs(case, size.diagnose, size.steps, seed + 1_000_000)
     fit = _logs(case, n_fit, size.steps, seed, None if mode == "withheld" else {})
     train_logs, val_logs = fit[:size.train], fit[size.train:]
-    ckpt = train("bc", train_logs, val_logs, seed=seed, epochs=size.epochs, lr=size.lr,
+    ckpt = train("bc", train_logs, val_logs, seed=seed, epochs=size.epochs, lr=size.lr, head="deterministic",
                  history=case.history or size.history)
     d = diagnose(ckpt, diag, train_logs=train_logs, val_logs=val_logs, runs=size.runs, top=1,
                  retrain=shrink and mode == "withheld" and case.expected is not None, seed=seed)
@@ -292,5 +278,3 @@ def to_markdown(scores: Sequence[Score], size: Size) -> str:
     return "\n".join(lines)
 
 
-def default_jobs() -> int:
-    return max(1, min(4, os.cpu_count() or 1))

@@ -1,8 +1,3 @@
 """The paper's use cases as a reproducible grid: :mod:`.grid` (which logs), :mod:`.executor` (local
 processes or Dask), :mod:`.worker` (one training and its verification), :mod:`.report` (tables and
 plots), :mod:`.run` (all of it), :mod:`.cli` (``envi experiment``)."""
-
-from .grid import ALGORITHMS, Job, make_jobs
-from .run import run_experiment
-
-__all__ = ["ALGORITHMS", "Job", "make_jobs", "run_experiment"]

@@ -133,7 +133,7 @@ def to_markdown(summary: dict[str, Any], meta: dict[str, Any]) -> str:
                              if str(n) in v["cells"][a] else "-" for n in ns]
                     lines.append(f"| {a} | " + " | ".join(cells) + " |")
                 if v["floor"]:
-                    lines.append(f"| FOT vs FOT floor | " + " | ".join([_fmt(tuple(v["floor"][key]), scale,
+                    lines.append("| FOT vs FOT floor | " + " | ".join([_fmt(tuple(v["floor"][key]), scale,
                                                                              2 if key == "acc" else 4)] * len(ns)) + " |")
                 paper = PAPER.get(uc, {}).get(int(float(x)))
                 if key == "acc" and paper and ns == [3, 15, 30]:

@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from ..metrics import METRIC_NAMES, MetricConfig
-from ..verify import controller_of, group_by_controller, verify
+from ..verify import verify
 from .grid import Job
 
 TRACES_KEPT = 3  # real and simulated traces kept per controller version for the trace plots
@@ -39,7 +39,7 @@ def trainer_kwargs(algorithm: str, kwargs: dict[str, Any]) -> dict[str, Any]:
 def run_job(job: Job) -> dict[str, Any]:
     import torch
 
-    from ..simulate import simulate_logs
+    from ..simulate import simulate_versions
     from ..train import train
 
     torch.set_num_threads(1)
@@ -50,9 +50,7 @@ def run_job(job: Job) -> dict[str, Any]:
     seconds = time.perf_counter() - t0
     evals: dict[str, Any] = {}
     for uc, logs in job.evals.items():
-        sims = []
-        for group in group_by_controller(logs).values():
-            sims += simulate_logs(ckpt, controller_of(group[0]), group, runs=job.runs, seed=job.seed)
+        sims = simulate_versions(ckpt, logs, runs=job.runs, seed=job.seed)
         groups = []
         for r in verify(logs, sims, metric, floor_splits=20, seed=0):
             x = float(r.controller["params"]["x"])

@@ -10,6 +10,7 @@ from typing import Any, Callable, Sequence
 
 from ..logs import Log
 from ..model import Checkpoint
+from ..system import SystemDescription, describe_schema
 
 Trainer = Callable[..., Checkpoint]
 
@@ -28,6 +29,12 @@ def get_trainer(name: str) -> Trainer:
     raise ValueError(f"unknown algorithm {name!r}; known: bc, gail, bcxgail, random")
 
 
-def train(name: str, train_logs: Sequence[Log], val_logs: Sequence[Log] = (), **kwargs: Any) -> Checkpoint:
-    """Train with the named algorithm."""
-    return get_trainer(name)(train_logs, val_logs, **kwargs)
+def train(name: str, train_logs: Sequence[Log], val_logs: Sequence[Log] = (),
+          system: SystemDescription | None = None, **kwargs: Any) -> Checkpoint:
+    """Train with the named algorithm. The system description the logs were read with is recorded
+    in the checkpoint (from their schema when none is given), so the model says what it reads."""
+    if not train_logs:
+        raise ValueError("no training logs")
+    ckpt = get_trainer(name)(train_logs, val_logs, **kwargs)
+    ckpt.system = system or describe_schema(train_logs[0].meta.schema)
+    return ckpt

@@ -18,7 +18,7 @@ from tqdm import tqdm
 from ..logs import Log
 from ..metrics import MetricConfig
 from ..model import EnvModel, Checkpoint
-from .common import Selector, dataset_for, model_config, new_checkpoint
+from .common import Selector, model_config, new_checkpoint
 
 
 def bc_loss(model: EnvModel, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
@@ -30,7 +30,7 @@ def bc_loss(model: EnvModel, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
 
 
 def train_bc(train_logs: Sequence[Log], val_logs: Sequence[Log] = (), *, epochs: int = 300, lr: float = 5e-5,
-             seed: int = 0, history: int = 10, hidden: Sequence[int] = (256, 256), head: str = "deterministic",
+             seed: int = 0, history: int = 10, hidden: Sequence[int] = (256, 256), head: str = "gaussian",
              eval_every: int = 10, metric: MetricConfig = MetricConfig(), progress: bool = False,
              **model_extra: Any) -> Checkpoint:
     """Train a model by behaviour cloning on ``train_logs``; select on ``val_logs`` by closed-loop error."""
@@ -38,7 +38,7 @@ def train_bc(train_logs: Sequence[Log], val_logs: Sequence[Log] = (), *, epochs:
     hyper = {"epochs": epochs, "lr": lr, "history": history, "hidden": list(hidden), "head": head,
              "eval_every": eval_every, "batch": "one log per step"}
     ckpt = new_checkpoint("bc", train_logs, val_logs, cfg, seed, hyper)
-    data = dataset_for(ckpt, train_logs)
+    data = ckpt.dataset(train_logs)
     xs = [torch.tensor(x) for x in data.X]
     ys = [torch.tensor(y) for y in data.Y]
     opt = torch.optim.Adam(ckpt.model.parameters(), lr=lr)

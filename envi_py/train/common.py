@@ -15,20 +15,23 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 
-from ..dataset import Dataset, Normaliser, interval_quantiles
-from ..logs import Log
+from ..dataset import Normaliser, interval_quantiles
+from ..logs import Log, group_by_controller
 from ..metrics import MetricConfig
 from ..model import Checkpoint, EnvModel, ModelConfig, TrainingRecord
-from ..simulate import simulate_logs
-from ..verify import closed_loop_error, controller_of, group_by_controller, verify
+from ..simulate import simulate_versions
+from ..verify import closed_loop_error, verify
 
 
-def data_record(logs: Sequence[Log]) -> list[dict[str, str]]:
-    return [{"file": str(lg.path) if lg.path else lg.name, "sha256": lg.sha256()} for lg in logs]
+def data_record(logs: Sequence[Log]) -> list[dict[str, Any]]:
+    """Each log's file, content hash and controller version: enough to read it back exactly, even
+    when its version came from a file-name pattern."""
+    return [{"file": str(lg.path) if lg.path else lg.name, "sha256": lg.sha256(), "controller": lg.meta.controller}
+            for lg in logs]
 
 
 def controllers_of(logs: Sequence[Log]) -> list[dict[str, Any]]:
-    return [controller_of(g[0]).to_json() for g in group_by_controller(logs).values()]
+    return [spec.to_json() for spec in group_by_controller(logs)]
 
 
 def model_config(logs: Sequence[Log], history: int = 10, hidden: Sequence[int] = (256, 256),
@@ -54,9 +57,7 @@ def new_checkpoint(algorithm: str, train_logs: Sequence[Log], val_logs: Sequence
 
 def closed_loop_score(ckpt: Checkpoint, logs: Sequence[Log], metric: MetricConfig, seed: int = 0) -> float:
     """Closed-loop error of ``ckpt`` on ``logs`` (lower is better)."""
-    sims = []
-    for group in group_by_controller(logs).values():
-        sims += simulate_logs(ckpt, controller_of(group[0]), group, runs=1, seed=seed)
+    sims = simulate_versions(ckpt, logs, runs=1, seed=seed)
     return closed_loop_error(verify(logs, sims, metric, floor_splits=0))
 
 
@@ -94,10 +95,3 @@ class Selector:
             ckpt.record.selection = {"criterion": "last epoch (no validation logs)", "best_epoch": last_epoch}
         ckpt.model.eval()
         return ckpt
-
-
-def dataset_for(ckpt: Checkpoint, logs: Sequence[Log]) -> Dataset:
-    """Training pairs laid out as the checkpoint's model expects them (derived channels, context)."""
-    cfg = ckpt.config
-    return Dataset.build(logs, cfg.history, ckpt.norm, cfg.extras, ckpt.record.period_ms or 40.0,
-                         cfg.phase_rows, cfg.context, cfg.play_width)

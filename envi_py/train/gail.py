@@ -37,7 +37,7 @@ from ..logs import Log
 from ..metrics import MetricConfig
 from ..model import Checkpoint
 from .bc import bc_loss
-from .common import Selector, dataset_for, model_config, new_checkpoint
+from .common import Selector, model_config, new_checkpoint
 from .discriminator import Discriminator, bce_loss
 from .gail_env import Rollout, WindowEnv
 from .ppo import ValueNet, clipped_surrogate, gae, normalise, value_loss
@@ -91,7 +91,7 @@ class _Trainer:
         self.disc_opt = torch.optim.Adam(self.disc.parameters(), lr=hp.disc_lr)
         self.value_opt = torch.optim.Adam(self.value.parameters(), lr=hp.value_lr)
         self.env = WindowEnv(ckpt, list(train_logs), hp.horizon, hp.stride)
-        x, y = dataset_for(ckpt, train_logs).stacked()
+        x, y = ckpt.dataset(train_logs).stacked()
         self.real_x, self.real_y = torch.from_numpy(x), torch.from_numpy(y)
         self.gen = torch.Generator().manual_seed(seed)
         self.rng = np.random.default_rng(seed)

@@ -15,10 +15,8 @@ import numpy as np
 import torch
 
 from ..dataset import actuator_position, context_of, extra_channels, play_offsets
-from ..logs import Log
+from ..logs import Log, group_by_controller
 from ..model import Checkpoint
-from ..verify import controller_of, group_by_controller
-from .common import dataset_for
 
 
 @dataclass
@@ -53,33 +51,31 @@ class WindowEnv:
         cfg = ckpt.config
         self.ckpt, self.horizon = ckpt, horizon
         hist, ns = cfg.history, cfg.n_state
-        data = dataset_for(ckpt, logs)
-        period = ckpt.record.period_ms or 40.0
-        windows, contexts, extras, log_idx = [], [], [], []
+        data = ckpt.dataset(logs)
+        period = ckpt.period_ms
+        windows, starts, contexts, extras, log_idx = [], [], [], [], []
         for i, z in enumerate(data.z):
             last = len(z) - hist - horizon
             if last < 0:
                 raise ValueError(f"{logs[i].name}: {len(z)} rows, need history {hist} + horizon {horizon}")
             for o in range(0, last + 1, stride):
                 windows.append(z[o:o + hist])
+                starts.append(logs[i].values[o:o + hist])
                 contexts.append(context_of(z[:hist], ns))
                 # 'play' depends on the simulated actions: a placeholder here, filled in by the rollout
                 extras.append(extra_channels(period * np.arange(horizon), cfg.extras, period, cfg.phase_rows,
                                              o + hist, np.zeros(horizon), cfg.play_width))
                 log_idx.append(i)
         self.window0 = torch.from_numpy(np.stack(windows).astype(np.float32))
+        self.start_rows = np.stack(starts)  # physical (B, l, C): what each controller is warmed up on
         self.context = torch.from_numpy(np.stack(contexts).astype(np.float32)) if cfg.context else None
         self.extras = torch.from_numpy(np.stack(extras).astype(np.float32))
         log_idx_np = np.array(log_idx)
         pos = {id(lg): i for i, lg in enumerate(logs)}
-        self.groups = [(controller_of(g[0]), np.flatnonzero(np.isin(log_idx_np, [pos[id(lg)] for lg in g])))
-                       for g in group_by_controller(logs).values()]
-        norm = ckpt.norm
-        self.centre = torch.tensor(norm.centre, dtype=torch.float32)
-        self.half = torch.tensor(norm.half, dtype=torch.float32)
-        limits = cfg.limits or [(c.low, c.high) for c in ckpt.schema.states]
-        self.low = torch.tensor([lo for lo, _ in limits], dtype=torch.float64)
-        self.high = torch.tensor([hi for _, hi in limits], dtype=torch.float64)
+        self.groups = [(spec, np.flatnonzero(np.isin(log_idx_np, [pos[id(lg)] for lg in g])))
+                       for spec, g in group_by_controller(logs).items()]
+        self.centre = torch.from_numpy(ckpt.norm.centre)
+        self.half = torch.from_numpy(ckpt.norm.half)
 
     @property
     def batch(self) -> int:
@@ -89,18 +85,6 @@ class WindowEnv:
         x = window.reshape(window.shape[0], -1)
         return x if self.context is None else torch.cat([x, self.context], dim=1)
 
-    def _physical_state(self, z: torch.Tensor) -> torch.Tensor:
-        """Normalised sampled state -> physical state after the model's clamp and rounding."""
-        cfg = self.ckpt.config
-        ns = cfg.n_state
-        s = z.double() * self.half[:ns].double() + self.centre[:ns].double()
-        if cfg.clamp:
-            s = torch.maximum(torch.minimum(s, self.high), self.low)
-        if cfg.round_to is not None:
-            res = torch.tensor(cfg.round_to, dtype=torch.float64)
-            s = torch.round(s / res) * res
-        return s
-
     @torch.no_grad()
     def rollout(self, generator: torch.Generator) -> Rollout:
         """Sample H steps of every start window from the (Gaussian) model, controller in the loop."""
@@ -109,8 +93,9 @@ class WindowEnv:
         model = self.ckpt.model
         controllers = []
         for spec, idx in self.groups:
-            ctrl = spec.build()
+            ctrl = spec.build(ns, cfg.n_action, self.ckpt.period_ms)
             ctrl.reset(len(idx))
+            ctrl.warmup(self.start_rows[idx, :, :ns], self.start_rows[idx, :, ns:])
             controllers.append((ctrl, idx))
         window = self.window0.clone()
         obs, acts, logps, nexts = [], [], [], []
@@ -122,13 +107,13 @@ class WindowEnv:
             std = log_std.exp()
             a = mean + std * torch.randn(mean.shape, generator=generator)
             logp = torch.distributions.Normal(mean, std).log_prob(a).sum(-1)
-            s = self._physical_state(a)
+            s = self.ckpt.decode_states_torch(a)
             act = np.empty((b, cfg.n_action))
             s_np = s.numpy()
             for ctrl, idx in controllers:
                 act[idx] = ctrl(s_np[idx])
             phys = torch.cat([s, torch.from_numpy(act)], dim=1)
-            z_row = ((phys - self.centre.double()) / self.half.double()).float()
+            z_row = ((phys - self.centre) / self.half).float()
             ex = self.extras[:, t]
             if "play" in cfg.extras:
                 ex = ex.clone()

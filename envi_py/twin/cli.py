@@ -7,7 +7,8 @@ import sys
 from pathlib import Path
 
 from envi_py.controllers import ControllerSpec, parse_params
-from envi_py.logs import DatasetSpec, LogError, load_logs
+from envi_py.logs import LogError, load_logs
+from envi_py.system import lane_keeping
 
 from .effects import describe, parse_effects
 from .generate import generate, write_logs
@@ -43,7 +44,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     from .report import write_calibration
 
     try:
-        logs = load_logs(args.logs, DatasetSpec(pattern=args.pattern))
+        logs = load_logs(args.logs, lane_keeping().with_pattern(args.pattern))
     except LogError as exc:
         print(f"envi twin calibrate: {exc}", file=sys.stderr)
         return 2

@@ -47,25 +47,18 @@ class CallableModel:
 class CheckpointModel:
     """An envi checkpoint (``envi_py.model.Checkpoint``) stepped one window at a time.
 
-    Windows are normalised and extended by the same helpers ``rollout`` uses, and the output is
-    decoded and post-processed (clamp, round) identically, so a HIL run and a simulation of the
-    same model see the same environment. A context vector, when the model has one, comes from the
-    first window (sigma_0) as in ``rollout``.
+    Windows go through the checkpoint's own encode/decode (``encode_rows``, ``next_state``), the
+    ones every simulation engine uses, so a HIL run and a simulation of the same model see the same
+    environment. A context vector, when the model has one, comes from the first window (sigma_0).
     """
 
     def __init__(self, ckpt, description: str = "") -> None:
         import torch
 
-        from envi_py.dataset import context_of
-        from envi_py.simulate import _model_rows, post_process
-
         self.ckpt = ckpt
         self.history = ckpt.config.history
         self.description = description or f"envi checkpoint ({ckpt.record.algorithm})"
         self._torch = torch
-        self._rows = _model_rows
-        self._post = post_process
-        self._context_of = context_of
         self._context = None
         self._step = 0
 
@@ -76,20 +69,12 @@ class CheckpointModel:
 
     def __call__(self, window: np.ndarray) -> float:
         torch = self._torch
-        cfg = self.ckpt.config
-        w = np.asarray(window, dtype=np.float64)[None]
-        rows = self._rows(self.ckpt, w, self._step)  # row index feeds the 'phase' channel
+        rows = self.ckpt.encode_rows(np.asarray(window, dtype=np.float64)[None], self._step)  # row index: 'phase'
         self._step += 1
-        x = torch.from_numpy(rows.reshape(1, -1))
-        if cfg.context:
-            if self._context is None:
-                self._context = torch.from_numpy(self._context_of(rows, cfg.n_state).astype(np.float32))
-            x = torch.cat([x, self._context], dim=1)
-        with torch.no_grad():
-            z = self.ckpt.model.eval().step(x, None).numpy().astype(np.float64)
-        chans = cfg.channels
-        s = self.ckpt.norm.decode(np.concatenate([z, np.zeros((1, chans - cfg.n_state))], axis=1))[:, :cfg.n_state]
-        return float(self._post(s, self.ckpt)[0, 0])
+        if self._context is None and self.ckpt.config.context:
+            self._context = torch.from_numpy(self.ckpt.context(rows))
+        x = self.ckpt.model_input(torch.from_numpy(rows), self._context)
+        return float(self.ckpt.next_state(x)[0, 0])
 
 
 class WorldModel:

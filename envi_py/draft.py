@@ -1,0 +1,129 @@
+"""``envi init``: draft a system description from a folder of logs, for the user to edit.
+
+What can be read off the logs is filled in: the columns, each column's observed range (widened to
+round numbers, since a valid range is a physical limit, not the data's extent), a resolution where
+every value is a multiple of one step, the median period, and a file-name pattern whose numeric
+fields become version parameters (the last one the run). What cannot be read off is marked for
+the user: which columns are states and which actions (guessed: the first after ``time`` is a
+state, the second an action, further ones logged), the controller, and the goals.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import re
+from pathlib import Path
+
+import numpy as np
+
+from .logs import LogError, read_sidecar, sidecar_path
+from .system import pattern_regex, toml_value
+
+MAX_FILES = 50
+
+
+def guess_pattern(names: list[str]) -> str | None:
+    """``log_30_0.csv``, ``log_30_1.csv`` ... -> ``log_{v1}_{run}.csv``: digit runs become fields,
+    the last one the run id. None when the names do not share one shape."""
+    shapes = {re.sub(r"\d+(?:\.\d+)?", "#", n) for n in names}
+    if len(shapes) != 1:
+        return None
+    shape = shapes.pop()
+    k = shape.count("#")
+    if k == 0:
+        return None
+    fields = [f"v{i + 1}" for i in range(k - 1)] + ["run"]
+    out = shape
+    for f in fields:
+        out = out.replace("#", "{" + f + "}", 1)
+    return out
+
+
+def _round_out(low: float, high: float) -> tuple[float, float]:
+    """A range around the observed one, on round numbers a tenth of the span outside it."""
+    span = max(high - low, abs(high), 1e-9)
+    step = 10 ** math.floor(math.log10(span / 10))
+    return math.floor((low - span / 10) / step) * step, math.ceil((high + span / 10) / step) * step
+
+
+def _resolution(values: np.ndarray) -> float | None:
+    """The step every value is a multiple of (1, 0.1, ...), if any of those fits."""
+    for step in (1.0, 0.5, 0.1, 0.01):
+        if np.allclose(values / step, np.round(values / step), atol=1e-9):
+            return step
+    return None
+
+
+def draft_system(folder: Path, pattern: str | None = None) -> str:
+    """The TOML text of a draft description of the logs in ``folder``."""
+    if not folder.is_dir():
+        raise LogError(f"{folder}: not a folder")
+    files = sorted(p for p in folder.iterdir() if p.suffix == ".csv" and p.is_file() and not p.name.startswith("."))
+    if not files:
+        raise LogError(f"{folder}: no .csv logs")
+    pattern = pattern or guess_pattern([p.name for p in files])
+    if pattern:
+        pattern_regex(pattern)
+    sidecar = next((sidecar_path(p) for p in files if sidecar_path(p).is_file()), None)
+    header: list[str] | None = None
+    columns: list[list[float]] = []
+    periods: list[float] = []
+    sample = files[::max(1, len(files) // MAX_FILES)][:MAX_FILES]  # spread over every version
+    for path in sample:
+        with open(path, encoding="utf-8-sig", newline="") as fh:
+            rows = [r for r in csv.reader(fh) if r]
+        if not rows:
+            raise LogError(f"{path}: empty file")
+        head = [h.strip() for h in rows[0]]
+        if header is None:
+            header, columns = head, [[] for _ in head]
+        elif head != header:
+            raise LogError(f"{path}: columns {','.join(head)} differ from {files[0].name}: {','.join(header)}")
+        for i, row in enumerate(rows[1:], start=2):
+            try:
+                vals = [float(c) for c in row]
+            except ValueError:
+                raise LogError(f"{path}: row {i}: a non-numeric cell") from None
+            if len(vals) != len(header):
+                raise LogError(f"{path}: row {i}: {len(vals)} cells, header has {len(header)}")
+            for col, v in zip(columns, vals):
+                col.append(v)
+        if "time" in header and len(rows) > 2:
+            t = np.array([float(r[header.index("time")]) for r in rows[1:]])
+            periods.append(float(np.median(np.diff(t))))
+    assert header is not None
+    if "time" not in header:
+        raise LogError(f"{files[0]}: no 'time' column (milliseconds); envi logs start with it")
+    roles = {}
+    if sidecar is not None:
+        meta = read_sidecar(sidecar)
+        roles = {**{c.name: "state" for c in meta.schema.states}, **{c.name: "action" for c in meta.schema.actions},
+                 **{c.name: "logged" for c in meta.schema.logged}}
+    others = [h for h in header if h != "time"]
+    lines = [f"# Drafted by 'envi init' from {len(sample)} log(s) of {len(files)} in {folder}.",
+             "# Check every line marked CHECK: roles, ranges (physical limits, not the data's extent) and goals.", "",
+             "[system]", f"name = {toml_value(folder.name)}"]
+    if periods:
+        lines.append(f"period_ms = {toml_value(round(float(np.median(periods)), 3))}")
+    for k, name in enumerate(others):
+        col = np.array(columns[header.index(name)])
+        role = roles.get(name) or ("state" if k == 0 else "action" if k == 1 else "logged")
+        guessed = "" if name in roles else "  # CHECK: guessed (state, action, logged or ignore)"
+        low, high = _round_out(float(col.min()), float(col.max()))
+        lines += ["", "[[signals]]", f"name = {toml_value(name)}", f"role = {toml_value(role)}{guessed}",
+                  'unit = ""  # CHECK', f"range = {toml_value([low, high])}  # CHECK: observed "
+                  f"{col.min():g}..{col.max():g}"]
+        res = _resolution(col)
+        if res is not None and role == "state":
+            lines.append(f"resolution = {toml_value(res)}")
+    lines += ["", "[versions]"]
+    if pattern:
+        lines.append(f"pattern = {toml_value(pattern)}  # fields become controller parameters, 'run' the run id")
+    else:
+        lines.append("# no common file-name shape: versions come from sidecars")
+    lines += ["", "[controller]", 'name = "lane-keeping"  # CHECK: a registered controller (bang-bang, pid, combine) '
+              "or 'package.module:function'", "params = {}", "",
+              "# [[goals]]  # e.g. metric = \"max_abs_dev\", signal = \"...\", setpoint = ...",
+              "# [[requirements]]  # e.g. expr = \"max_abs_dev(signal, setpoint) <= limit\", probability = 0.9", ""]
+    return "\n".join(lines)
