@@ -8,3 +8,13 @@
 - :mod:`.requirements`: metric and STL requirements, parsed and checked per run;
 - :mod:`.selection`: the model-selection score of simulated against real runs, with divergence.
 """
+
+from .evaluate import Runs, goal_scale, goal_table, goal_unit, goal_values, signals_of
+from .presets import goals_of, preset_goals
+from .registry import KNOWN, metric
+from .requirements import parse, satisfied
+from .selection import SelectionScore, default_goals, selection_score
+
+__all__ = ["KNOWN", "Runs", "SelectionScore", "default_goals", "goal_scale", "goal_table", "goal_unit",
+           "goal_values", "goals_of", "metric", "parse", "preset_goals", "satisfied", "selection_score",
+           "signals_of"]
