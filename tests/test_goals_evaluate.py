@@ -12,7 +12,7 @@ from envi_py.goals.evaluate import Runs, goal_scale, goal_table, goal_unit, sign
 from envi_py.goals.presets import goals_of, preset_goals
 from envi_py.logs import LANE_KEEPING_SCHEMA, Log, LogMeta
 from envi_py.metrics import METRIC_NAMES, MetricConfig, driving_metrics, metric_bounds
-from envi_py.system import GoalSpec, load_system
+from envi_py.system import GoalSpec, LogSchema, load_system
 
 
 def test_lane_keeping_preset_equals_the_papers_metrics_on_the_real_logs(real_logs) -> None:
@@ -48,6 +48,9 @@ def test_unknown_preset_and_duplicate_goal_names_are_errors() -> None:
     system = replace(system, goals=(GoalSpec("over_count", "max", "color"),))
     with pytest.raises(ValueError, match="goal name 'over_count' is used twice"):
         goals_of(system)
+    with pytest.raises(ValueError, match="scores the signal 'color', which this system does not declare"):
+        light = LogSchema((replace(LANE_KEEPING_SCHEMA.states[0], name="light"),), LANE_KEEPING_SCHEMA.actions)
+        preset_goals("lane-keeping", replace(system, schema=light))
 
 
 def car_log(n: int, period: float = 40.0, offset: float = 0.0) -> Log:
@@ -91,6 +94,7 @@ def test_goal_errors_name_the_goal() -> None:
     ({"a": np.zeros((2, 5)), "b": np.zeros((2, 6))}, 40.0, 0, "one shape"),
     ({"a": np.zeros((2, 5))}, 0.0, 0, "period_ms must be a positive number"),
     ({"a": np.zeros((2, 5))}, 40.0, 5, "leaves nothing to score"),
+    ({"a": np.array([[0.0, np.nan]])}, 40.0, 0, "signal 'a' holds NaN"),
 ])
 def test_bad_runs_are_refused(signals: dict, period: float, skip: int, message: str) -> None:
     with pytest.raises(ValueError, match=message):

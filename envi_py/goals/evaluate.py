@@ -38,6 +38,9 @@ class Runs:
             raise ValueError(f"period_ms must be a positive number, not {self.period_ms!r}")
         if not 0 <= self.skip < first[1]:
             raise ValueError(f"skipping {self.skip} rows of runs of {first[1]} samples leaves nothing to score")
+        for name, values in self.signals.items():
+            if not np.isfinite(np.asarray(values, dtype=np.float64)).all():
+                raise ValueError(f"signal {name!r} holds NaN or infinite values")
 
     @property
     def count(self) -> int:

@@ -70,6 +70,9 @@ def preset_goals(name: str, system: SystemDescription | None = None) -> tuple[Go
     """The goals of preset ``name`` for ``system`` (its controller gives the lane centre)."""
     if name != "lane-keeping":
         raise ValueError(f"unknown goals preset {name!r}; known: lane-keeping")
+    if system is not None and LANE_KEEPING_SIGNAL not in system.schema.columns:
+        raise ValueError(f"{system.source or system.name}: goals preset 'lane-keeping' scores the signal "
+                         f"{LANE_KEEPING_SIGNAL!r}, which this system does not declare")
     centre = lane_keeping_centre(system)
     return tuple(GoalSpec(m, m, LANE_KEEPING_SIGNAL, {"centre": centre, "band": LANE_KEEPING_BAND})
                  for m in METRIC_NAMES)
