@@ -185,3 +185,9 @@ def test_verdict_interval_is_clopper_pearson() -> None:
     distance[18:, 0] = 0.0
     v = verdict(RequirementSpec("R", "min(distance) >= 10"), runs_of(distance=distance))
     assert v.low == pytest.approx(0.6830, abs=5e-4) and v.high == pytest.approx(0.9877, abs=5e-4)
+
+
+def test_runs_without_the_formulas_signal_name_the_requirement() -> None:
+    r = parse(req("always(distance > 1)", "stl"), SIGNALS)
+    with pytest.raises(ValueError, match="requirement 'R': unknown signal 'distance'"):
+        r.satisfied(runs_of(color=[[1.0, 2.0]]))

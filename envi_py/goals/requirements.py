@@ -19,7 +19,7 @@ Bounds with a unit (``[0:1s]``) are refused, because rtamt would silently read t
 own default unit rather than the control period. A bound beyond the end of the run is cut at the
 run's end (rtamt's offline semantics: ``always`` over an empty stretch holds, ``eventually`` fails).
 
-Speed: rtamt's offline monitor costs about 1 ms per run of 100 samples (10,000 runs: ~10 s per
+Speed: rtamt's offline monitor costs 1-2 ms per run of 100 samples (10,000 runs: 10-20 s per
 requirement), so the common forms (a single ``always``/``eventually`` with an optional bound over a
 Boolean combination of comparisons of arithmetic on signals, or such a combination alone) are
 computed directly with numpy over all runs at once; rtamt still parses every formula (its syntax
@@ -91,7 +91,10 @@ class StlRequirement:
 
     def robustness(self, runs: Runs, use_fast: bool = True) -> np.ndarray:
         """Robustness at time 0 of each run, (R,); ``use_fast=False`` forces rtamt (for checks)."""
-        traces = {s: runs.scored(s) for s in self.signals}
+        try:
+            traces = {s: runs.scored(s) for s in self.signals}
+        except ValueError as exc:
+            raise ValueError(f"requirement {self.name!r}: {exc}") from None
         if runs.scored_length < 2:
             raise ValueError(f"requirement {self.name!r}: STL needs runs of at least 2 scored samples")
         if self.fast is not None and use_fast:
