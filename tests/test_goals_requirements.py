@@ -6,6 +6,8 @@ import zlib
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from envi_py.goals.evaluate import Runs
 from envi_py.goals.requirements import MetricRequirement, StlRequirement, parse, satisfied
@@ -191,3 +193,15 @@ def test_runs_without_the_formulas_signal_name_the_requirement() -> None:
     r = parse(req("always(distance > 1)", "stl"), SIGNALS)
     with pytest.raises(ValueError, match="requirement 'R': unknown signal 'distance'"):
         r.satisfied(runs_of(color=[[1.0, 2.0]]))
+
+
+@settings(max_examples=60, deadline=None)
+@given(op=st.sampled_from(["always", "eventually"]), lo=st.integers(0, 30), width=st.integers(0, 30),
+       threshold=st.floats(-50, 50), cmp=st.sampled_from([">=", ">", "<=", "<"]),
+       values=st.lists(st.floats(-100, 100), min_size=2, max_size=40))
+def test_fast_path_equals_rtamt_on_any_bound_and_trace(op: str, lo: int, width: int, threshold: float, cmp: str,
+                                                       values: list[float]) -> None:
+    r = parse(req(f"{op}[{lo}:{lo + width}](color {cmp} {threshold!r})", "stl"), ["color"])
+    runs = runs_of(color=[values, values[::-1]])
+    assert r.fast is not None
+    assert np.array_equal(r.robustness(runs), r.robustness(runs, use_fast=False))
