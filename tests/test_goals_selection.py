@@ -9,7 +9,7 @@ import pytest
 
 from envi_py.goals.evaluate import Runs
 from envi_py.goals.selection import default_goals, selection_score
-from envi_py.system import load_system
+from envi_py.system import GoalSpec, load_system
 
 CAR = load_system("car")
 T = 110
@@ -85,3 +85,14 @@ def test_mismatched_versions_are_an_error() -> None:
     rng = np.random.default_rng(5)
     with pytest.raises(ValueError, match="same controller versions"):
         selection_score({1: car_runs(rng)}, {2: car_runs(rng)}, CAR.schema)
+
+
+def test_bad_goals_and_observed_ranges_are_errors() -> None:
+    rng = np.random.default_rng(6)
+    real, sim = {1: car_runs(rng)}, {1: car_runs(rng)}
+    with pytest.raises(ValueError, match="lack state\\(s\\) distance"):
+        selection_score(real, sim, CAR.schema, observed={"color": (0.0, 100.0)})
+    with pytest.raises(ValueError, match="share a name"):
+        selection_score(real, sim, CAR.schema, (CAR.goals[0], CAR.goals[0]))
+    with pytest.raises(ValueError, match="does not declare"):
+        selection_score(real, sim, CAR.schema, (GoalSpec("g", "min", "nowhere"),))

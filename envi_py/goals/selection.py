@@ -90,7 +90,12 @@ def selection_score(real: Mapping[Hashable, Runs], sim: Mapping[Hashable, Runs],
     channels = {c.name: c for c in schema.channels + schema.logged}
     state_names = [c.name for c in schema.states]
     observed = dict(observed) if observed is not None else observed_ranges(list(real.values()), state_names)
+    missing = [n for n in state_names if n not in observed]
+    if missing:
+        raise ValueError(f"observed ranges lack state(s) {', '.join(missing)}")
     goals = tuple(goals) or default_goals(schema, observed)
+    if len({g.name for g in goals}) != len(goals):
+        raise ValueError("two goals share a name; each goal's distance is reported under its name")
     for g in goals:
         if g.signal not in channels:
             raise ValueError(f"goal {g.name!r} reads signal {g.signal!r}, which the schema does not declare")
