@@ -15,12 +15,14 @@ Physics (:mod:`.car_world`), at the brick's 25 Hz (40 ms period), 4 Euler sub-st
 - Colour sensor 60 mm ahead of the rear axle (the lead that damps the steering loop), its reading
   a smooth step from black 5 to white ~75 (per-run sd 2.5) over a 20 mm spot, noise sd 1.5,
   rounded to 1 % and clipped to 0..100, as the lane-keeping twin.
-- Lead vehicle on the same lane: per-run cruise speed 6-14 cm/s (a little slower than the ego's
-  14.7 cm/s at the set gap, so the ego must hold back) and acceleration limit 15-30 cm/s^2
+- Lead vehicle on the same lane: per-run cruise speed 4-10 cm/s (slower than the ego's 14.7 cm/s
+  at the set gap, so the ego must hold back: how far back is what kp_speed sets) and acceleration
+  limit 15-30 cm/s^2
   (braking 40 cm/s^2); new speed targets arrive as a Poisson process at 0.5/s, each a stop
   (20 %), a slow-down to 30-60 % of cruise (30 %) or a cruise speed +-25 %.
-- Gap: bumper to bumper along the lane, starting at 25-70 cm, or (20 % of runs) at 130-220 cm,
-  beyond the echo so the ego starts by chasing at full speed. Touching bumpers hold the ego at
+- Gap: bumper to bumper along the lane, starting at 25-70 cm, or (20 % of runs) at 220-300 cm,
+  beyond the echo so the ego starts by chasing at full speed and is often still chasing when
+  logging starts. Touching bumpers hold the ego at
   the lead's speed (counted in the sidecar as ``contact_ticks``; none for the shipped versions).
 - Ultrasonic sensor: gap plus noise sd 0.7 cm, rounded to 1 cm, clipped to 0..255; 255 (no echo)
   beyond a per-run range of 110-160 cm (a small target's echo is lost well before the sensor's
@@ -28,17 +30,22 @@ Physics (:mod:`.car_world`), at the brick's 25 Hz (40 ms period), 4 Euler sub-st
   full speed command, as on the real sensor). About 30 % of runs read 255 at least once.
 
 Why these numbers: they are a LEGO-sized car at the lane-keeping robot's speed, and they make both
-loops stable for every shipped version while the versions differ measurably. Steering (sensor lead 60 mm,
-servo 60 ms, 40 ms sampling), from an 8 mm offset on a straight edge without noise: kp_steer 0.8
-undershoots to colour 26 and is back at 40 only after 1.6 s, 2.0 undershoots to 30 and settles
-within about 1 s, and even 5.0 only rings (29, 42, 38) before settling; on the bends, mean |colour - 40| falls from
-about 4 (0.8) to 2.4 (2.0). Following: the stand-still gap is ``30 - offset / kp_speed`` (the
-description's offset 300), so kp_speed must be at least 15 for the car to stop 10 cm or more
-behind a stopped lead; the versions use 15 to 50, looser to tighter following (closest approach
-over 100 runs: median 18 cm at 15, 25 cm at 50). The description's default kp_speed 8 would stop
-7.5 cm *past* a stopped lead, i.e. only touching bumpers stop it.
+loops stable for every shipped version while the versions differ measurably.
 
-Controller memory: the world runs ``profile.warmup`` ticks (1.6 s) under the controller, then the
+- Steering (sensor lead 60 mm, servo 60 ms, 40 ms sampling), from an 8 mm offset on a straight
+  edge without noise: kp_steer 0.8 undershoots to colour 26 and is back at 40 only after 1.6 s,
+  2.0 undershoots to 30 and settles within about 1 s, and even 5.0 only rings (29, 42, 38) before
+  settling. On the bends, the mean over 100 runs of the per-run mean |colour - 40| falls from 3.8
+  (kp_steer 0.8) to 2.3 (2.0).
+- Following: the stand-still gap is ``30 - offset / kp_speed`` (the description's offset 300), so
+  kp_speed must be at least 15 for the car to stop 10 cm or more behind a stopped lead, and the
+  gap it settles at behind a lead at v cm/s is ``30 + (v / 0.0489 - 300) / kp_speed``. The
+  versions use kp_speed 18 to 50, looser to tighter following: over 100 runs each (seed 1) the
+  median of the per-run median echo is 20 cm at 18 and 26 cm at 50, the median closest approach
+  17 and 24 cm. The description's default kp_speed 8 would stop 7.5 cm *past* a stopped lead,
+  i.e. only touching bumpers would stop it.
+
+Controller memory: the world runs ``profile.warmup`` ticks (3 s) under the controller, then the
 controller is reset and logging starts. So row 0 of every log is the first call of a fresh
 controller: replaying a log's states from row 0 through a freshly built controller reproduces its
 actions and PID-term columns exactly, which is also what the project's simulator assumes when it
@@ -63,7 +70,7 @@ from .car_world import CarBatch, CarProfile
 
 #: (kp_steer, kp_speed) of the five shipped versions: three to train on, then two unseen ones inside
 #: the triangle the trained ones span (in each gain's range too).
-CAR_GAINS: tuple[tuple[float, float], ...] = ((0.8, 15.0), (2.0, 15.0), (1.4, 50.0), (1.2, 22.0), (1.6, 30.0))
+CAR_GAINS: tuple[tuple[float, float], ...] = ((0.8, 18.0), (2.0, 18.0), (1.4, 50.0), (1.2, 25.0), (1.6, 33.0))
 CAR_TRAINED: tuple[int, ...] = (0, 1, 2)
 CAR_UNSEEN: tuple[int, ...] = (3, 4)
 
@@ -123,9 +130,9 @@ def simulate_car(controller: ControllerSpec, runs: int, steps: int, profile: Car
     world = CarBatch(profile, runs, rng)
     ctrl = controller.build(n_state=2, n_action=2, period_ms=profile.period_ms)
     loops = getattr(getattr(ctrl, "inner", None), "loops", None)
-    if loops is None or len(loops) != 2:
-        raise ValueError(f"car twin: controller {controller.label()!r} is not a 'combine' of two loops; "
-                         "the logged PID terms need one")
+    if loops is None or len(loops) != 2 or not all(hasattr(lp, "terms") for lp in loops):
+        raise ValueError(f"car twin: controller {controller.label()!r} is not a 'combine' of two PID loops; "
+                         "the logged P, I and D columns need them")
     ctrl.reset(runs)
     states, actions = np.empty((runs, steps, 2)), np.empty((runs, steps, 2))
     terms = np.empty((runs, steps, 6))

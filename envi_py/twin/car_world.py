@@ -45,7 +45,7 @@ class CarProfile:
     curvature_mean_sd_per_m: float = 0.3
     wavelength_m: float = 1.5
     # lead vehicle (cm/s)
-    lead_cruise: tuple[float, float] = (6.0, 14.0)     # per-run cruising speed
+    lead_cruise: tuple[float, float] = (4.0, 10.0)     # per-run cruising speed
     lead_accel: tuple[float, float] = (15.0, 30.0)     # per-run acceleration limit, cm/s^2
     lead_brake: float = 40.0                            # braking limit, cm/s^2
     lead_events_per_s: float = 0.5                      # rate of new speed targets
@@ -57,10 +57,10 @@ class CarProfile:
     dropout_prob: float = 0.002                         # a spurious 255 per reading
     gap_start: tuple[float, float] = (25.0, 70.0)
     far_start_prob: float = 0.2                         # a run starts with the lead far ahead...
-    far_gap_start: tuple[float, float] = (130.0, 220.0)  # ...here, out of echo range
+    far_gap_start: tuple[float, float] = (220.0, 300.0)  # ...here, beyond any echo range
     # timing
     period_ms: float = 40.0
-    warmup: int = 40                  # unlogged ticks before logging starts (1.6 s)
+    warmup: int = 75                  # unlogged ticks before logging starts (3 s)
     substeps: int = 4                 # Euler sub-steps per control period (10 ms)
 
     @property
