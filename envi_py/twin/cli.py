@@ -1,4 +1,4 @@
-"""``envi twin generate | effects | calibrate``; hooked into ``envi`` by :func:`register`."""
+"""``envi twin generate [--system car] | effects | calibrate``; hooked into ``envi`` by :func:`register`."""
 
 from __future__ import annotations
 
@@ -8,8 +8,9 @@ from pathlib import Path
 
 from envi_py.controllers import ControllerSpec, parse_params
 from envi_py.logs import LogError, load_logs
-from envi_py.system import lane_keeping
+from envi_py.system import lane_keeping, load_system
 
+from .car import generate_car, generate_car_versions, write_car_logs
 from .effects import describe, parse_effects
 from .generate import generate, write_logs
 from .profile import TwinProfile, default_profile
@@ -20,8 +21,13 @@ def _profile(args: argparse.Namespace) -> TwinProfile:
 
 
 def cmd_generate(args: argparse.Namespace) -> int:
+    if args.system == "car":
+        return _generate_car(args)
+    if args.version is not None or args.world is not None:
+        print("envi twin generate: --version and --world apply to --system car only", file=sys.stderr)
+        return 2
     try:
-        spec = ControllerSpec(args.controller, parse_params(args.param))
+        spec = ControllerSpec(args.controller or "lane-keeping", parse_params(args.param))
         spec.build()  # fail on a bad controller before any work
         logs = generate(spec, args.runs, args.steps, parse_effects(args.effects), args.seed, _profile(args))
     except (ValueError, OSError) as exc:
@@ -29,6 +35,34 @@ def cmd_generate(args: argparse.Namespace) -> int:
         return 2
     paths = write_logs(logs, args.out)
     print(f"wrote {len(paths)} twin logs to {args.out} (effects: {', '.join(logs[0].meta.provenance['effects'])})")
+    return 0
+
+
+def _generate_car(args: argparse.Namespace) -> int:
+    """The car twin: the shipped versions (all, or ``--version``), or one controller from
+    ``--param kp_steer=.. kp_speed=..`` on the description's controller (or ``--controller``)."""
+    try:
+        if args.effects is not None or args.profile is not None:
+            raise ValueError("--effects and --profile apply to the lane-keeping twin; the car's world "
+                             "takes --world name=value (e.g. dropout_prob=0)")
+        world = parse_params(args.world)
+        if args.param is not None or args.controller is not None:
+            if args.version is not None:
+                raise ValueError("give either --version or --param/--controller, not both")
+            params = parse_params(args.param)
+            spec = (ControllerSpec(args.controller, params) if args.controller
+                    else load_system("car").controller_for(params))
+            if spec is None:
+                raise ValueError("the car system description declares no controller")
+            spec.build(n_state=2, n_action=2)  # fail on a bad controller before any work
+            logs = generate_car(spec, args.runs, args.steps, args.seed, **world)
+        else:
+            logs = generate_car_versions(args.runs, args.steps, args.seed, args.version, **world)
+        paths = write_car_logs(logs, args.out)
+    except (ValueError, OSError) as exc:
+        print(f"envi twin generate: {exc}", file=sys.stderr)
+        return 2
+    print(f"wrote {len(paths)} car twin logs to {args.out} (pattern car_{{kp_steer}}_{{kp_speed}}_{{run}}.csv)")
     return 0
 
 
@@ -67,8 +101,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     sub = twin.add_subparsers(dest="twin_command", required=True)
 
     p = sub.add_parser("generate", help="write twin logs with sidecars")
-    p.add_argument("--controller", default="lane-keeping", help="registered name or package.module:function")
-    p.add_argument("--param", nargs="*", default=None, help="controller parameters, e.g. x=30")
+    p.add_argument("--system", choices=("lane-keeping", "car"), default="lane-keeping",
+                   help="which twin: the lane-keeping robot (default) or the car following a lead vehicle")
+    p.add_argument("--controller", default=None,
+                   help="registered name or package.module:function (default: lane-keeping; for the car, "
+                        "its description's two PIDs)")
+    p.add_argument("--param", nargs="*", default=None,
+                   help="controller parameters, e.g. x=30; for the car its version gains kp_steer=1.2 kp_speed=22")
+    p.add_argument("--version", nargs="*", type=int, default=None,
+                   help="car: shipped versions by index (default: all five; 0-2 train, 3-4 unseen)")
+    p.add_argument("--world", nargs="*", default=None,
+                   help="car: world parameters, e.g. dropout_prob=0 far_start_prob=0.5 (see CarProfile)")
     p.add_argument("--runs", type=int, default=30)
     p.add_argument("--steps", type=int, default=100)
     p.add_argument("--effects", default=None,
