@@ -26,7 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from envi_py.logs import load_logs  # noqa: E402
 from envi_py.system import lane_keeping  # noqa: E402
-from envi_py.train.common import Selector, closed_loop_score, model_config, new_checkpoint  # noqa: E402
+from envi_py.train.common import closed_loop_score, model_config, new_checkpoint  # noqa: E402
 
 DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "lane-keeping-fot"
 
@@ -75,7 +75,7 @@ def main() -> int:
             "bcxgail": time_gail(logs, args.epochs, 1.0)}
     ckpt = new_checkpoint("bc", logs, val, model_config(logs), 0, {})
     t0 = time.perf_counter()
-    closed_loop_score(ckpt, val, Selector(val).metric)
+    closed_loop_score(ckpt, val)
     eval_s = time.perf_counter() - t0
     result = {"n_logs": len(logs), "seconds_per_epoch": rows, "validation_seconds": eval_s,
               "authors_seconds_per_epoch": {"bc": 0.2, "gail": 2.5}, "cpu_count": os.cpu_count(),

@@ -167,8 +167,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         raise ValueError(f"--hidden widths must be at least 1, got {args.hidden}")
     logs = read_logs(args, min_length=args.history + 1)
     val = read_logs(args, "val_logs", min_length=args.history + 1) if args.val_logs else []
-    kwargs: dict[str, Any] = {"seed": args.seed, "history": args.history, "progress": not args.quiet,
-                              "metric": metric_config(args, args.history)}
+    kwargs: dict[str, Any] = {"seed": args.seed, "history": args.history, "progress": not args.quiet}
     if args.algorithm != "random":
         kwargs.update(epochs=args.epochs, hidden=hidden, eval_every=args.eval_every, extras=tuple(args.extras),
                       play_width=args.play_width, context=args.context)
@@ -182,6 +181,8 @@ def cmd_train(args: argparse.Namespace) -> int:
     ckpt = train(args.algorithm, logs, val, system=system_of(args), **kwargs)
     path = ckpt.save(args.output)
     sel = ckpt.record.selection
+    if sel.get("warning"):
+        print(f"envi train: warning: {sel['warning']}", file=sys.stderr)
     print(f"trained {args.algorithm} on {len(logs)} logs ({len(val)} validation) in "
           f"{time.perf_counter() - t0:.1f} s; selected epoch {sel.get('best_epoch', '-')}; saved {path}")
     return 0
@@ -234,7 +235,7 @@ def cmd_verify(args: argparse.Namespace) -> int:
 
     real = read_logs(args, "real")
     sim = load_logs(args.sim, skip_bad=args.skip_bad)
-    results = verify(real, sim, metric_config(args, args.skip), floor_splits=args.floor_splits, seed=args.seed)
+    results = verify(real, sim, system_of(args), skip=args.skip, floor_splits=args.floor_splits, seed=args.seed)
     print(to_text(results))
     if args.out:
         md, js = write_report(results, Path(args.out))
@@ -246,9 +247,9 @@ def cmd_verify(args: argparse.Namespace) -> int:
 
 def cmd_demo(args: argparse.Namespace) -> int:
     """The main job on the project's own data: twin logs -> split -> BC -> simulate -> verify."""
-    from .demo import run_demo
+    from .demo import FAST, FULL, run_demo
 
-    run_demo(Path(args.out), seed=args.seed, epochs=args.epochs)
+    run_demo(Path(args.out), seed=args.seed, system=args.system, size=FAST if args.fast else FULL, epochs=args.epochs)
     return 0
 
 
@@ -317,7 +318,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--eval-every", type=int, default=10, help="epochs between closed-loop validations")
     p.add_argument("--seed", type=int, default=0, help="seed of initialisation and sampling")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
-    add_metric_args(p)
     p.add_argument("-o", "--output", required=True, help="checkpoint file to write")
     p.set_defaults(func=cmd_train)
 
@@ -339,7 +339,6 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("verify", help="compare real and simulated logs: accuracy, distances, floor")
     add_log_args(p, "--real", help="real logs")
     p.add_argument("--sim", nargs="+", required=True, help="simulated logs (with sidecars)")
-    add_metric_args(p)
     p.add_argument("--skip", type=int, default=10, help="leading rows not scored (the initial window)")
     p.add_argument("--floor-splits", type=int, default=20, help="random halvings for the real-vs-real floor")
     p.add_argument("--seed", type=int, default=0)
@@ -347,9 +346,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_verify)
 
     p = sub.add_parser("demo", help="the main job on the built-in twin data")
-    p.add_argument("--out", default="demo_out")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--epochs", type=int, default=300)
+    p.add_argument("--system", choices=("lane-keeping", "car"), default="lane-keeping",
+                   help="which twin system plays the field")
+    p.add_argument("--fast", action="store_true", help="a small demo (fewer logs, 40 epochs): a minute, not ten")
+    p.add_argument("--out", default="demo_out", help="output folder")
+    p.add_argument("--seed", type=int, default=0, help="seed of the twin, training and simulation")
+    p.add_argument("--epochs", type=int, default=None, help="training epochs (default: 300, --fast 40)")
     p.set_defaults(func=cmd_demo)
 
     for plugin in PLUGINS:

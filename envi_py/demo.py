@@ -1,45 +1,86 @@
-"""The main job on the project's own data: the calibrated twin plays the field.
+"""The main job on the project's own data: the twin plays the field.
 
-Twin logs of three controller versions (x = 10, 30, 50) are written like field logs; a BC model is
-trained on some (TMVK), selected on others, simulated from the initial windows of held-out logs of
-all five versions (x = 20 and 40 never trained on: TMVU), and verified against them.
+Twin logs of five controller versions are written like field logs; a model is trained on three of
+them (TMVK), selected on held-out logs of those, simulated from the initial windows of held-out
+logs of all five versions (the two never trained on are TMVU), and verified against them. The
+lane-keeping robot (x = 10..50, trained on 10, 30, 50) and the car following a lead vehicle (five
+gain sets, trained on three) are the two shipped systems. Simulation takes the native engine
+whenever it can run the model (``engine="auto"``), as ``envi simulate`` does.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 from .controllers import ControllerSpec
-from .logs import group_by_controller, load_logs, write_log
+from .logs import Log, group_by_controller, load_logs, write_log
+from .simulate import choose_engine, simulate_versions
+from .system import load_system
 from .train import train
-from .simulate import simulate_versions
 from .verify import to_text, verify, write_report
 
 
-def run_demo(out: Path, seed: int = 0, epochs: int = 300, runs_per_version: int = 30) -> Path:
-    """Generate, train, simulate, verify; returns the report's Markdown path."""
+@dataclass(frozen=True)
+class DemoSize:
+    """Logs per version and training budget: the full demo and ``--fast``."""
+
+    runs_per_version: int = 30
+    n_train: int = 15
+    n_val: int = 5
+    epochs: int = 300
+    sim_runs: int = 10
+
+
+FULL, FAST = DemoSize(), DemoSize(runs_per_version=16, n_train=8, n_val=3, epochs=40, sim_runs=4)
+
+
+def _lane_logs(data: Path, runs: int, seed: int) -> tuple[list[Log], set[ControllerSpec]]:
     from .twin import generate, write_logs
 
-    data = out / "data"
     for x in (10, 20, 30, 40, 50):
-        write_logs(generate(ControllerSpec("lane-keeping", {"x": x}), runs_per_version, 100, seed=seed + x), data)
-    logs = load_logs(data, min_length=11)
+        write_logs(generate(ControllerSpec("lane-keeping", {"x": x}), runs, 100, seed=seed + x), data)
+    return load_logs(data, min_length=11), {ControllerSpec("lane-keeping", {"x": x}) for x in (10, 30, 50)}
+
+
+def _car_logs(data: Path, runs: int, seed: int) -> tuple[list[Log], set[ControllerSpec]]:
+    from .twin.car import CAR_TRAINED, car_versions, generate_car_versions, write_car_logs
+
+    write_car_logs(generate_car_versions(runs, 100, seed=seed), data)
+    specs = car_versions()
+    return load_logs(data, load_system("car"), min_length=11), {specs[i] for i in CAR_TRAINED}
+
+
+def run_demo(out: Path, seed: int = 0, system: str = "lane-keeping", size: DemoSize = FULL,
+             epochs: int | None = None) -> Path:
+    """Generate, train, simulate, verify; returns the report's Markdown path."""
+    data = out / "data"
+    if system == "lane-keeping":
+        logs, trained = _lane_logs(data, size.runs_per_version, seed)
+    elif system == "car":
+        logs, trained = _car_logs(data, size.runs_per_version, seed)
+    else:
+        raise ValueError(f"no demo for system {system!r}; choose lane-keeping or car")
     train_logs, val_logs, test_logs = [], [], []
-    for group in group_by_controller(logs).values():
-        x = group[0].param["x"]
-        if x in (10, 30, 50):
-            train_logs += group[:15]
-            val_logs += group[15:20]
-        test_logs += group[20:]
-    print(f"twin data: {len(logs)} logs in {data}; training on {len(train_logs)} (x=10,30,50), "
-          f"validating on {len(val_logs)}, verifying on {len(test_logs)} (all five versions)")
-    ckpt = train("bc", train_logs, val_logs, seed=seed, epochs=epochs, progress=True)
+    for spec, group in group_by_controller(logs).items():
+        if spec in trained:
+            train_logs += group[:size.n_train]
+            val_logs += group[size.n_train:size.n_train + size.n_val]
+        test_logs += group[size.n_train + size.n_val:]
+    desc = load_system(system)
+    print(f"twin data ({system}): {len(logs)} logs in {data}; training on {len(train_logs)} logs of "
+          f"{len(trained)} versions, validating on {len(val_logs)}, verifying on {len(test_logs)} "
+          f"(all {len(group_by_controller(logs))} versions, the untrained ones are TMVU)")
+    ckpt = train("bc", train_logs, val_logs, system=desc, seed=seed, epochs=epochs or size.epochs, progress=True)
     ckpt.save(out / "model.pt")
-    sims = simulate_versions(ckpt, test_logs, runs=10, seed=seed)
-    for lg in sims:
-        write_log(lg, out / "sim" / f"{lg.meta.run_id}_{lg.param.get('x', 0):g}.csv")
-    results = verify(test_logs, sims, seed=seed)
+    engine = choose_engine(ckpt, next(iter(group_by_controller(test_logs))), "auto")
+    sims = simulate_versions(ckpt, test_logs, runs=size.sim_runs, seed=seed, engine="auto")
+    for i, lg in enumerate(sims):
+        write_log(lg, out / "sim" / f"{i:05d}_{lg.meta.run_id}.csv")
+    print(f"simulated {len(sims)} runs on the {engine} engine")
+    results = verify(test_logs, sims, desc, skip=ckpt.config.history, seed=seed)
     print(to_text(results))
-    md, _ = write_report(results, out / "report", "Demo: BC model of the twin, TMVK (10, 30, 50) and TMVU (20, 40)")
+    md, _ = write_report(results, out / "report", f"Demo ({system}): BC model of the twin, trained on "
+                         f"{len(trained)} versions, verified on all (TMVK and TMVU)")
     print(f"report: {md}")
     return md

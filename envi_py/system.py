@@ -200,6 +200,22 @@ class SystemDescription:
             _set_path(params, self.versions.map.get(key, key), value)
         return ControllerSpec(self.controller.name, params)
 
+    def version_of(self, spec: ControllerSpec) -> dict[str, Any]:
+        """The version parameters of a controller (``kp_steer`` read from ``loops.0.params.kp``);
+        all its top-level parameters when the description names none."""
+        if not self.versions.params:
+            return dict(spec.params)
+        out = {}
+        for name in self.versions.params:
+            node: Any = spec.params
+            try:
+                for k in self.versions.map.get(name, name).split("."):
+                    node = node[int(k)] if isinstance(node, list) else node[k]
+            except (KeyError, IndexError, ValueError, TypeError):
+                continue
+            out[name] = node
+        return out
+
     def with_pattern(self, pattern: str | None) -> "SystemDescription":
         """The same description reading version parameters from ``pattern`` (a command-line
         ``--pattern``); a different pattern declared in the file is a conflict, not overridden."""
@@ -417,7 +433,13 @@ def lane_keeping() -> SystemDescription:
 
 
 def describe_schema(schema: LogSchema) -> SystemDescription:
-    """A minimal description of logs that carry their own schema (twin, simulated, HIL sidecars)."""
+    """The description of logs that carry their own schema (twin, simulated, HIL sidecars): the
+    shipped one with the same columns (so twin lane-keeping logs get the paper's goals), else a
+    minimal one with no controller and no goals."""
+    for path in shipped().values():
+        known = SystemDescription.load(path)
+        if known.schema.columns == schema.columns:
+            return known
     return SystemDescription(name="from-sidecars", schema=schema)
 
 

@@ -10,7 +10,6 @@ from envi_py.train.common import closed_loop_score, model_config, new_checkpoint
 from envi_py.train.discriminator import Discriminator, bce_loss
 from envi_py.train.gail import GailConfig, _Trainer, train_gail
 from envi_py.train.gail_env import WindowEnv
-from envi_py.metrics import MetricConfig
 from tests.conftest import make_log
 
 
@@ -70,16 +69,15 @@ def test_short_gail_run_moves_a_wrong_model_toward_the_data() -> None:
     trainer = _Trainer(ckpt, logs, GailConfig(lr=3e-3, disc_lr=3e-3, horizon=15, stride=10, minibatch=256,
                                               disc_hidden=(32, 32), value_hidden=(32, 32)), seed=0)
     x, y = (torch.from_numpy(a) for a in ckpt.dataset(logs).stacked())
-    metric = MetricConfig()
 
     def one_step() -> float:
         with torch.no_grad():
             return (ckpt.model(x)[0] - y).abs().mean().item()
 
-    before_step, before_loop = one_step(), closed_loop_score(ckpt, logs, metric)
+    before_step, before_loop = one_step(), closed_loop_score(ckpt, logs).distance
     for _ in range(40):
         stats = trainer.epoch()
-    after_step, after_loop = one_step(), closed_loop_score(ckpt, logs, metric)
+    after_step, after_loop = one_step(), closed_loop_score(ckpt, logs).distance
     assert np.isfinite(stats["value_loss"]) and 0 <= stats["disc_acc"] <= 1
     assert after_step < 0.5 * before_step
     assert after_loop < before_loop

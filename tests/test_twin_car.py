@@ -11,7 +11,7 @@ import pytest
 from scipy import stats
 
 from envi_py.controllers import ControllerSpec
-from envi_py.logs import DatasetSpec, load_logs, read_log
+from envi_py.logs import load_logs, read_log
 from envi_py.system import load_system, pattern_regex
 from envi_py.twin import (
     CAR_GAINS,
@@ -250,7 +250,6 @@ def test_pattern_reads_versions_from_names_without_sidecars(tmp_path):
     write_car_logs(generate_car_versions(1, 10, seed=4, versions=[0, 4]), tmp_path)
     for side in tmp_path.glob("*.meta.json"):
         side.unlink()
-    logs = load_logs(tmp_path, DatasetSpec(pattern="car_{kp_steer}_{kp_speed}_{run}.csv", controller="combine",
-                                           schema=CAR.schema))
-    assert sorted((lg.param["kp_steer"], lg.param["kp_speed"]) for lg in logs) == sorted([CAR_GAINS[0],
-                                                                                         CAR_GAINS[4]])
+    logs = load_logs(tmp_path, CAR)
+    versions = [CAR.version_of(lg.controller) for lg in logs]
+    assert sorted((v["kp_steer"], v["kp_speed"]) for v in versions) == sorted([CAR_GAINS[0], CAR_GAINS[4]])

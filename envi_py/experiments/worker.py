@@ -45,14 +45,14 @@ def run_job(job: Job) -> dict[str, Any]:
     torch.set_num_threads(1)
     metric = MetricConfig(skip=job.train_kwargs.get("history", 10))
     t0 = time.perf_counter()
-    ckpt = train(job.algorithm, job.train, job.val, seed=job.seed, metric=metric,
+    ckpt = train(job.algorithm, job.train, job.val, seed=job.seed,
                  **trainer_kwargs(job.algorithm, job.train_kwargs))
     seconds = time.perf_counter() - t0
     evals: dict[str, Any] = {}
     for uc, logs in job.evals.items():
         sims = simulate_versions(ckpt, logs, runs=job.runs, seed=job.seed)
         groups = []
-        for r in verify(logs, sims, metric, floor_splits=20, seed=0):
+        for r in verify(logs, sims, skip=metric.skip, floor_splits=20, seed=0):
             x = float(r.controller["params"]["x"])
             g = r.to_json()
             real_v = [lg for lg in logs if float(lg.meta.controller["params"]["x"]) == x][:TRACES_KEPT]

@@ -10,7 +10,7 @@ from typing import Any, Callable, Sequence
 
 from ..logs import Log
 from ..model import Checkpoint
-from ..system import SystemDescription, describe_schema
+from ..system import SystemDescription
 
 Trainer = Callable[..., Checkpoint]
 
@@ -35,6 +35,4 @@ def train(name: str, train_logs: Sequence[Log], val_logs: Sequence[Log] = (),
     in the checkpoint (from their schema when none is given), so the model says what it reads."""
     if not train_logs:
         raise ValueError("no training logs")
-    ckpt = get_trainer(name)(train_logs, val_logs, **kwargs)
-    ckpt.system = system or describe_schema(train_logs[0].meta.schema)
-    return ckpt
+    return get_trainer(name)(train_logs, val_logs, system=system, **kwargs)

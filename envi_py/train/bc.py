@@ -16,7 +16,7 @@ from torch import nn
 from tqdm import tqdm
 
 from ..logs import Log
-from ..metrics import MetricConfig
+from ..system import SystemDescription
 from ..model import EnvModel, Checkpoint
 from .common import Selector, model_config, new_checkpoint
 
@@ -31,19 +31,19 @@ def bc_loss(model: EnvModel, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
 
 def train_bc(train_logs: Sequence[Log], val_logs: Sequence[Log] = (), *, epochs: int = 300, lr: float = 5e-5,
              seed: int = 0, history: int = 10, hidden: Sequence[int] = (256, 256), head: str = "gaussian",
-             eval_every: int = 10, metric: MetricConfig = MetricConfig(), progress: bool = False,
+             eval_every: int = 10, system: SystemDescription | None = None, progress: bool = False,
              **model_extra: Any) -> Checkpoint:
     """Train a model by behaviour cloning on ``train_logs``; select on ``val_logs`` by closed-loop error."""
     cfg = model_config(train_logs, history, hidden, head, **model_extra)
     hyper = {"epochs": epochs, "lr": lr, "history": history, "hidden": list(hidden), "head": head,
              "eval_every": eval_every, "batch": "one log per step"}
-    ckpt = new_checkpoint("bc", train_logs, val_logs, cfg, seed, hyper)
+    ckpt = new_checkpoint("bc", train_logs, val_logs, cfg, seed, hyper, system=system)
     data = ckpt.dataset(train_logs)
     xs = [torch.tensor(x) for x in data.X]
     ys = [torch.tensor(y) for y in data.Y]
     opt = torch.optim.Adam(ckpt.model.parameters(), lr=lr)
     rng = np.random.default_rng(seed)
-    selector = Selector(val_logs, metric)
+    selector = Selector(val_logs)
     ckpt.model.train()
     bar = tqdm(range(1, epochs + 1), desc="bc", disable=not progress, leave=False)
     for epoch in bar:

@@ -2,7 +2,7 @@
 
 Model selection is by closed-loop error on held-out validation logs: each validation log's
 controller is simulated against the candidate model from the log's own sigma_0 and the goal-metric
-distributions are compared (:func:`envi_py.verify.closed_loop_error`). One-step loss alone picks
+distributions are compared (:func:`closed_loop_score`). One-step loss alone picks
 models that drift in closed loop (the compounding error the paper warns about).
 """
 
@@ -17,10 +17,12 @@ import torch
 
 from ..dataset import Normaliser, interval_quantiles
 from ..logs import Log, group_by_controller
-from ..metrics import MetricConfig
 from ..model import Checkpoint, EnvModel, ModelConfig, TrainingRecord
+from ..goals.evaluate import signals_of
+from ..goals.presets import goals_of
+from ..goals.selection import SelectionScore, selection_score
 from ..simulate import simulate_versions
-from ..verify import closed_loop_error, verify
+from ..system import LogSchema, SystemDescription, describe_schema
 
 
 def data_record(logs: Sequence[Log]) -> list[dict[str, Any]]:
@@ -41,8 +43,10 @@ def model_config(logs: Sequence[Log], history: int = 10, hidden: Sequence[int] =
 
 
 def new_checkpoint(algorithm: str, train_logs: Sequence[Log], val_logs: Sequence[Log], config: ModelConfig,
-                   seed: int, hyper: dict[str, Any], norm: Normaliser | None = None) -> Checkpoint:
-    """A freshly initialised model (seeded) with its normaliser fitted on the training logs only."""
+                   seed: int, hyper: dict[str, Any], norm: Normaliser | None = None,
+                   system: SystemDescription | None = None) -> Checkpoint:
+    """A freshly initialised model (seeded) with its normaliser fitted on the training logs only; it
+    records ``system`` (by default the description matching the logs' schema)."""
     torch.manual_seed(seed)
     norm = norm or Normaliser.fit(train_logs)
     periods = [float(np.median(np.diff(lg.time))) for lg in train_logs if len(lg) > 1]
@@ -52,45 +56,64 @@ def new_checkpoint(algorithm: str, train_logs: Sequence[Log], val_logs: Sequence
                             period_ms=period)
     if "dt" in config.extras and config.intervals is None:
         config.intervals = interval_quantiles(train_logs, period or 40.0)
-    return Checkpoint(EnvModel(config), norm, train_logs[0].meta.schema, record)
+    schema = train_logs[0].meta.schema
+    return Checkpoint(EnvModel(config), norm, schema, record, system or describe_schema(schema))
 
 
-def closed_loop_score(ckpt: Checkpoint, logs: Sequence[Log], metric: MetricConfig, seed: int = 0) -> float:
-    """Closed-loop error of ``ckpt`` on ``logs`` (lower is better)."""
+def closed_loop_score(ckpt: Checkpoint, logs: Sequence[Log], seed: int = 0) -> SelectionScore:
+    """Closed-loop error of ``ckpt`` on ``logs`` (lower is better): each log's controller simulated
+    from its sigma_0, the system's goal metrics compared version by version (W1 over each goal's
+    scale; default goals on every state when the system declares none), and runs that diverge
+    beyond what the real runs do make the score infinite (:mod:`envi_py.goals.selection`)."""
     sims = simulate_versions(ckpt, logs, runs=1, seed=seed)
-    return closed_loop_error(verify(logs, sims, metric, floor_splits=0))
+    skip, period = ckpt.config.history, ckpt.period_ms
+    simulated = {c.name for c in ckpt.schema.channels}
+    goals = tuple(g for g in (goals_of(ckpt.system) if ckpt.system else ()) if g.signal in simulated)
+    real = {spec: signals_of(g, ckpt.schema, skip, period) for spec, g in group_by_controller(logs).items()}
+    sim = {spec: signals_of(g, g[0].meta.schema, skip, period) for spec, g in group_by_controller(sims).items()}
+    observed = {c.name: (float(ckpt.norm.low[i]), float(ckpt.norm.high[i])) for i, c in enumerate(ckpt.schema.states)}
+    return selection_score(real, sim, LogSchema(ckpt.schema.states, ckpt.schema.actions), goals, observed)
 
 
 @dataclass
 class Selector:
-    """Keeps the weights with the lowest closed-loop validation error seen so far."""
+    """Keeps the weights with the lowest closed-loop validation error seen so far; a model whose
+    simulated runs diverge scores infinity and is never kept when any epoch did better."""
 
     val_logs: Sequence[Log]
-    metric: MetricConfig = field(default_factory=MetricConfig)
     best_score: float = float("inf")
     best_epoch: int = -1
     best_state: dict[str, torch.Tensor] | None = None
     history: list[tuple[int, float]] = field(default_factory=list)
+    diverged: list[int] = field(default_factory=list)
 
     def consider(self, ckpt: Checkpoint, epoch: int) -> float:
         if not self.val_logs:
             return float("nan")
         ckpt.model.eval()
-        score = closed_loop_score(ckpt, self.val_logs, self.metric)
+        result = closed_loop_score(ckpt, self.val_logs)
         ckpt.model.train()
-        self.history.append((epoch, score))
-        if score < self.best_score:
-            self.best_score, self.best_epoch = score, epoch
+        self.history.append((epoch, result.distance))
+        if result.diverged:
+            self.diverged.append(epoch)
+        if result.score < self.best_score:
+            self.best_score, self.best_epoch = result.score, epoch
             self.best_state = copy.deepcopy(ckpt.model.state_dict())
-        return score
+        return result.distance
 
     def finish(self, ckpt: Checkpoint, last_epoch: int) -> Checkpoint:
         """Restore the best weights and record the choice in the checkpoint."""
+        criterion = "closed-loop W1 of the goal metrics on validation logs, divergence excluded"
         if self.best_state is not None:
             ckpt.model.load_state_dict(self.best_state)
-            ckpt.record.selection = {"criterion": "closed-loop mean normalised W1 on validation logs",
-                                     "best_epoch": self.best_epoch, "best_score": self.best_score,
-                                     "curve": self.history}
+            ckpt.record.selection = {"criterion": criterion, "best_epoch": self.best_epoch,
+                                     "best_score": self.best_score, "curve": self.history,
+                                     "diverged_epochs": self.diverged}
+        elif self.val_logs:
+            ckpt.record.selection = {"criterion": criterion, "best_epoch": last_epoch, "curve": self.history,
+                                     "diverged_epochs": self.diverged,
+                                     "warning": "every evaluated epoch diverged in closed loop on the validation "
+                                                "logs; the last epoch is kept and should not be trusted"}
         else:
             ckpt.record.selection = {"criterion": "last epoch (no validation logs)", "best_epoch": last_epoch}
         ckpt.model.eval()

@@ -34,7 +34,7 @@ import torch
 from tqdm import tqdm
 
 from ..logs import Log
-from ..metrics import MetricConfig
+from ..system import SystemDescription
 from ..model import Checkpoint
 from .bc import bc_loss
 from .common import Selector, model_config, new_checkpoint
@@ -197,7 +197,7 @@ def write_curves(rows: list[dict[str, float]], out: Path, title: str) -> tuple[P
 
 
 def _train(algorithm: str, train_logs: Sequence[Log], val_logs: Sequence[Log], epochs: int, seed: int,
-           history: int, hidden: Sequence[int], metric: MetricConfig, progress: bool, curves_dir: str | Path | None,
+           history: int, hidden: Sequence[int], system: SystemDescription | None, progress: bool, curves_dir: str | Path | None,
            hyper: dict[str, Any]) -> Checkpoint:
     known = {f.name for f in fields(GailConfig)}
     model_extra = {k: v for k, v in hyper.items() if k not in known and k != "head"}
@@ -206,9 +206,9 @@ def _train(algorithm: str, train_logs: Sequence[Log], val_logs: Sequence[Log], e
     record = {"epochs": epochs, "history": history, "hidden": list(hidden), "head": "gaussian",
               "reward": "log D - log(1 - D)", **{k: (list(v) if isinstance(v, tuple) else v)
                                                  for k, v in asdict(hp).items()}}
-    ckpt = new_checkpoint(algorithm, train_logs, val_logs, cfg, seed, record)
+    ckpt = new_checkpoint(algorithm, train_logs, val_logs, cfg, seed, record, system=system)
     trainer = _Trainer(ckpt, train_logs, hp, seed)
-    selector = Selector(val_logs, metric)
+    selector = Selector(val_logs)
     rows = []
     bar = tqdm(range(1, epochs + 1), desc=algorithm, disable=not progress, leave=False)
     for epoch in bar:
@@ -223,18 +223,18 @@ def _train(algorithm: str, train_logs: Sequence[Log], val_logs: Sequence[Log], e
 
 
 def train_gail(train_logs: Sequence[Log], val_logs: Sequence[Log] = (), *, epochs: int = 300, seed: int = 0,
-               history: int = 10, hidden: Sequence[int] = (256, 256), metric: MetricConfig = MetricConfig(),
+               history: int = 10, hidden: Sequence[int] = (256, 256), system: SystemDescription | None = None,
                progress: bool = False, curves_dir: str | Path | None = None, **hyper: Any) -> Checkpoint:
     """Train a Gaussian environment model by GAIL; ``hyper`` overrides :class:`GailConfig` fields
     (other keywords go to the model config, e.g. ``extras``)."""
-    return _train("gail", train_logs, val_logs, epochs, seed, history, hidden, metric, progress, curves_dir,
+    return _train("gail", train_logs, val_logs, epochs, seed, history, hidden, system, progress, curves_dir,
                   hyper)
 
 
 def train_bcxgail(train_logs: Sequence[Log], val_logs: Sequence[Log] = (), *, epochs: int = 300, seed: int = 0,
-                  history: int = 10, hidden: Sequence[int] = (256, 256), metric: MetricConfig = MetricConfig(),
+                  history: int = 10, hidden: Sequence[int] = (256, 256), system: SystemDescription | None = None,
                   progress: bool = False, curves_dir: str | Path | None = None, **hyper: Any) -> Checkpoint:
     """GAIL with the behaviour-cloning loss added to every policy step (``bc_weight``, default 1)."""
     hyper.setdefault("bc_weight", 1.0)
-    return _train("bcxgail", train_logs, val_logs, epochs, seed, history, hidden, metric, progress, curves_dir,
+    return _train("bcxgail", train_logs, val_logs, epochs, seed, history, hidden, system, progress, curves_dir,
                   hyper)

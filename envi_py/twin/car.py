@@ -42,8 +42,8 @@ loops stable for every shipped version while the versions differ measurably.
   gap it settles at behind a lead at v cm/s is ``30 + (v / 0.0489 - 300) / kp_speed``. The
   versions use kp_speed 18 to 50, looser to tighter following: over 100 runs each (seed 1) the
   median of the per-run median echo is 20 cm at 18 and 26 cm at 50, the median closest approach
-  17 and 24 cm. The description's default kp_speed 8 would stop 7.5 cm *past* a stopped lead,
-  i.e. only touching bumpers would stop it.
+  17 and 24 cm. (A kp_speed of 8 would stop 7.5 cm *past* a stopped lead: only touching bumpers
+  would stop it; the description's default is 25.)
 
 Controller memory: the world runs ``profile.warmup`` ticks (3 s) under the controller, then the
 controller is reset and logging starts. So row 0 of every log is the first call of a fresh
