@@ -177,9 +177,15 @@ def cmd_train(args: argparse.Namespace) -> int:
             raise ValueError(f"--head deterministic: {args.algorithm} trains a Gaussian policy (PPO needs one)")
         if args.lr is not None:
             kwargs["lr"] = args.lr
+    if args.algorithm == "bc":
+        kwargs.update(state_path=Path(args.output).with_suffix(".state"), resume=args.resume)
+    elif args.resume:
+        raise ValueError(f"--resume: only bc training keeps a resumable state so far, not {args.algorithm}")
     t0 = time.perf_counter()
     ckpt = train(args.algorithm, logs, val, system=system_of(args), **kwargs)
     path = ckpt.save(args.output)
+    if args.algorithm == "bc":
+        Path(args.output).with_suffix(".state").unlink(missing_ok=True)  # finished: nothing to resume
     sel = ckpt.record.selection
     if sel.get("warning"):
         print(f"envi train: warning: {sel['warning']}", file=sys.stderr)
@@ -193,7 +199,7 @@ def cmd_train(args: argparse.Namespace) -> int:
 def cmd_simulate(args: argparse.Namespace) -> int:
     from .logs import group_by_controller
     from .model import Checkpoint
-    from .simulate import choose_engine, simulate_versions
+    from .simulate import choose_engine, iter_simulate, versions_to_simulate
 
     _positive(args, "runs")
     if args.steps is not None and not 0 <= args.steps <= 10_000_000:
@@ -203,6 +209,11 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     out = Path(args.out)
     given = ControllerSpec(args.controller, parse_params(args.param)) if args.controller else None
     specs = [given] if given else list(group_by_controller(init))
+    stems = [Path(lg.path).stem if lg.path else lg.meta.run_id for lg in init]
+    dup = sorted({st for st in stems if stems.count(st) > 1})
+    if dup:
+        raise ValueError(f"initial logs from different folders share the name {dup[0]!r}: their simulated runs would "
+                         "overwrite each other; simulate them into separate --out folders")
     engines = {choose_engine(ckpt, spec, args.engine) for spec in specs}
     if args.engine == "auto" and "torch" in engines:
         from .native import unsupported
@@ -213,17 +224,11 @@ def cmd_simulate(args: argparse.Namespace) -> int:
                 print(f"envi simulate: the native engine cannot run {spec.label()} ({why}); using PyTorch",
                       file=sys.stderr)
     t0 = time.perf_counter()
-    written: set[str] = set()
     n = 0
-    for lg in simulate_versions(ckpt, init, runs=args.runs, seed=args.seed, engine=args.engine, steps=args.steps,
-                                controller=given):
-        name = f"{lg.meta.run_id}.csv"
-        if name in written:
-            raise ValueError(f"two simulated runs would both be written as {out / name}: initial logs from different "
-                             "folders share a file name; simulate them into separate --out folders")
-        written.add(name)
-        write_log(lg, out / name)
-        n += 1
+    for spec, group in versions_to_simulate(init, given):
+        for _, _, lg in iter_simulate(ckpt, spec, group, args.steps, args.runs, args.seed, args.engine):
+            write_log(lg, out / f"{lg.meta.run_id}.csv")  # run ids are checked plain names: no path escapes
+            n += 1
     print(f"simulated {n} runs in {time.perf_counter() - t0:.2f} s ({'+'.join(sorted(engines))} engine) -> {out}")
     return 0
 
@@ -318,6 +323,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--eval-every", type=int, default=10, help="epochs between closed-loop validations")
     p.add_argument("--seed", type=int, default=0, help="seed of initialisation and sampling")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--resume", action="store_true",
+                   help="continue a killed training from <output>.state (written at every validation; bc)")
     p.add_argument("-o", "--output", required=True, help="checkpoint file to write")
     p.set_defaults(func=cmd_train)
 

@@ -62,6 +62,7 @@ def metadata(ckpt: Checkpoint) -> dict[str, str]:
         "envi.controllers": rec.controllers,
         "envi.selection": rec.selection,
         "envi.versions": rec.versions,
+        "envi.system": None if ckpt.system is None else ckpt.system.to_json(),
     }
     return {k: json.dumps(v, allow_nan=True) for k, v in items.items()}
 
@@ -163,8 +164,8 @@ def main(argv: list[str] | None = None) -> int:
         ckpt = Checkpoint.load(args.model)
         path = export(ckpt, args.output, check=not args.no_check)
     except ValueError as exc:
-        print(f"envi-export: {exc}", file=sys.stderr)
-        return 1
+        print(f"envi-export: error: {str(exc).splitlines()[0]}", file=sys.stderr)
+        return 2
     size = path.stat().st_size
     print(f"wrote {path} ({size / 1024:.1f} KiB, opset {OPSET}, {ckpt.config.head} head"
           + ("" if args.no_check else f", onnxruntime parity <= {PARITY_TOL:g}") + ")")

@@ -8,7 +8,7 @@ is the reference; the native runtime implements the same loop and is tested agai
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -90,17 +90,25 @@ def choose_engine(ckpt: Checkpoint, controller: ControllerSpec, engine: str = "a
     return "torch"
 
 
-def simulate_logs(ckpt: Checkpoint, controller: ControllerSpec, init_logs: Sequence[Log],
-                  steps: int | None = None, runs: int = 1, seed: int = 0, engine: str = "torch") -> list[Log]:
-    """Simulate from each log's sigma_0 and return the traces as logs (source ``sim``).
+#: Simulated runs held in memory at once when streaming: the replicates of a call are simulated in
+#: chunks of about this many runs, so memory does not grow with ``runs``.
+CHUNK_RUNS = 20_000
+
+
+def iter_simulate(ckpt: Checkpoint, controller: ControllerSpec, init_logs: Sequence[Log],
+                  steps: int | None = None, runs: int = 1, seed: int = 0,
+                  engine: str = "torch") -> Iterator[tuple[int, int, Log]]:
+    """Simulate from each log's sigma_0, yielding ``(initial log index, replicate, log)`` chunk by
+    chunk (source ``sim``).
 
     ``steps`` defaults to each real log's own length minus the window, so real and simulated runs
     cover the same span. Time continues at the initial window's median period. ``engine``: see
-    :func:`choose_engine`; the default stays PyTorch because training calls this on a few logs
-    many times, where compiling the model for the native engine each time would cost more than
-    it saves. Stochastic draws differ between engines (each is seeded, each repeats exactly); the
-    engine is recorded in every log's provenance. Run ids are ``<initial log's file stem>-sim<r>``
-    (its run id for a log in memory), so versions whose logs share run numbers do not collide.
+    :func:`choose_engine`. Stochastic draws differ between engines (each is seeded, each repeats
+    exactly); the engine is recorded in every log's provenance. Replicates are simulated in chunks
+    of about :data:`CHUNK_RUNS` runs, each chunk with its own seed, so a million runs stream
+    through flat memory and the same call always gives the same runs. Run ids are ``<initial log's
+    file stem>-sim<r>`` (its run id for a log in memory), so versions whose logs share run numbers
+    do not collide.
     """
     hist = ckpt.config.history
     engine = choose_engine(ckpt, controller, engine)
@@ -108,29 +116,45 @@ def simulate_logs(ckpt: Checkpoint, controller: ControllerSpec, init_logs: Seque
         from . import native
 
         compiled = native.load(ckpt)
-        roll = lambda init, n, r, s: native.rollout(compiled, controller, init, n, r, s)
+        roll = lambda init, n, r, s: native.rollout(compiled, controller, init, n, r, s)  # noqa: E731
     else:
-        roll = lambda init, n, r, s: rollout(ckpt, controller, init, n, r, s)
+        roll = lambda init, n, r, s: rollout(ckpt, controller, init, n, r, s)  # noqa: E731
     by_len: dict[int, list[int]] = {}
     for i, lg in enumerate(init_logs):
         n = steps if steps is not None else len(lg) - hist
         by_len.setdefault(n, []).append(i)
-    result: list[Log | None] = [None] * (len(init_logs) * runs)
     ns = ckpt.config.n_state
+    schema = LogSchema(ckpt.schema.states, ckpt.schema.actions)
     for n, idx in by_len.items():
-        traj = roll(initial_windows([init_logs[i] for i in idx], hist), n, runs, seed + 7919 * n)
-        for j, i in enumerate(idx):
-            src = init_logs[i]
-            period = float(np.median(np.diff(src.time[:hist]))) if hist > 1 else (src.meta.period_ms or ckpt.period_ms)
-            time = np.concatenate([src.time[:hist], src.time[hist - 1] + period * np.arange(1, n + 1)])
-            for r in range(runs):
-                tr = traj[j * runs + r]
-                meta = LogMeta(schema=LogSchema(ckpt.schema.states, ckpt.schema.actions),
-                               controller=controller.to_json(), period_ms=period,
-                               run_id=f"{Path(src.path).stem if src.path else src.meta.run_id}-sim{r}", source="sim",
-                               provenance={"init_log": src.name, "model_algorithm": ckpt.record.algorithm,
-                                           "seed": seed, "replicate": r, "engine": engine})
-                result[i * runs + r] = Log(None, time.copy(), tr[:, :ns].copy(), tr[:, ns:].copy(), meta)
+        init = initial_windows([init_logs[i] for i in idx], hist)
+        chunk = max(1, CHUNK_RUNS // len(idx))
+        for r0 in range(0, runs, chunk):
+            count = min(chunk, runs - r0)
+            traj = roll(init, n, count, seed + 7919 * n + 104729 * r0)
+            for j, i in enumerate(idx):
+                src = init_logs[i]
+                period = float(np.median(np.diff(src.time[:hist]))) if hist > 1 else (src.meta.period_ms or ckpt.period_ms)
+                time = np.concatenate([src.time[:hist], src.time[hist - 1] + period * np.arange(1, n + 1)])
+                stem = Path(src.path).stem if src.path else src.meta.run_id
+                for k in range(count):
+                    r = r0 + k
+                    tr = traj[j * count + k]
+                    meta = LogMeta(schema=schema, controller=controller.to_json(), period_ms=period,
+                                   run_id=f"{stem}-sim{r}", source="sim",
+                                   provenance={"init_log": src.name, "model_algorithm": ckpt.record.algorithm,
+                                               "seed": seed, "replicate": r, "engine": engine})
+                    yield i, r, Log(None, time.copy(), tr[:, :ns].copy(), tr[:, ns:].copy(), meta)
+            del traj
+
+
+def simulate_logs(ckpt: Checkpoint, controller: ControllerSpec, init_logs: Sequence[Log],
+                  steps: int | None = None, runs: int = 1, seed: int = 0, engine: str = "torch") -> list[Log]:
+    """:func:`iter_simulate` collected in order (initial log, then replicate). The default engine
+    stays PyTorch because training calls this on a few logs many times, where compiling the model
+    for the native engine each time would cost more than it saves."""
+    result: list[Log | None] = [None] * (len(init_logs) * runs)
+    for i, r, lg in iter_simulate(ckpt, controller, init_logs, steps, runs, seed, engine):
+        result[i * runs + r] = lg
     return [lg for lg in result if lg is not None]
 
 
@@ -139,9 +163,13 @@ def simulate_versions(ckpt: Checkpoint, init_logs: Sequence[Log], runs: int = 1,
                       controller: ControllerSpec | None = None) -> list[Log]:
     """Each log's own controller version simulated from its sigma_0 (or every log under
     ``controller`` when given): the one loop over versions every command uses."""
+    return [lg for group in versions_to_simulate(init_logs, controller)
+            for lg in simulate_logs(ckpt, group[0], group[1], steps, runs, seed, engine)]
+
+
+def versions_to_simulate(init_logs: Sequence[Log],
+                         controller: ControllerSpec | None = None) -> list[tuple[ControllerSpec, list[Log]]]:
+    """(controller, initial logs) pairs: each log's own version, or all logs under ``controller``."""
     if controller is not None:
-        return simulate_logs(ckpt, controller, init_logs, steps, runs, seed, engine)
-    sims: list[Log] = []
-    for spec, group in group_by_controller(init_logs).items():
-        sims += simulate_logs(ckpt, spec, group, steps, runs, seed, engine)
-    return sims
+        return [(controller, list(init_logs))]
+    return list(group_by_controller(init_logs).items())

@@ -71,7 +71,7 @@ def test_cli_writes_and_reports(tmp_path, capsys):
     assert main([str(ck_path), "-o", str(tmp_path / "out.onnx")]) == 0
     assert "parity" in capsys.readouterr().out and (tmp_path / "out.onnx").stat().st_size > 250_000
     (tmp_path / "junk.pt").write_bytes(b"junk")
-    assert main([str(tmp_path / "junk.pt"), "-o", str(tmp_path / "x.onnx")]) == 1
+    assert main([str(tmp_path / "junk.pt"), "-o", str(tmp_path / "x.onnx")]) == 2  # bad input: one line, exit code 2
     assert "junk.pt" in capsys.readouterr().err and not (tmp_path / "x.onnx").exists()
 
 

@@ -102,3 +102,27 @@ def test_simulated_logs_carry_metadata():
     assert len(logs) == 2 and len(logs[0]) == 40
     assert logs[0].meta.source == "sim" and logs[1].meta.run_id == "7-sim1"
     assert np.all(np.diff(logs[0].time) > 0)
+
+
+def test_a_flipped_byte_or_a_nan_weight_is_refused_on_load(tmp_path):
+    """Bit rot and hostile edits: the content hash catches a changed weight, the finiteness check a
+    NaN (which a hash made after the edit would not)."""
+    from envi_py.train.common import model_config, new_checkpoint
+
+    logs = [make_log(np.linspace(20, 60, 30), run=str(i)) for i in range(2)]
+    ck = new_checkpoint("bc", logs, [], model_config(logs, history=4, hidden=(8,)), 0, {})
+    path = ck.save(tmp_path / "m.pt")
+    blob = torch.load(path, weights_only=True)
+    blob["state_dict"]["mean.weight"][0, 0] = 4e36
+    torch.save(blob, tmp_path / "flipped.pt")
+    with pytest.raises(ValueError, match="does not match its hash"):
+        Checkpoint.load(tmp_path / "flipped.pt")
+    with torch.no_grad():
+        ck.model.mean.weight[0, 0] = float("nan")
+    with pytest.raises(ValueError, match="NaN or inf"):
+        ck.save(tmp_path / "nan.pt")
+    blob["state_dict"]["mean.weight"][0, 0] = float("nan")
+    blob.pop("sha256")  # an older or hand-made file without a hash
+    torch.save(blob, tmp_path / "nan_nohash.pt")
+    with pytest.raises(ValueError, match="NaN or inf"):
+        Checkpoint.load(tmp_path / "nan_nohash.pt")

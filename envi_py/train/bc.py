@@ -8,6 +8,7 @@ loop on the validation logs and the best one is kept (see :mod:`.common`).
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
@@ -19,6 +20,7 @@ from ..logs import Log
 from ..system import SystemDescription
 from ..model import EnvModel, Checkpoint
 from .common import Selector, model_config, new_checkpoint
+from .state import TrainingState
 
 
 def bc_loss(model: EnvModel, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
@@ -32,8 +34,12 @@ def bc_loss(model: EnvModel, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
 def train_bc(train_logs: Sequence[Log], val_logs: Sequence[Log] = (), *, epochs: int = 300, lr: float = 5e-5,
              seed: int = 0, history: int = 10, hidden: Sequence[int] = (256, 256), head: str = "gaussian",
              eval_every: int = 10, system: SystemDescription | None = None, progress: bool = False,
-             **model_extra: Any) -> Checkpoint:
-    """Train a model by behaviour cloning on ``train_logs``; select on ``val_logs`` by closed-loop error."""
+             state_path: str | Path | None = None, resume: bool = False, **model_extra: Any) -> Checkpoint:
+    """Train a model by behaviour cloning on ``train_logs``; select on ``val_logs`` by closed-loop error.
+
+    With ``state_path`` the whole training state is written there (atomically) after every
+    validation, and ``resume`` continues from it: a run killed at any moment and resumed gives
+    the same checkpoint as an uninterrupted one (see :class:`.state.TrainingState`)."""
     cfg = model_config(train_logs, history, hidden, head, **model_extra)
     hyper = {"epochs": epochs, "lr": lr, "history": history, "hidden": list(hidden), "head": head,
              "eval_every": eval_every, "batch": "one log per step"}
@@ -44,8 +50,10 @@ def train_bc(train_logs: Sequence[Log], val_logs: Sequence[Log] = (), *, epochs:
     opt = torch.optim.Adam(ckpt.model.parameters(), lr=lr)
     rng = np.random.default_rng(seed)
     selector = Selector(val_logs)
+    saver = TrainingState(Path(state_path), ckpt) if state_path is not None else None
+    start = saver.restore(ckpt, opt, rng, selector) + 1 if saver is not None and resume else 1
     ckpt.model.train()
-    bar = tqdm(range(1, epochs + 1), desc="bc", disable=not progress, leave=False)
+    bar = tqdm(range(start, epochs + 1), desc="bc", disable=not progress, leave=False)
     for epoch in bar:
         total = 0.0
         for i in rng.permutation(len(xs)):
@@ -57,4 +65,6 @@ def train_bc(train_logs: Sequence[Log], val_logs: Sequence[Log] = (), *, epochs:
         if epoch % eval_every == 0 or epoch == epochs:
             score = selector.consider(ckpt, epoch)
             bar.set_postfix(loss=f"{total / len(xs):.2e}", val=f"{score:.4f}")
+            if saver is not None:
+                saver.save(epoch, ckpt, opt, rng, selector)
     return selector.finish(ckpt, epochs)

@@ -1,0 +1,81 @@
+"""Periodic training state, so a killed training resumes to the same result.
+
+What decides the rest of a training run is written after every validation: the model and optimiser
+state, the data-order generator's state, the selector's best weights and curve, and the epoch. It
+is written to a temporary file and renamed, so a ``kill -9`` at any moment leaves either the old
+state or the new one, never half a file. A fingerprint of the training (algorithm, hyper-parameters,
+seed, data hashes) is stored with it: resuming a different training from it is an error, not a
+silent mix.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from ..model import Checkpoint
+from .common import Selector
+
+STATE_FORMAT = "envi-training-state"
+
+
+def fingerprint(ckpt: Checkpoint) -> str:
+    """What must match for a state to continue this training."""
+    rec = ckpt.record
+    blob = {"algorithm": rec.algorithm, "seed": rec.seed, "hyper": rec.hyper, "config": asdict(ckpt.config),
+            "data": [d["sha256"] for d in rec.data], "validation": [d["sha256"] for d in rec.validation]}
+    return hashlib.sha256(json.dumps(blob, sort_keys=True, default=str).encode()).hexdigest()
+
+
+class TrainingState:
+    """The state file of one training run (``<output>.state`` by the command line)."""
+
+    def __init__(self, path: Path, ckpt: Checkpoint) -> None:
+        self.path, self.fingerprint = path, fingerprint(ckpt)
+
+    def save(self, epoch: int, ckpt: Checkpoint, opt: torch.optim.Optimizer, rng: np.random.Generator,
+             selector: Selector) -> None:
+        blob = {"format": STATE_FORMAT, "fingerprint": self.fingerprint, "epoch": epoch,
+                "model": ckpt.model.state_dict(), "optimizer": opt.state_dict(),
+                "rng": json.dumps(rng.bit_generator.state),
+                "selector": {"best_score": selector.best_score, "best_epoch": selector.best_epoch,
+                             "best_state": selector.best_state, "history": [list(h) for h in selector.history],
+                             "diverged": list(selector.diverged)}}
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = self.path.with_name("." + self.path.name + ".tmp")
+        with open(tmp, "wb") as fh:
+            torch.save(blob, fh)
+            fh.flush()
+            os.fsync(fh.fileno())
+        tmp.replace(self.path)
+
+    def restore(self, ckpt: Checkpoint, opt: torch.optim.Optimizer, rng: np.random.Generator,
+                selector: Selector) -> int:
+        """Load the state into the training's objects; returns the last finished epoch."""
+        try:
+            blob: Any = torch.load(self.path, map_location="cpu", weights_only=True)
+        except FileNotFoundError:
+            raise ValueError(f"{self.path}: no training state to resume from") from None
+        except Exception as exc:  # noqa: BLE001 - torch raises many types for a foreign or corrupt file
+            raise ValueError(f"{self.path}: not a training state ({type(exc).__name__})") from None
+        if not isinstance(blob, dict) or blob.get("format") != STATE_FORMAT:
+            raise ValueError(f"{self.path}: not an envi training state")
+        if blob.get("fingerprint") != self.fingerprint:
+            raise ValueError(f"{self.path}: the state belongs to another training (different data, seed or "
+                             "settings); remove it or train without --resume")
+        ckpt.model.load_state_dict(blob["model"])
+        opt.load_state_dict(blob["optimizer"])
+        rng.bit_generator.state = json.loads(blob["rng"])
+        sel = blob["selector"]
+        selector.best_score, selector.best_epoch = float(sel["best_score"]), int(sel["best_epoch"])
+        selector.best_state = sel["best_state"]
+        selector.history = [(int(e), float(v)) for e, v in sel["history"]]
+        selector.diverged = [int(e) for e in sel["diverged"]]
+        return int(blob["epoch"])
