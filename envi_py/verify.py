@@ -25,6 +25,7 @@ from scipy import stats
 from .goals.evaluate import Runs, goal_scale, goal_table, signals_of
 from .goals.presets import LANE_KEEPING_SIGNAL, goals_of, lane_keeping_centre
 from .goals.selection import default_goals
+from .controllers import ControllerSpec
 from .logs import Log, group_by_controller
 from .metrics import Distances, gaussian_kld
 from .system import GoalSpec, LogSchema, SystemDescription, describe_schema
@@ -62,7 +63,8 @@ class Scoring:
         return [g.name for g in self.goals]
 
     def runs(self, logs: Sequence[Log]) -> Runs:
-        return signals_of(logs, self.schema, self.skip, self.period_ms)
+        """The logs' signals (real logs may carry logged-only columns, simulated ones do not)."""
+        return signals_of(logs, logs[0].meta.schema, self.skip, self.period_ms)
 
     def table(self, runs: Runs) -> np.ndarray:
         """(R, G): every goal metric of every run."""
@@ -128,6 +130,7 @@ class GroupResult:
     """Verification of one controller version."""
 
     controller: dict[str, Any]
+    version: str  # the version parameters (``x=30``), or the controller's label
     goals: list[str]
     n_real: int
     n_sim: int
@@ -138,7 +141,7 @@ class GroupResult:
     real_logs: list[str] = field(default_factory=list)
 
     def to_json(self) -> dict[str, Any]:
-        return {"controller": self.controller, "goals": self.goals, "n_real": self.n_real, "n_sim": self.n_sim,
+        return {"controller": self.controller, "version": self.version, "goals": self.goals, "n_real": self.n_real, "n_sim": self.n_sim,
                 "real_mean": dict(zip(self.goals, self.real_mean.tolist())),
                 "sim_mean": dict(zip(self.goals, self.sim_mean.tolist())),
                 "sim_vs_real": _dist_json(self.sim, self.goals),
@@ -170,7 +173,7 @@ def verify(real: Sequence[Log], sim: Sequence[Log], system: SystemDescription | 
         mr, ms, scale = scoring.table(rr), scoring.table(sr), scoring.scales(rr)
         pr, ps = scoring.pair_of(rr, centre), scoring.pair_of(sr, centre)
         fl = halves_floor(mr, scale, pr, floor_splits, seed) if floor_splits > 0 and len(rl) >= 4 else None
-        results.append(GroupResult(spec.to_json(), scoring.names, len(rl), len(sl), mr.mean(axis=0), ms.mean(axis=0),
+        results.append(GroupResult(spec.to_json(), version_label(spec, system or describe_schema(schema)), scoring.names, len(rl), len(sl), mr.mean(axis=0), ms.mean(axis=0),
                                    table_distances(mr, ms, scale, pr, ps), fl, [lg.name for lg in rl]))
     return results
 
@@ -188,10 +191,13 @@ def traces(logs: Sequence[Log], channel: int = 0) -> np.ndarray:
     return np.stack([lg.states[:t, channel] for lg in logs])
 
 
-def _label(c: dict[str, Any]) -> str:
-    from .controllers import ControllerSpec
-
-    return ControllerSpec.from_json(c).label()
+def version_label(spec: ControllerSpec, system: SystemDescription) -> str:
+    """``x=30`` or ``kp_steer=0.8, kp_speed=18``: the version parameters the system names, else the
+    controller's own label."""
+    params = system.version_of(spec) if system.versions.params else {}
+    if not params:
+        return spec.label()
+    return ", ".join(f"{k}={v:g}" if isinstance(v, (int, float)) else f"{k}={v}" for k, v in params.items())
 
 
 def _fmt(v: float | None, spec: str) -> str:
@@ -209,11 +215,11 @@ def to_markdown(results: Sequence[GroupResult], title: str = "Verification repor
              "|---|---:|---:|---:|---:|---:|---:|"]
     for r in results:
         fl = r.floor
-        lines.append(f"| {_label(r.controller)} | {r.n_real} | {r.n_sim} | {r.sim.acc:.2%} | "
+        lines.append(f"| {r.version} | {r.n_real} | {r.n_sim} | {r.sim.acc:.2%} | "
                      f"{_fmt(fl.acc if fl else None, '.2%')} | {_fmt(r.sim.kld, '.3f')} | "
                      f"{_fmt(fl.kld if fl else None, '.3f')} |")
     for r in results:
-        lines += ["", f"## {_label(r.controller)}", "",
+        lines += ["", f"## {r.version}", "",
                   "| goal | real mean | sim mean | W1 | W1 floor | KS (p) | KS floor |",
                   "|---|---:|---:|---:|---:|---:|---:|"]
         for j, m in enumerate(r.goals):
@@ -231,7 +237,7 @@ def to_text(results: Sequence[GroupResult]) -> str:
             f"{'KLD':>8} {'floorKLD':>8}"]
     for r in results:
         fl = r.floor
-        rows.append(f"{_label(r.controller)[:34]:<34} {r.n_real:>5} {r.n_sim:>5} {r.sim.acc:>8.2%} "
+        rows.append(f"{r.version[:34]:<34} {r.n_real:>5} {r.n_sim:>5} {r.sim.acc:>8.2%} "
                     f"{_fmt(fl.acc if fl else None, '.2%'):>8} {r.sim.w1.mean():>8.4f} "
                     f"{_fmt(fl.w1.mean() if fl else None, '.4f'):>8} {_fmt(r.sim.kld, '.3f'):>8} "
                     f"{_fmt(fl.kld if fl else None, '.3f'):>8}")
