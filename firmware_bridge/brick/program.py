@@ -150,8 +150,9 @@ class Brick:
                 flags |= P.FLAG_OVERRUN
             self.send(P.TELEMETRY, (run_id, tick, stamp & 0xFFFFFFFF, color, angle, work, flags, min(0xFFFF, max(0, age))))
         self.running = False
+        skipped = tk.skipped - max(0, tk.tick - n_ticks)  # a skip past the last tick skips no real tick
         self.last_end = (run_id, P.END_STOPPED if self.stop_requested else P.END_DONE, min(tk.tick, n_ticks),
-                         rows, tk.overruns, tk.skipped, timeouts, self.dec.lost - counters0[0],
+                         rows, tk.overruns, skipped, timeouts, self.dec.lost - counters0[0],
                          self.dec.crc_errors + self.dec.malformed - counters0[1],
                          self.dec.duplicates - counters0[2], self.late_injects)
         self.send(P.RUN_END, self.last_end)

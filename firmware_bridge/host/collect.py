@@ -260,7 +260,7 @@ class Session:
             if n == 0:
                 remove_stale_staging(args.out)
                 first = first_index(args, self.prefix, info, self.ledger)
-            n_ticks = max(1, int(round(args.duration * 1000 / info.period_ms)))
+            n_ticks = max(1, round(args.duration * 1000 / info.period_ms))
             if self.bar.total is None:
                 self.bar.reset(total=n_ticks * args.runs)
             self.bar.set_description(f"run {n + 1}/{args.runs}")

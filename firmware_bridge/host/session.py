@@ -10,8 +10,9 @@ running on the brick) are counted and dropped, never appended.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -165,7 +166,7 @@ class Run:
         """Predict the colour for ``tick`` from the window and send it (x100, as the wire has it)."""
         assert self.model is not None and self.window is not None
         color = min(100.0, max(0.0, self.model(self.window)))
-        self._sent[tick] = self.link.send(P.INJECT, (self.result.run_id, tick, int(round(color * 100))))
+        self._sent[tick] = self.link.send(P.INJECT, (self.result.run_id, tick, round(color * 100)))
 
     def execute(self) -> RunResult:
         r = self.result
