@@ -199,16 +199,16 @@ def run_name(prefix: str, info: BrickInfo, index: int) -> str:
     return f"{prefix}_{x:g}_{index}" if isinstance(x, float) else f"{prefix}_{index}"
 
 
-def first_index(args: argparse.Namespace, prefix: str, info: BrickInfo, ledger: Ledger) -> int:
-    """Where numbering starts: the next free index, or ``--first-run`` if none of its names is taken."""
+def first_index(args: argparse.Namespace, prefix: str, ledger: Ledger) -> int:
+    """Where numbering starts: the next free index, or ``--first-run`` if none of its indices is used."""
     used = used_indices(args.out, prefix, ledger.names())
     free = max(used) + 1 if used else 0
     if args.first_run is None:
         return free
     for i in range(args.first_run, args.first_run + args.runs):
-        name = run_name(prefix, info, i)
-        path = taken(args.out, name)
-        if path is not None or i in used:
+        if i in used:
+            name = used[i]
+            path = taken(args.out, name)
             what = f"{path}: exists" if path is not None else \
                 f"{args.out / name}.csv: run {i} was started by an earlier collector (see {LEDGER_NAME})"
             raise LogExists(f"{what}; not replacing it (leave out --first-run to continue at {free})")
@@ -253,13 +253,12 @@ class Session:
 
     def run_all(self) -> None:
         args = self.args
-        first = 0
+        first = first_index(args, self.prefix, self.ledger)  # a used --first-run is refused before any contact
         for n in range(args.runs):
             self.link, info, clock = connect(self.link, args.port, args.reconnect, args.pings)
             self._settle(info)
             if n == 0:
-                remove_stale_staging(args.out)
-                first = first_index(args, self.prefix, info, self.ledger)
+                remove_stale_staging(args.out)  # after settling, which may finish a dead collector's staging
             n_ticks = max(1, round(args.duration * 1000 / info.period_ms))
             if self.bar.total is None:
                 self.bar.reset(total=n_ticks * args.runs)
@@ -320,8 +319,8 @@ def main(argv: list[str] | None = None) -> int:
         if session is not None:
             session.close()
     bar.close()
-    if session is None:
-        return code
+    if session is None or (code == 2 and not session.tally.runs):
+        return code  # refused before any run: the one error line says it all
     tally = session.tally
     if code == 130:
         print("envi-collect: interrupted; the logs written so far are complete files", file=sys.stderr)

@@ -37,8 +37,8 @@ def index_of(name: str, prefix: str) -> int | None:
     return int(m.group(1)) if m else None
 
 
-def used_indices(folder: Path, prefix: str, reserved: set[str]) -> set[int]:
-    """Indices taken by a log or sidecar in ``folder`` or by a run name in ``reserved`` (the ledger)."""
+def used_indices(folder: Path, prefix: str, reserved: set[str]) -> dict[int, str]:
+    """Index -> a name using it, over the logs and sidecars in ``folder`` and ``reserved`` (the ledger's)."""
     names = set(reserved)
     if folder.is_dir():
         for p in folder.iterdir():
@@ -48,7 +48,7 @@ def used_indices(folder: Path, prefix: str, reserved: set[str]) -> set[int]:
                 names.add(p.name[:-len(".meta.json")])
             elif p.suffix == ".csv":
                 names.add(p.stem)
-    return {i for i in (index_of(n, prefix) for n in names) if i is not None}
+    return {i: n for n in sorted(names) if (i := index_of(n, prefix)) is not None}
 
 
 def taken(folder: Path, name: str) -> Path | None:

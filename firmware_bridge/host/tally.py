@@ -32,6 +32,10 @@ class Tally:
             self.rows_lost += entry["rows_lost"]
 
     @property
+    def runs(self) -> int:
+        return self.complete + self.incomplete + self.lost
+
+    @property
     def partial(self) -> bool:
         """Anything short of every run complete with every row: the exit code says so."""
         return bool(self.incomplete or self.lost or self.rows_lost or self.unknown)
