@@ -14,8 +14,9 @@ import os
 import signal
 import sys
 import tty
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 from ..brick.control import LaneKeeping
 from ..brick.hardware import SimHardware

@@ -251,12 +251,23 @@ class Session:
             self.bar.write(f"stopped run {rid}, which another collector (not of {self.args.out}) left running; "
                            f"{'its' if sent is None else sent} row(s) are not recorded here")
 
+    def _connect(self) -> tuple[BrickInfo, dict[str, Any]]:
+        """Handshake, ping and settle; a link lost while settling is opened again, as in :func:`connect`."""
+        for _ in range(3):
+            self.link, info, clock = connect(self.link, self.args.port, self.args.reconnect, self.args.pings)
+            try:
+                self._settle(info)
+                return info, clock
+            except LinkLost:
+                self.link.close()
+                self.link = None
+        raise BrickError(f"{self.args.port}: the link keeps dropping while settling earlier runs")
+
     def run_all(self) -> None:
         args = self.args
         first = first_index(args, self.prefix, self.ledger)  # a used --first-run is refused before any contact
         for n in range(args.runs):
-            self.link, info, clock = connect(self.link, args.port, args.reconnect, args.pings)
-            self._settle(info)
+            info, clock = self._connect()
             if n == 0:
                 remove_stale_staging(args.out)  # after settling, which may finish a dead collector's staging
             n_ticks = max(1, round(args.duration * 1000 / info.period_ms))
