@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import heapq
+import itertools
 
 import pytest
 
@@ -207,7 +208,7 @@ def test_catching_up_never_repeats_a_time_stamp() -> None:
     tel = host.of(P.TELEMETRY)
     stamps = [t[1] for t in tel]
     assert [t[0] for t in tel] == list(range(12))
-    assert all(b > a for a, b in zip(stamps, stamps[1:])), stamps
+    assert all(b > a for a, b in itertools.pairwise(stamps)), stamps
     assert stamps[6] - stamps[5] == 1  # caught up as fast as the stamps allow
 
 

@@ -17,7 +17,7 @@ from envi_py.logs import read_log, write_log
 from firmware_bridge.brick import protocol as P
 from firmware_bridge.host import collect
 from firmware_bridge.host.ledger import LEDGER_NAME, Ledger
-from firmware_bridge.host.session import BrickInfo, Run
+from firmware_bridge.host.session import BrickError, BrickInfo, Run, handshake
 from firmware_bridge.host.settle import settle
 from firmware_bridge.host.store import LogExists, remove_stale_staging, save_new
 from firmware_bridge.host.tally import Tally
@@ -169,3 +169,10 @@ def test_first_run_already_used_is_refused_in_one_line(tmp_path: Path, capsys: p
     assert collect.main(argv) == 2  # free indices: it goes on to the brick, which is not there
     assert "cannot open" in capsys.readouterr().err
     assert sorted(os.listdir(out)) == [LEDGER_NAME, "log_30_3.csv", "log_30_3.meta.json"]  # nothing touched
+
+
+def test_a_brick_of_another_protocol_version_is_named_as_such() -> None:
+    link = FakeLink()
+    link.decoder.other_version = 1  # its HANDSHAKE frames were dropped for their version byte
+    with pytest.raises(BrickError, match="the brick speaks protocol 1, this host 2"):
+        handshake(link, timeout=0.01, tries=1)

@@ -74,7 +74,7 @@ def test_byte_by_byte_delivery() -> None:
 
 
 def test_garbage_between_frames_is_discarded_not_lost() -> None:
-    data, frames = stream(40)
+    _, frames = stream(40)
     rng = random.Random(1)
     noisy = b"".join(f + bytes(rng.randrange(1, 256) for _ in range(rng.randrange(1, 30))) for f in frames)
     dec = P.Decoder()

@@ -20,11 +20,11 @@ from envi_py.dataset import Normaliser
 from envi_py.logs import LANE_KEEPING_SCHEMA, load_logs, read_log
 from envi_py.model import Checkpoint, EnvModel, ModelConfig, TrainingRecord
 from firmware_bridge.brick import protocol as P
+from firmware_bridge.brick.identity import program_hash
 from firmware_bridge.host import collect
 from firmware_bridge.host.brick_sim import BRICK_DIR
-from firmware_bridge.host.ledger import LEDGER_NAME
-from firmware_bridge.brick.identity import program_hash
 from firmware_bridge.host.inject import CheckpointModel
+from firmware_bridge.host.ledger import LEDGER_NAME
 
 from .conftest import make_log
 
@@ -45,7 +45,11 @@ class BrickSim:
 
     def stop(self) -> str:
         self.proc.terminate()
-        _, err = self.proc.communicate(timeout=30)
+        try:
+            _, err = self.proc.communicate(timeout=30)
+        except subprocess.TimeoutExpired:  # never leave it running, even when a test already failed
+            self.proc.kill()
+            _, err = self.proc.communicate(timeout=30)
         return err
 
 
@@ -134,7 +138,7 @@ def journal_runs(path: Path) -> dict[int, list[tuple[str, P.Message]]]:
 
 
 def row_key(t: float, c: float, a: float) -> tuple[int, int, int]:
-    return int(t), int(round(c * 100)), int(round(a * 100))
+    return int(t), round(c * 100), round(a * 100)
 
 
 FAULTS = "garbage=0.05,flip=0.04,drop=0.04,dup=0.04,rx_drop=0.03,disconnect=420,seed=5"
@@ -156,7 +160,7 @@ def test_faults_are_counted_and_no_row_is_lost_or_corrupted(tmp_path: Path) -> N
     incomplete = [k for k, lg in logs.items() if not lg.meta.provenance["complete"]]
     assert len(incomplete) == 1 and logs[incomplete[0]].meta.provenance["end_reason"] == "disconnect"
     faults = {"drop": 0, "flip": 0}
-    for k, lg in logs.items():
+    for lg in logs.values():
         prov = lg.meta.provenance
         check_rows_follow_controller(lg)
         recorded = [row_key(t, c, a) for t, c, a in zip(lg.time, lg.states[:, 0], lg.actions[:, 0])]
