@@ -55,8 +55,7 @@ def settle(link: Link, info: BrickInfo, ledger: Ledger, folder: Path) -> Settlem
     if info.run_state == P.RUN_RUNNING or (info.run_state == P.RUN_ENDED and info.run_id in waiting):
         brick_end = stop_run(link, info.run_id, tries=5)  # an ended run's RUN_END is repeated
         if brick_end is None and info.run_state == P.RUN_RUNNING:
-            raise BrickError(f"{link.url}: the brick is in run {info.run_id}, which no one here started, "
-                             "and does not stop it")
+            raise BrickError(f"{link.url}: the brick is in run {info.run_id} and does not stop it when asked")
     foreign = None
     if info.run_state == P.RUN_RUNNING and info.run_id not in ledger.run_ids():
         foreign = (info.run_id, None if brick_end is None else brick_end[3])
