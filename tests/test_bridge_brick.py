@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import heapq
+import itertools
 
 import pytest
 
@@ -107,13 +108,17 @@ class ScriptedHost:
     def write(self, data: bytes) -> None:
         for m in self.dec.feed(data):
             self.sent.append(m)
-            nxt = m.fields[0] + 1 if m.type == P.TELEMETRY else 0 if m.type == P.STARTED else None
+            nxt = m.fields[1] + 1 if m.type == P.TELEMETRY else 0 if m.type == P.STARTED else None
             if nxt is not None and nxt not in self.withhold:
                 delay = self.delay + (self.late if nxt in self.withhold else 0)
-                self.push(self.clock.now + delay, P.INJECT, (nxt, self.colour(nxt)))
+                self.push(self.clock.now + delay, P.INJECT, (m.fields[0], nxt, self.colour(nxt)))
 
     def of(self, mtype: int) -> list[tuple]:
-        return [m.fields for m in self.sent if m.type == mtype]
+        """Fields of every frame of that type the brick sent (TELEMETRY without its run id)."""
+        return [m.fields[1:] if mtype == P.TELEMETRY else m.fields for m in self.sent if m.type == mtype]
+
+    def run_ids(self, mtype: int) -> set[int]:
+        return {m.fields[0] for m in self.sent if m.type == mtype}
 
 
 def make(mode_host: ScriptedHost, clock: Clock, hw: Hardware) -> Brick:
@@ -134,7 +139,8 @@ def test_field_run_is_on_time_and_reports_overruns() -> None:
         assert bool(flags & P.FLAG_OVERRUN) == (tick in (10, 20))
         assert stamp == 40 * tick + {11: 10, 23: 10}.get(tick, 0)  # only the tick after an overrun is late
     end = host.of(P.RUN_END)[0]
-    assert end[:6] == (3, P.END_DONE, 50, 2, 2, 0)
+    assert end[:7] == (3, P.END_DONE, 50, 48, 2, 2, 0)  # 48 rows sent: 50 ticks less the 2 skipped
+    assert host.run_ids(P.TELEMETRY) == {3}  # every frame says which run it belongs to
 
 
 def test_lockstep_uses_the_colour_for_its_tick_and_reports_timeouts() -> None:
@@ -154,7 +160,8 @@ def test_lockstep_uses_the_colour_for_its_tick_and_reports_timeouts() -> None:
             assert color == host.colour(k) and angle == LaneKeeping(30)(color / 100) * 100
     assert len(hw.steered) == 37  # a timeout actuates nothing
     assert hw.reads == 0  # injected: the sensor is never read
-    assert host.of(P.RUN_END)[0][5] == 3
+    end = host.of(P.RUN_END)[0]
+    assert end[6] == 3 and end[3] == 37  # 3 timeouts; 37 rows sent (a timeout is no row)
 
 
 def test_free_running_marks_stale_colours() -> None:
@@ -201,5 +208,39 @@ def test_catching_up_never_repeats_a_time_stamp() -> None:
     tel = host.of(P.TELEMETRY)
     stamps = [t[1] for t in tel]
     assert [t[0] for t in tel] == list(range(12))
-    assert all(b > a for a, b in zip(stamps, stamps[1:])), stamps
+    assert all(b > a for a, b in itertools.pairwise(stamps)), stamps
     assert stamps[6] - stamps[5] == 1  # caught up as fast as the stamps allow
+
+
+def test_handshake_tells_which_run_the_brick_is_in_and_a_stale_stop_ends_nothing() -> None:
+    """A collector that connects mid-run learns the run's id from the HANDSHAKE; a STOP naming
+    another run (an old one) does not end it, a STOP naming it does."""
+    clock = Clock()
+    host = ScriptedHost(clock, withhold=frozenset(range(1000)))
+    brick = make(host, clock, Hardware(clock))
+    host.push(clock.now, P.HELLO, ())
+    brick.serve_once(10)
+    assert host.of(P.HANDSHAKE)[-1][:3] == (P.VERSION, 40, P.RUN_NONE)
+    host.push(clock.now + 200, P.HELLO, ())  # a new collector, mid-run
+    host.push(clock.now + 300, P.STOP, (41,))  # a run that is not the one going
+    host.push(clock.now + 300, P.INJECT, (41, 0, 5000))  # a colour for that other run: not data
+    host.push(clock.now + 600, P.STOP, (0xABCDEF01,))
+    brick.run(0xABCDEF01, P.MODE_FIELD, 100, 0, 0)
+    assert host.of(P.HANDSHAKE)[-1][2:4] == (P.RUN_RUNNING, 0xABCDEF01)
+    end = host.of(P.RUN_END)[0]
+    assert end[:2] == (0xABCDEF01, P.END_STOPPED) and 13 <= end[2] <= 16  # stopped at 600 ms, not 300
+    assert end[3] == len(host.of(P.TELEMETRY)) == end[2]  # rows sent: every tick's frame
+    assert brick.injects == {} and brick.latest is None
+    host.push(clock.now + 1, P.HELLO, ())
+    brick.serve_once(10)
+    assert host.of(P.HANDSHAKE)[-1][2:4] == (P.RUN_ENDED, 0xABCDEF01)
+
+
+def test_hello_drops_a_start_the_previous_host_left_pending() -> None:
+    clock = Clock()
+    host = ScriptedHost(clock, withhold=frozenset(range(1000)))
+    brick = make(host, clock, Hardware(clock))
+    host.push(clock.now, P.START, (5, P.MODE_FIELD, 10, 0, 0))
+    host.push(clock.now, P.HELLO, ())  # same batch: the START's sender is gone
+    brick.serve_once(10)
+    assert brick.current_run is None and host.of(P.STARTED) == []

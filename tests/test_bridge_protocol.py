@@ -12,27 +12,27 @@ from firmware_bridge.brick.crc import crc16
 
 SAMPLES = {
     P.HELLO: (),
-    P.HANDSHAKE: (1, 40, "0123456789abcdef", "micropython 1.19.1", "lane-keeping", "x=30;threshold=40"),
-    P.START: (7, P.MODE_LOCKSTEP, 100, 40, 80),
+    P.HANDSHAKE: (2, 40, P.RUN_RUNNING, 0xDEADBEEF, "0123456789abcdef", "micropython 1.19.1", "lane-keeping", "x=30;threshold=40"),
+    P.START: (0xFFFFFFFF, P.MODE_LOCKSTEP, 100, 40, 80),
     P.STARTED: (7, P.MODE_LOCKSTEP, 40),
-    P.TELEMETRY: (99, 3961, 7500, -3000, 120, P.FLAG_INJECTED | P.FLAG_OVERRUN, 12),
-    P.INJECT: (4_000_000_000, 4000),
+    P.TELEMETRY: (0x80000001, 99, 3961, 7500, -3000, 120, P.FLAG_INJECTED | P.FLAG_OVERRUN, 12),
+    P.INJECT: (7, 4_000_000_000, 4000),
     P.PING: (0xFFFFFFFF,),
     P.PONG: (12345,),
-    P.STOP: (65535,),
-    P.RUN_END: (7, P.END_DONE, 100, 1, 2, 3, 4, 5, 6, 7),
+    P.STOP: (0xFFFFFFFF,),
+    P.RUN_END: (7, P.END_DONE, 100, 98, 1, 2, 3, 4, 5, 6, 7),
 }
 
 
 def stream(n: int = 50) -> tuple[bytes, list[bytes]]:
     """n telemetry frames from one encoder: the whole byte stream and each frame."""
     enc = P.Encoder()
-    frames = [enc.encode(P.TELEMETRY, (k, 40 * k, 100 * (k % 80), 3000, 50, 0, 0), 1000 + 40 * k) for k in range(n)]
+    frames = [enc.encode(P.TELEMETRY, (5, k, 40 * k, 100 * (k % 80), 3000, 50, 0, 0), 1000 + 40 * k) for k in range(n)]
     return b"".join(frames), frames
 
 
 def ticks(msgs: list[P.Message]) -> list[int]:
-    return [m.fields[0] for m in msgs]
+    return [m.fields[1] for m in msgs]
 
 
 def test_crc_is_mcrf4xx() -> None:
@@ -74,7 +74,7 @@ def test_byte_by_byte_delivery() -> None:
 
 
 def test_garbage_between_frames_is_discarded_not_lost() -> None:
-    data, frames = stream(40)
+    _, frames = stream(40)
     rng = random.Random(1)
     noisy = b"".join(f + bytes(rng.randrange(1, 256) for _ in range(rng.randrange(1, 30))) for f in frames)
     dec = P.Decoder()
@@ -153,3 +153,12 @@ def test_wrong_payload_length_is_malformed() -> None:
     dec = P.Decoder()
     assert dec.feed(b"\x00" + cobs.encode(body + P.struct.pack("<H", crc)) + b"\x00") == []
     assert dec.malformed == 1
+
+
+def test_a_frame_of_another_protocol_version_is_dropped_and_its_version_kept() -> None:
+    """A version 1 brick's frames are not misread as version 2: dropped, and the host can say why."""
+    body = P.struct.pack(P.HEADER, 1, P.PONG, 0, 0) + P.pack_payload(P.PONG, (1,))
+    crc = crc16(bytes((P.CRC_EXTRA[P.PONG],)), crc16(body))
+    dec = P.Decoder()
+    assert dec.feed(b"\x00" + cobs.encode(body + P.struct.pack("<H", crc)) + b"\x00") == []
+    assert dec.malformed == 1 and dec.other_version == 1 and P.VERSION == 2

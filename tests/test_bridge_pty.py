@@ -20,10 +20,11 @@ from envi_py.dataset import Normaliser
 from envi_py.logs import LANE_KEEPING_SCHEMA, load_logs, read_log
 from envi_py.model import Checkpoint, EnvModel, ModelConfig, TrainingRecord
 from firmware_bridge.brick import protocol as P
+from firmware_bridge.brick.identity import program_hash
 from firmware_bridge.host import collect
 from firmware_bridge.host.brick_sim import BRICK_DIR
-from firmware_bridge.brick.identity import program_hash
 from firmware_bridge.host.inject import CheckpointModel
+from firmware_bridge.host.ledger import LEDGER_NAME
 
 from .conftest import make_log
 
@@ -44,7 +45,11 @@ class BrickSim:
 
     def stop(self) -> str:
         self.proc.terminate()
-        _, err = self.proc.communicate(timeout=30)
+        try:
+            _, err = self.proc.communicate(timeout=30)
+        except subprocess.TimeoutExpired:  # never leave it running, even when a test already failed
+            self.proc.kill()
+            _, err = self.proc.communicate(timeout=30)
         return err
 
 
@@ -57,6 +62,12 @@ def sim(tmp_path: Path):
 
 def collect_ok(*argv: str) -> None:
     assert collect.main([*argv, "--quiet"]) == 0
+
+
+def ledger_ends(folder: Path) -> dict[str, dict]:
+    """The ledger's end entry of each run, by run name."""
+    entries = [json.loads(line) for line in (folder / LEDGER_NAME).read_text().splitlines()]
+    return {e["run"]: e for e in entries if e["event"] == "end"}
 
 
 def meta(path: Path) -> dict:
@@ -91,13 +102,22 @@ def test_field_runs_zero_loss(sim: BrickSim, tmp_path: Path) -> None:
         assert prov["clock"]["ping_rtt_ms"]["n"] == 10
         check_rows_follow_controller(lg)
         assert lg.states.min() < 40 < lg.states.max()  # the world made it cross the edge
+        assert prov["rows_sent"] == len(lg) and prov["rows_lost"] == 0 and prov["foreign_frames_at_host"] == 0
+    ends = ledger_ends(out)
+    assert {k: (e["status"], e["rows"], e["rows_lost"], e["file"]) for k, e in ends.items()} == {
+        lg.name[:-4]: ("complete", len(lg), 0, lg.name) for lg in logs}
     assert not list(out.glob(".*"))  # no temporary files left
 
 
 def journal_runs(path: Path) -> dict[int, list[tuple[str, P.Message]]]:
-    """The brick's frames per run: from its STARTED to the next handshake (or the disconnect)."""
+    """The brick's frames per run: from its STARTED to the next handshake (or the disconnect).
+
+    Frames lost just before the STARTED (a last PONG) belong to the run too: the host can only
+    notice them from the sequence number of the next frame it gets, which is the run's first.
+    """
     runs: dict[int, list] = {}
     current: list | None = None
+    unnoticed: list = []  # lost frames since the last one that arrived
     for line in path.read_text().splitlines():
         kind, hexframe = line.split()
         msgs = P.Decoder().feed(bytes.fromhex(hexframe))
@@ -108,15 +128,17 @@ def journal_runs(path: Path) -> dict[int, list[tuple[str, P.Message]]]:
             current = None
         if m.type == P.STARTED:
             current = runs.setdefault(m.fields[0], [])
+            current.extend(unnoticed)
         if current is not None and kind != "dup":
             current.append((kind, m))
+        unnoticed = [*unnoticed, (kind, m)] if kind in ("drop", "flip") else []
         if kind == "disconnect":
             current = None
     return runs
 
 
 def row_key(t: float, c: float, a: float) -> tuple[int, int, int]:
-    return int(t), int(round(c * 100)), int(round(a * 100))
+    return int(t), round(c * 100), round(a * 100)
 
 
 FAULTS = "garbage=0.05,flip=0.04,drop=0.04,dup=0.04,rx_drop=0.03,disconnect=420,seed=5"
@@ -127,7 +149,8 @@ def test_faults_are_counted_and_no_row_is_lost_or_corrupted(tmp_path: Path) -> N
     s = BrickSim(tmp_path, "--faults", FAULTS, "--journal", str(journal))
     out = tmp_path / "logs"
     try:
-        collect_ok("--port", str(s.link), "--runs", "5", "--duration", "4s", "--out", str(out))
+        # a disconnect makes a run incomplete: exit 2 unless partial runs are accepted
+        collect_ok("--port", str(s.link), "--runs", "5", "--duration", "4s", "--out", str(out), "--accept-partial")
     finally:
         err = s.stop()
     assert "injected disconnect" in err
@@ -137,12 +160,12 @@ def test_faults_are_counted_and_no_row_is_lost_or_corrupted(tmp_path: Path) -> N
     incomplete = [k for k, lg in logs.items() if not lg.meta.provenance["complete"]]
     assert len(incomplete) == 1 and logs[incomplete[0]].meta.provenance["end_reason"] == "disconnect"
     faults = {"drop": 0, "flip": 0}
-    for k, lg in logs.items():
+    for lg in logs.values():
         prov = lg.meta.provenance
         check_rows_follow_controller(lg)
         recorded = [row_key(t, c, a) for t, c, a in zip(lg.time, lg.states[:, 0], lg.actions[:, 0])]
-        frames = runs[k]
-        intact = [row_key(m.fields[1], m.fields[2] / 100, m.fields[3] / 100)
+        frames = runs[prov["brick_run_id"]]
+        intact = [row_key(m.fields[2], m.fields[3] / 100, m.fields[4] / 100)
                   for kind, m in frames if kind == "sent" and m.type == P.TELEMETRY]
         lost = sum(kind in ("drop", "flip") for kind, _ in frames)
         for kind, _ in frames:
@@ -152,6 +175,8 @@ def test_faults_are_counted_and_no_row_is_lost_or_corrupted(tmp_path: Path) -> N
             assert recorded == intact  # every intact row, in order, nothing else
             assert prov["lost_frames"]["brick_to_host"] == lost  # every dropped or flipped frame counted
             assert len(lg) + missing == 100
+            sent = sum(m.type == P.TELEMETRY for _, m in frames)
+            assert prov["rows_sent"] == sent and prov["rows_lost"] == sent - len(lg)
         else:
             assert recorded == intact[:len(recorded)]  # what arrived before the cut is intact
             assert prov["lost_frames"]["brick_to_host"] >= missing
@@ -235,8 +260,13 @@ def ctrl_c(sim: BrickSim, tmp_path: Path) -> None:
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 130, err
     assert "interrupted" in err
+    assert "1 complete, 1 incomplete, 0 lost run(s)" in err
     names = sorted(p.name for p in out.iterdir())
-    assert names == ["log_30_0.csv", "log_30_0.meta.json", "log_30_1.csv", "log_30_1.meta.json"]
+    assert names == [LEDGER_NAME, "log_30_0.csv", "log_30_0.meta.json", "log_30_1.csv", "log_30_1.meta.json"]
+    ends = ledger_ends(out)
+    assert ends["log_30_1"]["status"] == "incomplete" and ends["log_30_1"]["reason"] == "interrupted"
+    # the brick said how many rows it sent before the STOP: every one of them is in the log
+    assert ends["log_30_1"]["rows_sent"] == ends["log_30_1"]["rows"] and ends["log_30_1"]["rows_lost"] == 0
     first, second = read_log(out / "log_30_0.csv"), read_log(out / "log_30_1.csv")
     assert first.meta.provenance["complete"] and len(first) == 100
     assert not second.meta.provenance["complete"] and second.meta.provenance["end_reason"] == "interrupted"
@@ -250,7 +280,7 @@ def test_hil_over_a_faulty_link_reports_every_timeout(tmp_path: Path) -> None:
     out = tmp_path / "hil"
     try:
         collect_ok("--port", str(sim.link), "--duration", "4s", "--out", str(out),
-                   "--inject", "firmware_bridge.host.inject:WorldModel")
+                   "--inject", "firmware_bridge.host.inject:WorldModel", "--accept-partial")
     finally:
         sim.stop()
     lg = read_log(out / "hil_30_0.csv")

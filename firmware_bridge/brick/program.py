@@ -7,6 +7,11 @@ answered mid-run so the host can measure round trips under load). Modes (see PRO
 * lock-step injected: wait for the host's colour for tick k, at most ``timeout`` ms past the
   deadline; a timeout is reported with FLAG_TIMEOUT and nothing is actuated, never filled in;
 * free-running injected: use the newest colour the host sent, reporting its age.
+
+Every run carries the id the host gave it in START, and every frame of the run repeats it. The
+brick remembers its latest run (running or ended) and says so in each HANDSHAKE, so a host that
+connects while a run it did not start is going (its collector died) can stop it and account for
+it instead of taking its frames for its own.
 """
 
 from .compat import ticks_ms, ticks_us, ticks_diff
@@ -29,7 +34,8 @@ class Brick:
         self._us = clock_us
         self._diff = diff
         self.pending_start = None
-        self.current_run = None
+        self.current_run = None  # id of the latest run, running or ended
+        self.running = False
         self.stop_requested = False
         self.injects = {}  # tick -> (colour x100, receive time ms)
         self.latest = None  # (tick, colour x100, receive time ms), free-running mode
@@ -50,22 +56,29 @@ class Brick:
     def handle(self, msg):
         t = msg.type
         if t == P.HELLO:
-            self.current_run = None  # a new conversation may number its runs from 0 again
-            self.send(P.HANDSHAKE, (P.VERSION, self.period, self.program_hash, self.runtime,
-                                    self.ctrl.NAME, self.ctrl.params()))
+            self.pending_start = None  # a START of the previous host not yet begun is its, not the new one's
+            if self.current_run is None:
+                state = P.RUN_NONE
+            else:
+                state = P.RUN_RUNNING if self.running else P.RUN_ENDED
+            self.send(P.HANDSHAKE, (P.VERSION, self.period, state, self.current_run or 0, self.program_hash,
+                                    self.runtime, self.ctrl.NAME, self.ctrl.params()))
         elif t == P.PING:
             self.send(P.PONG, msg.fields)
         elif t == P.START:
             if msg.fields[0] != self.current_run:  # a repeated START (lost STARTED) is not a new run
                 self.pending_start = msg.fields
         elif t == P.INJECT:
-            tick, color = msg.fields
+            run_id, tick, color = msg.fields
+            if not self.running or run_id != self.current_run:
+                return  # a colour for another run is not this run's data
             now = self._ms()
             self.injects[tick] = (color, now)
             if self.latest is None or tick >= self.latest[0]:
                 self.latest = (tick, color, now)
         elif t == P.STOP:
-            self.stop_requested = True
+            if self.running and msg.fields[0] == self.current_run:
+                self.stop_requested = True  # only the run named: an old STOP never ends a newer run
             if self.last_end is not None and self.last_end[0] == msg.fields[0]:
                 self.send(P.RUN_END, self.last_end)  # the host missed it: say it again
 
@@ -86,6 +99,7 @@ class Brick:
         period = period_ms or self.period
         timeout = timeout_ms or 2 * period
         self.current_run = run_id
+        self.running = True
         self.stop_requested = False
         self.injects = {}
         self.latest = None
@@ -95,6 +109,7 @@ class Brick:
         self.send(P.STARTED, (run_id, mode, period))
         tk = Ticker(period, self._ms() + period, self._diff)  # one period for the host to get ready
         timeouts = 0
+        rows = 0  # TELEMETRY frames that carry data (not FLAG_TIMEOUT): what the host can record
         last = None  # when the previous tick's colour was had (its time stamp)
         while tk.tick < n_ticks and not self.stop_requested:
             while tk.wait_ms(self._ms()) > 0:
@@ -129,12 +144,15 @@ class Brick:
             else:
                 angle = int(round(self.ctrl(color / 100.0) * 100))
                 self.hw.steer(angle / 100.0)
+                rows += 1
             work = min(0xFFFF, self._diff(self._us(), begin))
             if tk.advance(self._ms(), mode != P.MODE_LOCKSTEP):
                 flags |= P.FLAG_OVERRUN
-            self.send(P.TELEMETRY, (tick, stamp & 0xFFFFFFFF, color, angle, work, flags, min(0xFFFF, max(0, age))))
+            self.send(P.TELEMETRY, (run_id, tick, stamp & 0xFFFFFFFF, color, angle, work, flags, min(0xFFFF, max(0, age))))
+        self.running = False
+        skipped = tk.skipped - max(0, tk.tick - n_ticks)  # a skip past the last tick skips no real tick
         self.last_end = (run_id, P.END_STOPPED if self.stop_requested else P.END_DONE, min(tk.tick, n_ticks),
-                         tk.overruns, tk.skipped, timeouts, self.dec.lost - counters0[0],
+                         rows, tk.overruns, skipped, timeouts, self.dec.lost - counters0[0],
                          self.dec.crc_errors + self.dec.malformed - counters0[1],
                          self.dec.duplicates - counters0[2], self.late_injects)
         self.send(P.RUN_END, self.last_end)

@@ -4,14 +4,16 @@ Brick and host import this one module, so the two ends cannot drift apart. A fra
 ``0x00 COBS(header payload crc) 0x00``; the header is ``<BBHI`` (protocol version, message type,
 sequence number, sender time in ms). Each direction numbers its frames; the decoder counts every
 frame it did not get from the gaps in those numbers and drops duplicates, so losses are measured
-rather than guessed.
+rather than guessed. Version 2 tags every frame of a run (STARTED, TELEMETRY, INJECT, STOP,
+RUN_END) with the host's 32-bit run id and has the HANDSHAKE say which run the brick is in, so a
+host that (re)connects can tell a run it never started from its own and never mixes the two.
 """
 
 from .compat import struct
 from . import cobs
 from .crc import crc16
 
-VERSION = 1
+VERSION = 2
 
 HELLO = 1
 HANDSHAKE = 2
@@ -37,6 +39,10 @@ FLAG_STALE = 8  # free-running: the injected colour was meant for an earlier tic
 END_DONE = 0
 END_STOPPED = 1
 
+RUN_NONE = 0  # HANDSHAKE run state: no run since the brick started
+RUN_RUNNING = 1  # a run is in progress (the host that started it may be gone)
+RUN_ENDED = 2  # the latest run has ended; STOP with its id repeats its RUN_END
+
 HEADER = "<BBHI"
 HEADER_SIZE = 8
 MAX_FRAME = 255  # decoded bytes; longer chunks are garbage
@@ -44,24 +50,26 @@ MAX_FRAME = 255  # decoded bytes; longer chunks are garbage
 # type: (name, fixed layout, number of trailing length-prefixed strings)
 LAYOUTS = {
     HELLO: ("hello", "<", 0),
-    # protocol version, loop period ms; strings: program hash, runtime, controller, params
-    HANDSHAKE: ("handshake", "<BH", 4),
+    # protocol version, loop period ms, run state (RUN_*), that run's id; strings: program hash,
+    # runtime, controller, params
+    HANDSHAKE: ("handshake", "<BHBI", 4),
     # run id, mode, ticks, period ms (0: brick default), lock-step timeout ms (0: two periods)
-    START: ("start", "<HBIHH", 0),
+    START: ("start", "<IBIHH", 0),
     # run id, mode, period ms
-    STARTED: ("started", "<HBH", 0),
-    # tick, ms since tick 0 was due, colour x100, angle x100, loop work us, flags, injected age ms
-    TELEMETRY: ("telemetry", "<IIhhHBH", 0),
-    # tick, colour x100
-    INJECT: ("inject", "<Ih", 0),
+    STARTED: ("started", "<IBH", 0),
+    # run id, tick, ms since tick 0 was due, colour x100, angle x100, loop work us, flags, injected age ms
+    TELEMETRY: ("telemetry", "<IIIhhHBH", 0),
+    # run id, tick, colour x100
+    INJECT: ("inject", "<IIh", 0),
     # nonce (echoed)
     PING: ("ping", "<I", 0),
     PONG: ("pong", "<I", 0),
     # run id
-    STOP: ("stop", "<H", 0),
-    # run id, reason, ticks done, overruns, skipped ticks, timeouts, frames lost / bad / duplicated
-    # on the way in, injected colours that came too late
-    RUN_END: ("run_end", "<HBIIIIIIII", 0),
+    STOP: ("stop", "<I", 0),
+    # run id, reason, ticks done, rows sent (TELEMETRY frames without FLAG_TIMEOUT), overruns,
+    # skipped ticks, timeouts, frames lost / bad / duplicated on the way in, injected colours that
+    # came too late
+    RUN_END: ("run_end", "<IBIIIIIIIII", 0),
 }
 
 
@@ -140,7 +148,8 @@ class Decoder:
     ``lost`` counts frames missing from the sequence (dropped, corrupted or truncated alike),
     ``crc_errors`` frames whose checksum failed, ``malformed`` chunks that are not frames at all
     (garbage, bad COBS, unknown type or version, wrong length), ``duplicates`` repeated or
-    out-of-order frames, ``discarded`` the bytes thrown away. A HELLO or HANDSHAKE restarts the
+    out-of-order frames, ``discarded`` the bytes thrown away; ``other_version`` is the version byte
+    of the latest frame that was dropped for speaking another protocol version. A HELLO or HANDSHAKE restarts the
     sequence (the other end has just (re)started), so a reboot is not counted as a loss.
     """
 
@@ -153,6 +162,7 @@ class Decoder:
         self.malformed = 0
         self.duplicates = 0
         self.discarded = 0
+        self.other_version = None  # the version of the latest frame of another protocol version
 
     def counters(self):
         return {"frames": self.frames, "lost": self.lost, "crc_errors": self.crc_errors,
@@ -191,6 +201,8 @@ class Decoder:
             return self._bad(chunk, False)
         version, mtype, seq, time_ms = struct.unpack(HEADER, raw[:HEADER_SIZE])
         if version != VERSION or mtype not in LAYOUTS:
+            if version != VERSION:
+                self.other_version = version  # lets a host say "the brick speaks protocol N"
             return self._bad(chunk, False)
         body = raw[:-2]
         got = struct.unpack("<H", raw[-2:])[0]

@@ -14,8 +14,9 @@ import os
 import signal
 import sys
 import tty
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 from ..brick.control import LaneKeeping
 from ..brick.hardware import SimHardware
@@ -70,8 +71,8 @@ def serve(world: Any, period_ms: int = 40, x: float = 30.0, threshold: float = 4
                 _point(link, path)
             announce(str(link or path))
             port: FdPort | FaultyPort = FdPort(master)
-            if faults is not None:
-                port = FaultyPort(port, faults, log, disconnected)
+            if faults is not None or log is not None:  # a journal alone is a port without faults
+                port = FaultyPort(port, faults or FaultSpec(), log, disconnected)
             brick = Brick(port, SimHardware(world, seed), LaneKeeping(x, threshold), period_ms,
                           program_hash(str(BRICK_DIR)), runtime() + " (simulated brick)")
             try:
@@ -96,7 +97,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--link", type=Path, help="also make this symlink to the pty (stable across restarts)")
     p.add_argument("--faults", type=FaultSpec.parse, help="inject faults, e.g. 'garbage=0.02,flip=0.01,"
                    "drop=0.01,dup=0.01,rx_drop=0.01,disconnect=300,seed=1'")
-    p.add_argument("--journal", type=Path, help="with --faults: write one line per frame sent (for tests)")
+    p.add_argument("--journal", type=Path, help="write one line per frame sent (for tests; with --faults, "
+                   "what each fault did)")
     p.add_argument("--seed", type=int, default=0, help="seed of the simulated world (run r uses seed*65536+r)")
     p.add_argument("--world", default=DEFAULT_WORLD, help="the world as package.module:Class "
                    f"(default {DEFAULT_WORLD}, the physics twin; firmware_bridge.host.world:EdgeWorld "

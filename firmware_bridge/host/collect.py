@@ -1,9 +1,13 @@
 """``envi-collect``: record field (or hardware-in-the-loop) logs from a brick over any pyserial URL.
 
 Each run re-handshakes, measures the link with pings, runs for ``--duration`` and is written
-atomically with ``envi_py.logs.write_log`` (source ``fot``, or ``hil`` with ``--inject``). A run cut
-short by a disconnect or Ctrl-C is still written, marked incomplete in its sidecar; after a
-disconnect the port is reopened (a rebooted brick or re-plugged cable) for the next run.
+atomically, never over an existing file, with the process umask (source ``fot``, or ``hil`` with
+``--inject``). A run cut short by a disconnect or Ctrl-C is still written, marked incomplete in its
+sidecar; after a disconnect the port is reopened (a rebooted brick or re-plugged cable) for the
+next run. Every run is in the folder's ledger (``collect-ledger.jsonl``) before the brick starts
+it, so a collector restarted after being killed stops the run the dead one left going, reports it
+lost (or recovers its log if it was written), and carries on at the next free index. The exit code
+is 2 when a run was lost or incomplete or rows were lost, unless ``--accept-partial``.
 """
 
 from __future__ import annotations
@@ -11,6 +15,7 @@ from __future__ import annotations
 import argparse
 import datetime as _dt
 import re
+import secrets
 import sys
 import time
 from pathlib import Path
@@ -22,13 +27,24 @@ from tqdm import tqdm
 
 from envi_py import __version__
 from envi_py.controllers import ControllerSpec
-from envi_py.logs import LANE_KEEPING_SCHEMA, Log, LogMeta, read_log, write_log
+from envi_py.logs import LANE_KEEPING_SCHEMA, Log, LogMeta, read_log
 
 from ..brick import protocol as P
 from .inject import EnvironmentModel, load_model
+from .ledger import LEDGER_NAME, Ledger
 from .link import Link, LinkLost
 from .session import BrickError, BrickInfo, Run, RunResult, handshake, ping
+from .settle import settle
 from .stats import gaps, period_stats, summary
+from .store import (
+    LogExists,
+    process_umask,
+    remove_stale_staging,
+    save_new,
+    taken,
+    used_indices,
+)
+from .tally import Tally
 
 
 def parse_duration(text: str) -> float:
@@ -97,7 +113,7 @@ def provenance(r: RunResult, info: BrickInfo, url: str, clock: dict[str, Any], m
     end = r.end
     brick = None
     if end is not None:
-        names = ("run_id", "reason", "ticks", "overruns", "skipped_ticks", "timeouts", "lost_in", "bad_in",
+        names = ("run_id", "reason", "ticks", "rows", "overruns", "skipped_ticks", "timeouts", "lost_in", "bad_in",
                  "duplicates_in", "late_injects")
         brick = dict(zip(names, end))
     prov: dict[str, Any] = {
@@ -105,12 +121,16 @@ def provenance(r: RunResult, info: BrickInfo, url: str, clock: dict[str, Any], m
         "collected_at": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
         "link": url,
         "mode": P.MODE_NAMES[r.mode],
+        "brick_run_id": r.run_id,
         "complete": r.complete,
         "end_reason": r.end_reason,
         "brick": {"program_hash": info.program_hash, "runtime": info.runtime, "protocol": info.protocol,
                   "period_ms": info.period_ms},
         "ticks_requested": r.n_ticks,
         "rows": len(r.ticks),
+        "rows_sent": r.rows_sent,
+        "rows_lost": None if r.rows_sent is None else r.rows_sent - len(r.ticks),
+        "foreign_frames_at_host": r.foreign_frames,
         "timing": {"brick_period_ms": period_stats(r.ticks, r.time_ms),
                    "host_arrival_period_ms": period_stats(r.ticks, [t * 1000 for t in r.arrival]),
                    "loop_work_us": summary(r.work_us)},
@@ -157,7 +177,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--duration", type=parse_duration, default=4.0, help="length of a run, e.g. 4s (default)")
     p.add_argument("--out", type=Path, required=True, help="folder for the logs")
     p.add_argument("--prefix", help="file name prefix (default 'log', or 'hil' with --inject): PREFIX_X_RUN.csv")
-    p.add_argument("--first-run", type=int, default=0, help="number of the first run in file names")
+    p.add_argument("--first-run", type=int, help="number of the first run in file names (default: the next "
+                   "one free in --out); a number already used is refused, never overwritten")
     p.add_argument("--inject", help="hardware in the loop: an envi checkpoint (.pt) or 'module:function' "
                    "mapping a window to the next colour")
     p.add_argument("--init-log", type=Path, help="with --inject: sigma_0 from the first rows of this log "
@@ -166,72 +187,158 @@ def build_parser() -> argparse.ArgumentParser:
                    "each colour but uses the newest one and reports its age")
     p.add_argument("--reconnect", type=float, default=10.0, help="seconds to keep reopening a lost port")
     p.add_argument("--pings", type=int, default=10, help="pings per run for round trip and clock offset")
+    p.add_argument("--accept-partial", action="store_true", help="exit 0 even when runs were lost or incomplete "
+                   "or rows were lost (what was recorded is kept either way)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    model = load_model(args.inject) if args.inject else None
-    mode = P.MODE_FIELD if model is None else (P.MODE_FREE if args.free_running else P.MODE_LOCKSTEP)
-    prefix = args.prefix or ("log" if model is None else "hil")
-    link: Link | None = None
-    written = incomplete = 0
-    bar = tqdm(unit="row", disable=args.quiet, dynamic_ncols=True)  # total known after the first handshake
-    try:
-        for i in range(args.first_run, args.first_run + args.runs):
-            link, info, clock = connect(link, args.port, args.reconnect, args.pings)
-            n_ticks = max(1, int(round(args.duration * 1000 / info.period_ms)))
-            if bar.total is None:
-                bar.reset(total=n_ticks * args.runs)
-            bar.set_description(f"run {i - args.first_run + 1}/{args.runs}")
-            init = initial_window(model, args.init_log, info) if model is not None else None
-            run = Run(link, info, i & 0xFFFF, mode, n_ticks, model, init,
-                      silence=max(1.0, 10 * info.period_ms / 1000), on_row=lambda _tick: bar.update(1))
+def run_name(prefix: str, info: BrickInfo, index: int) -> str:
+    """``PREFIX_X_INDEX`` as the real logs are named (``PREFIX_INDEX`` for a controller without x)."""
+    x = info.params.get("x")
+    return f"{prefix}_{x:g}_{index}" if isinstance(x, float) else f"{prefix}_{index}"
+
+
+def first_index(args: argparse.Namespace, prefix: str, ledger: Ledger) -> int:
+    """Where numbering starts: the next free index, or ``--first-run`` if none of its indices is used."""
+    used = used_indices(args.out, prefix, ledger.names())
+    free = max(used) + 1 if used else 0
+    if args.first_run is None:
+        return free
+    for i in range(args.first_run, args.first_run + args.runs):
+        if i in used:
+            name = used[i]
+            path = taken(args.out, name)
+            what = f"{path}: exists" if path is not None else \
+                f"{args.out / name}.csv: run {i} was started by an earlier collector (see {LEDGER_NAME})"
+            raise LogExists(f"{what}; not replacing it (leave out --first-run to continue at {free})")
+    return args.first_run
+
+
+def new_run_id(ledger: Ledger, info: BrickInfo) -> int:
+    """A 32-bit run id used by no run in the ledger nor by the brick's latest run (0 is never used)."""
+    taken_ids = ledger.run_ids() | {0, info.run_id}
+    while (rid := secrets.randbits(32)) in taken_ids:
+        pass
+    return rid
+
+
+class Session:
+    """The runs of one invocation: each is in the ledger before it starts and settled after it ends."""
+
+    def __init__(self, args: argparse.Namespace, model: EnvironmentModel | None, bar: tqdm) -> None:
+        self.args = args
+        self.model = model
+        self.bar = bar
+        self.mode = P.MODE_FIELD if model is None else (P.MODE_FREE if args.free_running else P.MODE_LOCKSTEP)
+        self.prefix = args.prefix or ("log" if model is None else "hil")
+        self.umask = process_umask()
+        self.ledger = Ledger(args.out)
+        self.tally = Tally()
+        self.link: Link | None = None
+
+    def _settle(self, info: BrickInfo) -> None:
+        """Stop whatever run the brick is in and settle what earlier collectors left (see settle.py)."""
+        assert self.link is not None
+        done = settle(self.link, info, self.ledger, self.args.out)
+        for e in done.entries:
+            self.tally.add(e)
+            rows = "an unknown number of" if e["rows_sent"] is None else e["rows_sent"]
+            self.bar.write(f"{e['run']}: left unsettled by an earlier collector: {e['status']} "
+                           f"({rows} row(s) sent, {e['rows']} recorded)")
+        if done.foreign is not None:
+            rid, sent = done.foreign
+            self.bar.write(f"stopped run {rid}, which another collector (not of {self.args.out}) left running; "
+                           f"{'its' if sent is None else sent} row(s) are not recorded here")
+
+    def _connect(self) -> tuple[BrickInfo, dict[str, Any]]:
+        """Handshake, ping and settle; a link lost while settling is opened again, as in :func:`connect`."""
+        for _ in range(3):
+            self.link, info, clock = connect(self.link, self.args.port, self.args.reconnect, self.args.pings)
+            try:
+                self._settle(info)
+                return info, clock
+            except LinkLost:
+                self.link.close()
+                self.link = None
+        raise BrickError(f"{self.args.port}: the link keeps dropping while settling earlier runs")
+
+    def run_all(self) -> None:
+        args = self.args
+        first = first_index(args, self.prefix, self.ledger)  # a used --first-run is refused before any contact
+        for n in range(args.runs):
+            info, clock = self._connect()
+            if n == 0:
+                remove_stale_staging(args.out)  # after settling, which may finish a dead collector's staging
+            n_ticks = max(1, round(args.duration * 1000 / info.period_ms))
+            if self.bar.total is None:
+                self.bar.reset(total=n_ticks * args.runs)
+            self.bar.set_description(f"run {n + 1}/{args.runs}")
+            name = run_name(self.prefix, info, first + n)
+            start = self.ledger.start(name, first + n, new_run_id(self.ledger, info), n_ticks,
+                                      P.MODE_NAMES[self.mode])
+            init = initial_window(self.model, args.init_log, info) if self.model is not None else None
+            run = Run(self.link, info, start["run_id"], self.mode, n_ticks, self.model, init,
+                      silence=max(1.0, 10 * info.period_ms / 1000), on_row=lambda _tick: self.bar.update(1))
             try:
                 r = run.execute()
             except KeyboardInterrupt:
-                r = run.result
-                _write(r, info, args, prefix, i, clock, model, bar)
+                self._record(run.result, start, info, clock)
                 raise
-            ok = _write(r, info, args, prefix, i, clock, model, bar)
-            written += ok
-            incomplete += not r.complete
+            self._record(r, start, info, clock)
             if r.end_reason == "disconnect":
-                link.close()
-                link = None
-            bar.update(n_ticks * (i - args.first_run + 1) - bar.n)  # missing rows still count as done
+                self.link.close()
+                self.link = None
+            self.bar.update(n_ticks * (n + 1) - self.bar.n)  # missing rows still count as done
+
+    def _record(self, r: RunResult, start: dict[str, Any], info: BrickInfo, clock: dict[str, Any]) -> None:
+        """Write the run's log (if it has rows) under its reserved name, then settle it in the ledger."""
+        name = start["run"]
+        log = to_log(r, info, self.args.port, clock, name, self.model)
+        file = None if log is None else save_new(log, self.args.out, name, self.umask).name
+        status = "lost" if log is None else ("complete" if r.complete else "incomplete")
+        entry = self.ledger.end(start, status, r.end_reason, r.rows_sent, len(r.ticks), file)
+        self.tally.add(entry)
+        self.bar.set_postfix(rows=len(r.ticks), lost=entry["rows_lost"], end=r.end_reason)
+        lost = "an unknown number" if entry["rows_lost"] is None else entry["rows_lost"]
+        if log is None:
+            self.bar.write(f"{name}: no rows received ({r.end_reason}); nothing written, {lost} row(s) lost")
+        elif status == "incomplete" or entry["rows_lost"] != 0:
+            self.bar.write(f"{name}: {status} ({r.end_reason}), {len(r.ticks)} of {r.n_ticks} rows written, "
+                           f"{lost} row(s) lost")
+
+    def close(self) -> None:
+        if self.link is not None:
+            self.link.close()
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    bar = tqdm(unit="row", disable=args.quiet, dynamic_ncols=True)  # total known after the first handshake
+    session: Session | None = None
+    code = 0
+    try:
+        session = Session(args, load_model(args.inject) if args.inject else None, bar)
+        session.run_all()
     except KeyboardInterrupt:
-        bar.close()
-        print("envi-collect: interrupted; the logs written so far are complete files", file=sys.stderr)
-        return 130
-    except (BrickError, LinkLost) as exc:
+        code = 130
+    except (BrickError, LinkLost, ValueError, OSError) as exc:  # LogExists and a bad ledger are ValueErrors
         bar.close()
         print(f"envi-collect: {exc}", file=sys.stderr)
-        return 2
+        code = 2
     finally:
-        if link is not None:
-            link.close()
+        if session is not None:
+            session.close()
     bar.close()
-    print(f"envi-collect: {written} log(s) in {args.out}, {incomplete} incomplete", file=sys.stderr)
-    return 0
-
-
-def _write(r: RunResult, info: BrickInfo, args: argparse.Namespace, prefix: str, i: int,
-           clock: dict[str, Any], model: EnvironmentModel | None, bar: tqdm) -> bool:
-    x = info.params.get("x")
-    name = f"{prefix}_{x:g}_{i}" if isinstance(x, float) else f"{prefix}_{i}"  # as the real logs are named
-    log = to_log(r, info, args.port, clock, name, model)
-    prov = log.meta.provenance if log is not None else {}
-    lost = prov.get("lost_frames", {}).get("brick_to_host")
-    bar.set_postfix(rows=len(r.ticks), lost=lost, end=r.end_reason)
-    if log is None:
-        bar.write(f"run {i}: no rows received ({r.end_reason}); nothing written")
-        return False
-    write_log(log, args.out / f"{name}.csv")
-    if not r.complete:
-        bar.write(f"run {i}: incomplete ({prov['end_reason']}), {len(r.ticks)} of {r.n_ticks} rows written")
-    return True
+    if session is None or (code == 2 and not session.tally.runs):
+        return code  # refused before any run: the one error line says it all
+    tally = session.tally
+    if code == 130:
+        print("envi-collect: interrupted; the logs written so far are complete files", file=sys.stderr)
+    print(f"envi-collect: {tally.line(str(args.out))}", file=sys.stderr)
+    if code == 0 and tally.partial and not args.accept_partial:
+        code = 2
+    return code
 
 
 if __name__ == "__main__":

@@ -2,14 +2,17 @@
 
 Everything measured on the way is returned in :class:`RunResult` for the sidecar; nothing is
 written here. A run ends when the brick reports RUN_END, the link is lost, the brick stays silent
-for ``silence`` seconds, or the caller is interrupted; rows received until then are kept.
+for ``silence`` seconds, or the caller is interrupted; rows received until then are kept. Only
+frames that carry this run's id are its rows: frames of any other run (one a dead collector left
+running on the brick) are counted and dropped, never appended.
 """
 
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -30,6 +33,8 @@ class BrickInfo:
     runtime: str
     controller: str
     params: dict[str, float | str]
+    run_state: int = P.RUN_NONE  # the brick's latest run when it answered: none, running or ended
+    run_id: int = 0  # that run's id (meaningless with RUN_NONE)
 
     def controller_json(self) -> dict[str, Any]:
         return {"name": self.controller, "params": dict(self.params)}
@@ -57,11 +62,34 @@ def handshake(link: Link, timeout: float = 2.0, tries: int = 3) -> BrickInfo:
                 break
             msg = got[1]
             if msg.type == P.HANDSHAKE:
-                version, period, phash, runtime, name, params = msg.fields
-                if version != P.VERSION:
-                    raise BrickError(f"brick speaks protocol {version}, host {P.VERSION}")
-                return BrickInfo(version, period, phash, runtime, name, _params(params))
+                version, period, state, run_id, phash, runtime, name, params = msg.fields
+                return BrickInfo(version, period, phash, runtime, name, _params(params), state, run_id)
+    other = link.decoder.other_version
+    if other is not None:  # its frames were dropped as malformed: say why rather than "no answer"
+        raise BrickError(f"{link.url}: the brick speaks protocol {other}, this host {P.VERSION}; "
+                         "update the brick program or the host")
     raise BrickError(f"{link.url}: no handshake from the brick after {tries} tries")
+
+
+def stop_run(link: Link, run_id: int, tries: int = 3, wait: float = 0.3,
+             on_message: Callable[[float, P.Message], None] | None = None) -> tuple[int, ...] | None:
+    """STOP ``run_id`` until its RUN_END comes back (the brick repeats it for an ended run); None if not.
+
+    Other messages on the way (the run's last frames) go to ``on_message``, else are skipped.
+    ``LinkLost`` propagates: the caller decides.
+    """
+    for _ in range(tries):
+        link.send(P.STOP, (run_id,))
+        end = time.perf_counter() + wait
+        while (left := end - time.perf_counter()) > 0:
+            got = link.recv(left)
+            if got is None:
+                break
+            if got[1].type == P.RUN_END and got[1].fields[0] == run_id:
+                return got[1].fields
+            if on_message is not None:
+                on_message(*got)
+    return None
 
 
 def ping(link: Link, count: int = 10, timeout: float = 0.5) -> dict[str, Any]:
@@ -103,6 +131,7 @@ class RunResult:
     overrun_flags: int = 0
     timeouts: list[int] = field(default_factory=list)
     stale: int = 0
+    foreign_frames: int = 0  # frames of another run (another collector's), dropped
     end: tuple[int, ...] | None = None
     end_reason: str = "done"
     link_before: dict[str, int] = field(default_factory=dict)
@@ -111,6 +140,11 @@ class RunResult:
     @property
     def complete(self) -> bool:
         return self.end is not None and self.end[1] == P.END_DONE and self.end_reason == "done"
+
+    @property
+    def rows_sent(self) -> int | None:
+        """Rows the brick sent in this run (its RUN_END says so); None when that never arrived."""
+        return None if self.end is None else self.end[3]
 
 
 class Run:
@@ -132,7 +166,7 @@ class Run:
         """Predict the colour for ``tick`` from the window and send it (x100, as the wire has it)."""
         assert self.model is not None and self.window is not None
         color = min(100.0, max(0.0, self.model(self.window)))
-        self._sent[tick] = self.link.send(P.INJECT, (tick, int(round(color * 100))))
+        self._sent[tick] = self.link.send(P.INJECT, (self.result.run_id, tick, round(color * 100)))
 
     def execute(self) -> RunResult:
         r = self.result
@@ -152,20 +186,16 @@ class Run:
 
     def _stop(self) -> None:
         """Ask the brick to stop (a STOP also makes it repeat a RUN_END the host missed)."""
-        r = self.result
-        for _ in range(3):
-            try:
-                self.link.send(P.STOP, (r.run_id,))
-                end = time.perf_counter() + 0.3
-                while (left := end - time.perf_counter()) > 0:
-                    got = self.link.recv(left)
-                    if got is None:
-                        break
-                    if got[1].type == P.RUN_END and got[1].fields[0] == r.run_id:
-                        r.end = got[1].fields
-                        return
-            except LinkLost:
-                return
+        def keep_rows(t: float, msg: P.Message) -> None:  # frames sent before the brick saw the STOP
+            if msg.type == P.TELEMETRY and msg.fields[0] == self.result.run_id:
+                self._telemetry(t, msg.fields[1:])
+
+        try:
+            end = stop_run(self.link, self.result.run_id, on_message=keep_rows)
+        except LinkLost:
+            return
+        if end is not None:
+            self.result.end = end
 
     def _loop(self) -> None:
         r = self.result
@@ -185,15 +215,17 @@ class Run:
                 r.end_reason = "silent" if r.end is None else r.end_reason
                 return
             t, msg = got
-            if msg.type == P.STARTED and msg.fields[0] == r.run_id and not started:
+            if msg.type in (P.STARTED, P.TELEMETRY, P.RUN_END) and msg.fields[0] != r.run_id:
+                r.foreign_frames += 1  # another run's (one a dead collector left running): never ours
+            elif msg.type == P.STARTED and not started:
                 started = True
                 r.period_ms = msg.fields[2]
                 if self.model is not None:
                     self._inject(0)
             elif msg.type == P.TELEMETRY:
                 started = True  # the STARTED frame itself may have been lost
-                self._telemetry(t, msg.fields)
-            elif msg.type == P.RUN_END and msg.fields[0] == r.run_id:
+                self._telemetry(t, msg.fields[1:])
+            elif msg.type == P.RUN_END:
                 r.end = msg.fields
                 return
 
