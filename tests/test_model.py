@@ -126,3 +126,16 @@ def test_a_flipped_byte_or_a_nan_weight_is_refused_on_load(tmp_path):
     torch.save(blob, tmp_path / "nan_nohash.pt")
     with pytest.raises(ValueError, match="NaN or inf"):
         Checkpoint.load(tmp_path / "nan_nohash.pt")
+
+
+def test_the_torch_decoding_is_the_numpy_decoding():
+    """GAIL's rollouts decode in torch, every other engine in numpy: one owner, two forms, equal."""
+    from envi_py.train.common import model_config, new_checkpoint
+
+    logs = [make_log(np.linspace(20, 60, 30), run=str(i)) for i in range(2)]
+    ck = new_checkpoint("bc", logs, [], model_config(logs, history=4, hidden=(8,), round_to=(1.0,)), 0, {})
+    z = np.random.default_rng(0).normal(0, 1.5, (500, 1))  # beyond [-1, 1] too: clamping must agree
+    np.testing.assert_array_equal(ck.decode_states_torch(torch.from_numpy(z)).numpy(), ck.decode_states(z))
+    rows = np.stack([lg.values[:4] for lg in logs])
+    enc = ck.encode_rows(rows)
+    np.testing.assert_allclose(enc, ck.norm.encode(rows), rtol=0, atol=1e-6)

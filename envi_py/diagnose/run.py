@@ -47,7 +47,9 @@ class Diagnosis:
         """One paragraph a person reads first."""
         gaps = [g["gaps"][0] for g in self.gaps]
         worst = max(gaps, key=lambda g: g["ratio"])
-        text = (f"The largest closed-loop gap is in {worst['metric']} ({worst['ratio']:.1f}x the real-vs-real floor). "
+        size = ("the real runs never differ in it, the simulated ones do" if worst["ratio"] == float("inf")
+                else f"{worst['ratio']:.1f}x the real-vs-real floor")
+        text = (f"The largest closed-loop gap is in {worst['metric']} ({size}). "
                 f"Simulated runs leave the band of real runs after a median of {self.horizon[0]['median_exit_step']:.0f} "
                 f"steps; {self.coverage['outside_share']:.0%} of simulated windows lie outside the training data. ")
         sig = self.significant
