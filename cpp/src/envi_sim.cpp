@@ -163,7 +163,7 @@ struct MetricRows {
 
 int run(const Args& a) {
   Model m = load_model_file(a.model);
-  ControllerSpec ctrl = ControllerSpec::parse(a.controller);
+  Controller ctrl = Controller::parse(a.controller, m.period_ms);
   Json ctrl_in = Json::parse(a.controller);
   const Json* params = ctrl_in.find("params");
   Json ctrl_json = obj({{"name", ctrl_in.at("name")}, {"params", params && !params->is_null() ? *params : obj({})}});

@@ -67,7 +67,7 @@ int main() {
         job.threads = threads;
         job.block = 512;
         Watch w(envi::plan(job).threads);
-        envi::simulate(m, envi::ControllerSpec::parse(c), job, w);
+        envi::simulate(m, envi::Controller::parse(c), job, w);
         CHECK(w.steps_seen > 0);
         CHECK(w.allocating_steps == 0);
         std::printf("gaussian=%d %s threads=%d: %ld steps watched, %ld allocated\n", gaussian, c, threads,
