@@ -143,6 +143,9 @@ PYBIND11_MODULE(ENVI_MODULE_NAME, mod) {
            }),
            py::arg("onnx_bytes"))
       .def_readonly("history", &Model::history)
+      // A PID's default period (ms); from the file's envi.period_ms, 0 when unknown (then 40 ms).
+      // Writable so a checkpoint's resolved period travels with the model compiled from it.
+      .def_readwrite("period_ms", &Model::period_ms)
       .def_property_readonly("n_state", &Model::n_state)
       .def_property_readonly("n_action", &Model::n_action)
       .def_property_readonly("gaussian", &Model::gaussian)
