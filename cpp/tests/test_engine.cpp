@@ -65,11 +65,14 @@ static std::vector<double> reference(const Model& m, const Controller& c, const 
         }
         x = y;
       }
-    double v = double(float(x[0])) * (m.norm_high[0] - m.norm_low[0]) / 2 + (m.norm_high[0] + m.norm_low[0]) / 2;
-    v = std::min(std::max(v, m.limit_low[0]), m.limit_high[0]);
-    c.act(&v, 1, a.data(), 1, memory.data());
-    rows.push_back(v);
-    rows.push_back(a[0]);
+    std::vector<double> v(size_t(m.n_state()));
+    for (int i = 0; i < m.n_state(); ++i) {
+      v[size_t(i)] = double(float(x[size_t(i)])) * (m.norm_high[i] - m.norm_low[i]) / 2 + (m.norm_high[i] + m.norm_low[i]) / 2;
+      v[size_t(i)] = std::min(std::max(v[size_t(i)], m.limit_low[i]), m.limit_high[i]);
+    }
+    c.act(v.data(), m.n_state(), a.data(), 1, memory.data());
+    rows.insert(rows.end(), v.begin(), v.end());
+    rows.insert(rows.end(), a.begin(), a.end());
   }
   return rows;
 }
@@ -98,6 +101,34 @@ int main() {
       std::printf("hidden %d, %s: max |engine - reference| = %.2e\n", hidden, c.name().c_str(), worst);
     }
   }
+
+  // Two states and two actions with a combine: each action its own loop, warm-up included.
+  spec.hidden = 40;
+  spec.n_state = spec.n_action = 2;
+  {
+    Model m2 = load(pb::model(spec));
+    std::vector<double> init2;
+    for (long k = 0; k < K; ++k)
+      for (int r = 0; r < 4; ++r) {
+        init2.insert(init2.end(), {20.0 + 15 * k + 5 * r, 70.0 - 10 * r});
+        init2.insert(init2.end(), {r % 2 ? 30.0 : -30.0, double(r)});
+      }
+    Controller c = Controller::parse(R"({"name": "combine", "params": {"loops": [)"
+                                     R"({"name": "pid", "params": {"kp": 2, "ki": 8, "kd": 0.1, "input": 1, "out_min": -30, "out_max": 30}}, )"
+                                     R"({"name": "bang-bang", "params": {"x": 12}}]}})");
+    std::vector<double> got = run(m2, c, init2, K, runs, steps, 2, 256);
+    double worst = 0, spread = 0;
+    for (long g = 0; g < K * runs; ++g) {
+      std::vector<double> want = reference(m2, c, init2.data() + (g / runs) * 16, steps);
+      for (size_t i = 0; i < want.size(); ++i) worst = std::max(worst, std::fabs(want[i] - got[size_t(g) * want.size() + i]));
+      for (size_t i = 16; i < want.size(); i += 4) spread = std::max(spread, std::fabs(want[i + 2] - want[i + 3]));
+    }
+    CHECK(worst < 1e-2);
+    CHECK(spread > 1);  // the two actions differ: nothing is broadcast
+    std::printf("2 states/2 actions, combine: max |engine - reference| = %.2e\n", worst);
+    CHECK_THROWS(WidthError, run(m2, Controller::parse(R"({"name": "pid"})"), init2, K, 1, 3, 1, 8), "drives 1 action channel(s), the model has 2");
+  }
+  spec.n_state = spec.n_action = 1;
   spec.hidden = 16;
 
   // Gaussian: the same draws whatever the thread count; different seeds differ.
