@@ -5,6 +5,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <iterator>
 
 #include "envi/json.hpp"
 
@@ -12,6 +13,16 @@ namespace envi {
 namespace {
 
 const char* const kLoopNames = "bang-bang, lane-keeping, pid";
+
+// A loop's parameters in Python's order; `input` (no field) is the state channel read.
+struct Param {
+  const char* key;
+  double Loop::*field;
+};
+const Param kBangBang[] = {{"x", &Loop::x}, {"threshold", &Loop::threshold}, {"input", nullptr}};
+const Param kPid[] = {{"kp", &Loop::kp}, {"ki", &Loop::ki}, {"kd", &Loop::kd}, {"setpoint", &Loop::setpoint},
+                      {"dt", &Loop::dt}, {"out_min", &Loop::out_min}, {"out_max", &Loop::out_max},
+                      {"offset", &Loop::offset}, {"input", nullptr}};
 
 [[noreturn]] void fail(const std::string& name, const std::string& what) {
   throw std::invalid_argument("controller '" + name + "': " + what);
@@ -54,15 +65,15 @@ Loop parse_loop(const Json& spec, double period_ms, bool nested) {
     throw std::invalid_argument("controller spec must be an object with a 'name', not " + shown(spec));
   Loop lp;
   lp.name = spec.at("name").string;
-  struct P { const char* key; double* dst; };
-  std::vector<P> known;
+  const Param *known = nullptr, *known_end = nullptr;
   if (lp.name == "bang-bang" || lp.name == "lane-keeping") {
     lp.kind = Loop::Kind::BangBang;
-    known = {{"x", &lp.x}, {"threshold", &lp.threshold}, {"input", nullptr}};
+    known = std::begin(kBangBang);
+    known_end = std::end(kBangBang);
   } else if (lp.name == "pid") {
     lp.kind = Loop::Kind::Pid;
-    known = {{"kp", &lp.kp}, {"ki", &lp.ki}, {"kd", &lp.kd}, {"setpoint", &lp.setpoint}, {"dt", &lp.dt},
-             {"out_min", &lp.out_min}, {"out_max", &lp.out_max}, {"offset", &lp.offset}, {"input", nullptr}};
+    known = std::begin(kPid);
+    known_end = std::end(kPid);
   } else if (nested) {
     throw std::invalid_argument("combine: loop '" + lp.name + "' is not one of " + kLoopNames);
   } else if (lp.name.find(':') != std::string::npos) {
@@ -77,11 +88,11 @@ Loop parse_loop(const Json& spec, double period_ms, bool nested) {
     if (params->type != Json::Type::Object) fail(lp.name, "'params' must be an object");
     std::string unknown;
     for (const auto& kv : params->object)
-      if (std::none_of(known.begin(), known.end(), [&](const P& p) { return kv.first == p.key; }))
+      if (std::none_of(known, known_end, [&](const Param& p) { return kv.first == p.key; }))
         unknown += (unknown.empty() ? "" : ", ") + kv.first;
     if (!unknown.empty()) {
       std::string names;
-      for (const P& p : known) names += (names.empty() ? "" : ", ") + std::string(p.key);
+      for (const Param* p = known; p != known_end; ++p) names += (names.empty() ? "" : ", ") + std::string(p->key);
       fail(lp.name, "unknown parameter(s) " + unknown + "; known: " + names);
     }
     for (const auto& kv : params->object) {
@@ -90,8 +101,8 @@ Loop parse_loop(const Json& spec, double period_ms, bool nested) {
       } else if (kv.first == "dt" && kv.second.is_null()) {
         continue;  // None: the model's period, as Python
       } else {
-        auto it = std::find_if(known.begin(), known.end(), [&](const P& p) { return kv.first == p.key; });
-        *it->dst = number(lp.name, kv.first, kv.second);
+        const Param* it = std::find_if(known, known_end, [&](const Param& p) { return kv.first == p.key; });
+        lp.*(it->field) = number(lp.name, kv.first, kv.second);
         dt_given = dt_given || kv.first == "dt";
       }
     }
