@@ -3,13 +3,14 @@ the native engine against the simulator's protocol on a 2-state/2-action model w
 
 from __future__ import annotations
 
+import inspect
 import json
 
 import numpy as np
 import pytest
 import torch
 
-from envi_py import native
+from envi_py import native, simulate
 from envi_py.controllers import ControllerSpec, WidthError
 from envi_py.dataset import Normaliser
 from envi_py.export import post_processing
@@ -207,6 +208,16 @@ def test_native_engine_runs_combine_on_two_states_two_actions_like_the_protocol(
     cold = COMBINE.build(2, 2, 40.0)
     cold.reset(len(got))
     assert np.mean(cold(got[:, HISTORY, :2])[:, 0] != got[:, HISTORY, 2]) > 0.5
+
+
+@pytest.mark.skipif("warmup" not in inspect.getsource(simulate.rollout),
+                    reason="envi_py.simulate.rollout does not warm the controller up yet")
+def test_native_engine_matches_the_pytorch_engine_with_combine(real_logs):
+    ck = two_by_two_ckpt(seed=1)
+    init = np.concatenate([two_channels(real_colours(real_logs, HISTORY))[:8], np.zeros((8, HISTORY, 2))], axis=2)
+    want = simulate.rollout(ck, COMBINE, init, 60, runs=2)
+    np.testing.assert_allclose(native.rollout(ck, COMBINE, init, 60, runs=2), want, atol=1e-4, rtol=0)
+    np.testing.assert_allclose(reference_rollout(ck, COMBINE, init, 60, runs=2), want, atol=1e-4, rtol=0)
 
 
 def test_native_engine_refuses_a_controller_of_the_wrong_width():
