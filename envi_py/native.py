@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import importlib
 import os
-from functools import lru_cache
+from functools import cache
 from pathlib import Path
 from types import ModuleType
 from typing import Any
@@ -37,7 +37,7 @@ def _cpu_features() -> dict[str, bool]:
     return dict(__cpu_features__)
 
 
-@lru_cache(maxsize=None)
+@cache
 def _module() -> ModuleType | None:
     forced = os.environ.get("ENVI_NATIVE_ISA")
     feats = _cpu_features()
@@ -76,9 +76,11 @@ def _native() -> ModuleType:
 def unsupported(ckpt: Checkpoint, controller: ControllerSpec) -> str | None:
     """Why the native engine cannot run this model with this controller, or None when it can.
 
-    It runs exported MLPs fed by the window alone, with the registered controllers (its C++ twins
-    are tested against them); derived channels, a run context, the random baseline and a user's
-    controller given by import path stay with the PyTorch engine."""
+    It runs exported MLPs fed by the window alone, with every registered controller (bang-bang,
+    lane-keeping, pid and combine; its C++ twins are tested against them, warm-up included);
+    derived channels, a run context, the random baseline and a user's controller given by import
+    path stay with the PyTorch engine. Widths are not judged here: a controller that does not fit
+    the model is an error (WidthError) in both engines, not a reason to switch."""
     from .controllers import REGISTRY
 
     if not available():
@@ -109,9 +111,22 @@ def onnx_bytes(model: str | os.PathLike | Checkpoint | bytes) -> bytes:
     return to_onnx(model).SerializeToString()
 
 
+def period_ms(ckpt: Checkpoint) -> float:
+    """The control period a PID integrates over unless its spec sets ``dt``: the checkpoint's
+    resolved period where it has one (it may come from the system description), else the
+    training record's; 0 leaves the engine to the file's ``envi.period_ms`` (and then 40 ms)."""
+    return float(getattr(ckpt, "period_ms", None) or ckpt.record.period_ms or 0.0)
+
+
 def load(model: str | os.PathLike | Checkpoint | bytes) -> Any:
-    """The compiled model (``envi_py._native.Model``); ValueError on anything it cannot run."""
-    return _native().Model(onnx_bytes(model))
+    """The compiled model (``envi_py._native.Model``); ValueError on anything it cannot run.
+
+    Compiled from a checkpoint, it carries that checkpoint's period for PIDs without ``dt``, so
+    both engines integrate over the same period."""
+    compiled = _native().Model(onnx_bytes(model))
+    if isinstance(model, Checkpoint) and period_ms(model) > 0:
+        compiled.period_ms = period_ms(model)
+    return compiled
 
 
 def _compiled(model: Any) -> Any:
@@ -128,8 +143,9 @@ def _spec_json(controller: ControllerSpec) -> str:
 def rollout(model: str | os.PathLike | Checkpoint | bytes | Any, controller: ControllerSpec, init: np.ndarray,
             steps: int, runs: int = 1, seed: int = 0, threads: int = 0) -> np.ndarray:
     """Same contract as :func:`envi_py.simulate.rollout`: ``init`` (K, l, C) physical ->
-    (K*runs, l+steps, C), run ``k*runs + r`` from window k. Stochastic draws are keyed by
-    (seed, run, step), so the result does not depend on ``threads`` (0 = one per core)."""
+    (K*runs, l+steps, C), run ``k*runs + r`` from window k. The controller is reset and warmed up
+    on each window's rows before the first step. Stochastic draws are keyed by (seed, run, step),
+    so the result does not depend on ``threads`` (0 = one per core)."""
     init = np.ascontiguousarray(init, dtype=np.float64)
     return _native().rollout(_compiled(model), _spec_json(controller), init, int(steps), int(runs), int(seed),
                              int(threads))
@@ -137,8 +153,9 @@ def rollout(model: str | os.PathLike | Checkpoint | bytes | Any, controller: Con
 
 def rollout_metrics(model: str | os.PathLike | Checkpoint | bytes | Any, controller: ControllerSpec,
                     init: np.ndarray, steps: int, runs: int = 1, seed: int = 0, threads: int = 0,
-                    metric: MetricConfig = MetricConfig()) -> np.ndarray:
+                    metric: MetricConfig | None = None) -> np.ndarray:
     """The eight driving metrics of every run, (K*runs, 8), scored while simulating: no traces kept."""
+    metric = metric or MetricConfig()
     if metric.channel != 0:
         raise ValueError("the native engine scores the first state channel")
     init = np.ascontiguousarray(init, dtype=np.float64)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -23,6 +24,7 @@ from envi_py.metrics import MetricConfig, driving_metrics
 from envi_py.simulate import initial_windows, rollout
 
 from .conftest import make_log
+from .test_controller_parity import reference_rollout
 from .test_export import paper_ckpt
 
 pytestmark = pytest.mark.skipif(not native.available(), reason="native engine not built")
@@ -53,11 +55,38 @@ def trained(real_dir):
 def test_deterministic_rollout_matches_pytorch(spec):
     ck = paper_ckpt()
     init = windows(5)
-    want = rollout(ck, spec, init, 120, runs=3)
+    # the simulator's protocol (reset, warm-up on sigma_0, closed loop) written out in the test
+    want = reference_rollout(ck, spec, init, 120, runs=3)
     got = native.rollout(ck, spec, init, 120, runs=3, threads=2)
     assert got.shape == want.shape == (15, 130, 2)
     np.testing.assert_array_equal(got[:, :10], want[:, :10])
     np.testing.assert_allclose(got, want, atol=1e-4, rtol=0)
+    if spec.name == "lane-keeping":  # stateless: the PyTorch engine agrees with or without a warm-up
+        np.testing.assert_allclose(got, rollout(ck, spec, init, 120, runs=3), atol=1e-4, rtol=0)
+
+
+def test_every_registered_controller_is_native():
+    from envi_py.controllers import REGISTRY
+
+    ck = paper_ckpt()
+    assert {"bang-bang", "lane-keeping", "pid", "combine"} <= set(REGISTRY)
+    for name in REGISTRY:
+        assert native.unsupported(ck, ControllerSpec(name)) is None, name
+    assert "not a registered one" in native.unsupported(ck, ControllerSpec("mypkg.ctl:f"))
+
+
+def test_pid_default_period_comes_from_the_checkpoint():
+    ck = paper_ckpt()
+    spec = ControllerSpec("pid", {"kp": 0.5, "ki": 2.0, "kd": 0.05})
+    init = windows(3)
+    ck.record.period_ms = 100.0
+    assert native.load(ck).period_ms == 100.0
+    slow = native.rollout(ck, spec, init, 30)
+    np.testing.assert_allclose(slow, reference_rollout(ck, spec, init, 30), atol=1e-4, rtol=0)
+    ck.record.period_ms = 20.0
+    fast = native.rollout(ck, spec, init, 30)
+    np.testing.assert_allclose(fast, reference_rollout(ck, spec, init, 30), atol=1e-4, rtol=0)
+    assert np.abs(slow[:, 10:, 1] - fast[:, 10:, 1]).max() > 1
 
 
 def test_trained_model_matches_pytorch_on_real_windows(trained):
@@ -127,21 +156,6 @@ def test_gaussian_one_step_distribution_matches_the_head():
     assert abs(got.std() / sd - 1) < 0.02
     z = (got - mu) / sd  # standard normal tails, not uniform or clipped ones
     assert 0.04 < np.mean(np.abs(z) > 2) < 0.052
-
-
-def test_controllers_agree_with_python():
-    rng = np.random.default_rng(0)
-    states = np.concatenate([rng.uniform(0, 100, (60, 50, 1)), np.full((5, 50, 1), 40.0)])
-    specs = [LANE, ControllerSpec("lane-keeping", {"x": 10, "threshold": 55}), PID,
-             ControllerSpec("pid", {"kp": 0.3, "ki": 40.0, "out_min": -5, "out_max": 20, "dt": 0.1})]
-    for spec in specs:
-        ctrl = spec.build()
-        ctrl.reset(50)
-        want = np.stack([ctrl(s) for s in states])
-        got = native._native().controller_sequence(json.dumps(spec.to_json()), states, 1)
-        np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12, err_msg=spec.name)
-    sat = np.mean(np.abs(got) >= 5)
-    assert sat > 0.2  # the last PID saturates often, so anti-windup is exercised
 
 
 def test_metrics_match_python():
@@ -255,8 +269,76 @@ def test_envi_sim_writes_logs_and_metrics_like_python(tmp_path, real_dir):
     assert out["mean"] == pytest.approx(np.mean(out["per_run"], axis=0))
     subprocess.run(cmd + ["--metrics-only", "--metrics", str(tmp_path / "m2.json")], check=True)
     assert json.loads((tmp_path / "m2.json").read_text())["per_run"] == out["per_run"]
-    bad = subprocess.run(cmd[:2] + [str(tmp_path / "nope.onnx")] + cmd[3:] + ["--metrics", "-"], capture_output=True, text=True)
-    assert bad.returncode == 1 and "nope.onnx" in bad.stderr
+    bad = subprocess.run(cmd[:2] + [str(tmp_path / "nope.onnx")] + cmd[3:] + ["--metrics", "-"], capture_output=True,
+                         text=True, check=False)
+    assert bad.returncode == 2 and "nope.onnx" in bad.stderr and bad.stderr.count("\n") == 1
+
+
+@pytest.mark.skipif(envi_sim() is None, reason="envi_sim binary not built")
+def test_envi_sim_controller_from_the_model_by_name_and_default_steps(tmp_path, real_dir):
+    ck = paper_ckpt()  # trained with one controller: lane-keeping x=30
+    model = export(ck, tmp_path / "m.onnx")
+    files = [real_dir / "log_30_0.csv", real_dir / "log_50_1.csv"]
+    real = load_logs(files, DatasetSpec(pattern="log_{x}_{run}.csv"))
+    init = initial_windows(real, 10)
+
+    def sim(*args: str) -> subprocess.CompletedProcess:
+        return subprocess.run([envi_sim(), f"--model={model}", "--init", *map(str, files), *args],
+                              capture_output=True, text=True, check=False)
+
+    # no --controller: the model's own; no --steps: each log's length minus the history
+    done = sim("--metrics-only", "--metrics=-")
+    assert done.returncode == 0, done.stderr
+    out = json.loads(done.stdout)
+    assert out["controller"] == LANE.to_json() and out["steps"] == len(real[0]) - 10
+    traces = native.rollout(ck, LANE, init, len(real[0]) - 10)
+    np.testing.assert_array_equal(out["per_run"], driving_metrics(traces[..., 0]))
+    # logs of other lengths run for their own number of steps; metrics stay in the order given
+    short = tmp_path / "log_30_9.csv"
+    short.write_text("".join(files[0].read_text().splitlines(keepends=True)[:61]))
+    done = subprocess.run([envi_sim(), f"--model={model}", "--init", str(files[0]), str(short), str(files[1]),
+                           "--metrics-only", "--metrics=-"], capture_output=True, text=True, check=False)
+    assert done.returncode == 0, done.stderr
+    out = json.loads(done.stdout)
+    assert out["steps"] == [90, 50, 90]
+    # another grouping of runs into blocks: GEMM rounding may move an amplitude in its last float32 bits
+    np.testing.assert_allclose(out["per_run"][1], driving_metrics(traces[:1, :60, 0])[0], atol=1e-4, rtol=0)
+    np.testing.assert_allclose(np.array(out["per_run"])[[0, 2]], driving_metrics(traces[..., 0]), atol=1e-4, rtol=0)
+    # a registered name with --param, --opt=value forms
+    pid = ControllerSpec("pid", {"kp": 2.0, "ki": 5.0, "kd": 0.05})
+    done = sim("--controller", "pid", "--param", "kp=2", "ki=5", "--param=kd=0.05", "--steps=20", f"--out={tmp_path / 'o'}")
+    assert done.returncode == 0, done.stderr
+    logs = [read_log(tmp_path / "o" / f"{stem}-sim0.csv") for stem in ("log_30_0", "log_50_1")]
+    assert all(lg.meta.controller == pid.to_json() for lg in logs)
+    np.testing.assert_allclose(np.stack([lg.values for lg in logs]), native.rollout(ck, pid, init, 20), atol=1e-4,
+                               rtol=0)
+    # a combine spec from a file, refused for its width: one line naming the controller, exit 2
+    (tmp_path / "c.json").write_text(json.dumps({"name": "combine", "params": {"loops": [LANE.to_json()] * 2}}))
+    for args, words in [(["--controller", f"@{tmp_path / 'c.json'}"], "'combine' drives 2 action channel(s)"),
+                        (["--controller", "steer"], "unknown controller 'steer'"),
+                        (["--controller", "pid", "--param", "kq=1"], "unknown parameter"),
+                        (["--controller", '{"name": "pid", "params": {"input": 1}}'], "reads state channel 1"),
+                        (["--frobnicate"], "unknown option --frobnicate"),
+                        (["--steps=-3"], "--steps must not be negative")]:
+        bad = sim(*args, "--metrics", "-")
+        assert bad.returncode == 2 and words in bad.stderr and bad.stderr.count("\n") == 1, (args, bad.stderr)
+    # a model trained under several controllers asks which one
+    ck.record.controllers.append({"name": "lane-keeping", "params": {"x": 50.0}})
+    export(ck, tmp_path / "m.onnx")
+    bad = sim("--metrics", "-")
+    assert bad.returncode == 2 and "2 training controller(s); choose one with --controller" in bad.stderr
+
+
+@pytest.mark.skipif(envi_sim() is None, reason="envi_sim binary not built")
+def test_envi_sim_usage_documents_every_option():
+    usage = subprocess.run([envi_sim(), "--help"], capture_output=True, text=True, check=True).stdout
+    source = (Path(__file__).resolve().parents[1] / "cpp" / "src" / "envi_sim.cpp").read_text()
+    options = set(re.findall(r'f == "(--[a-z-]+)"', source)) - {"--help"}
+    assert len(options) >= 15
+    for opt in options:
+        line = next((ln for ln in usage.splitlines() if ln.strip().startswith(opt)), None)
+        assert line is not None, opt
+    assert "(default" in usage and "--opt=VALUE" in usage
 
 
 @pytest.mark.skipif(envi_sim() is None, reason="envi_sim binary not built")

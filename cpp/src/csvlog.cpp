@@ -94,6 +94,9 @@ InitialWindow read_initial_window(const std::string& path, const Model& model) {
   }
   if ((long)win.time.size() < model.history)
     throw std::runtime_error(path + ": fewer rows than the model's history of " + std::to_string(model.history));
+  win.rows = long(win.time.size());
+  while (std::getline(in, line))
+    if (!trim(line).empty()) ++win.rows;
   return win;
 }
 

@@ -64,7 +64,7 @@ struct Workspace {
   std::vector<float> scratch;      // the packed layers' input panel
   std::vector<double> rows, states, actions, memory;
 
-  Workspace(const Model& m, int block) {
+  Workspace(const Model& m, const Controller& ctrl, int block) {
     long c = m.channels();
     long panel = 1;
     for (const auto* layers : {&m.trunk, &m.mean, &m.log_std})
@@ -77,19 +77,19 @@ struct Workspace {
     rows.resize(size_t(block) * size_t(c));
     states.resize(size_t(block) * size_t(m.n_state()));
     actions.resize(size_t(block) * size_t(m.n_action()));
-    memory.resize(size_t(block) * ControllerSpec::kStateSize);
+    memory.resize(size_t(block) * size_t(ctrl.memory_per_run()));
   }
 };
 
 struct Runner {
   const Model& m;
-  const ControllerSpec& ctrl;
+  const Controller& ctrl;
   const Job& job;
   Sink& sink;
   std::vector<double> centre, half;
   long trunk_out;  // width of the trunk's output (the window itself without a trunk)
 
-  Runner(const Model& model, const ControllerSpec& c, const Job& j, Sink& s)
+  Runner(const Model& model, const Controller& c, const Job& j, Sink& s)
       : m(model), ctrl(c), job(j), sink(s) {
     trunk_out = m.in_features();
     for (const Dense& d : m.trunk)
@@ -117,15 +117,18 @@ struct Runner {
     const int ns = m.n_state(), na = m.n_action(), c = m.channels();
     const long l = m.history;
     sink.begin(thread, first, count);
+    ctrl.reset(w.memory.data(), count);
     for (long t = 0; t < l; ++t) {
       for (int b = 0; b < count; ++b) {
         const double* src = job.init + (size_t((first + b) / job.runs) * size_t(l) + size_t(t)) * size_t(c);
         std::copy(src, src + c, w.rows.data() + size_t(b) * size_t(c));
         put_row(w, b, t, src);
       }
+      // warm-up: the controller sees sigma_0's states in order (answers discarded), so its memory
+      // matches the real controller's when the closed loop starts
+      ctrl.act(w.rows.data(), c, w.actions.data(), count, w.memory.data());
       sink.rows(thread, t, w.rows.data());
     }
-    std::fill(w.memory.begin(), w.memory.end(), 0.0);
     const long in = m.in_features(), stride = w.ring.rows();
     long p = 0;
     for (long t = 0; t < job.steps; ++t) {
@@ -154,7 +157,7 @@ struct Runner {
           if (!m.round_to.empty()) v = std::nearbyint(v / m.round_to[size_t(i)]) * m.round_to[size_t(i)];  // half to even, as np.round
           w.states[k] = v;
         }
-      ctrl.act(w.states.data(), ns, w.actions.data(), na, count, w.memory.data(), t == 0);
+      ctrl.act(w.states.data(), ns, w.actions.data(), count, w.memory.data());
       for (int b = 0; b < count; ++b) {
         double* row = w.rows.data() + size_t(b) * size_t(c);
         std::copy_n(w.states.data() + size_t(b) * size_t(ns), ns, row);
@@ -186,7 +189,8 @@ Plan plan(const Job& job) {
   return {t, block_size(job)};
 }
 
-void simulate(const Model& model, const ControllerSpec& controller, const Job& job, Sink& sink) {
+void simulate(const Model& model, const Controller& controller, const Job& job, Sink& sink) {
+  controller.check(model.n_state(), model.n_action());
   if (!job.init || job.windows < 1) throw std::invalid_argument("no initial windows");
   if (job.runs < 1) throw std::invalid_argument("runs must be at least 1");
   if (job.steps < 0 || job.steps > (long(1) << 32)) throw std::invalid_argument("steps out of range");
@@ -202,7 +206,7 @@ void simulate(const Model& model, const ControllerSpec& controller, const Job& j
   std::mutex error_mutex;
   auto work = [&](int thread) {
     try {
-      Workspace w(model, block);  // every buffer of this thread, allocated once
+      Workspace w(model, controller, block);  // every buffer of this thread, allocated once
       for (long k; (k = next.fetch_add(1)) < blocks;) {
         long first = job.first_run + k * block;
         runner.block(thread, w, first, int(std::min<long>(block, job.first_run + n - first)));

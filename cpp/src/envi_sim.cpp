@@ -1,16 +1,17 @@
 // envi_sim: closed-loop simulation from the command line, without Python.
 //
-//   envi_sim --model m.onnx --init log_30_0.csv [more.csv ...] --controller '{"name": "lane-keeping",
-//            "params": {"x": 30}}' --runs 100 --steps 500 [--seed 0] [--threads 0]
-//            [--out DIR] [--metrics FILE|-] [--metrics-only] [--centre 40] [--band 10] [--skip l]
+//   envi_sim --model m.onnx --init log_30_0.csv [more.csv ...] [--controller lane-keeping --param x=30]
+//            [--runs 100] [--steps 500] [--out DIR] [--metrics FILE|-] ...   (see kUsage)
 //
 // Runs are simulated in chunks; each chunk's logs and metric rows are written before the next
 // starts, so memory stays flat however many runs are asked for (with --metrics-only nothing but
 // the running metric sums outlives a block).
+#include <algorithm>
 #include <cstdio>
 #include <cstring>
 #include <fstream>
 #include <iostream>
+#include <map>
 #include <memory>
 #include <mutex>
 #include <sstream>
@@ -28,15 +29,30 @@ using namespace envi;
 namespace {
 
 const char* kUsage =
-    "usage: envi_sim --model MODEL.onnx --init LOG.csv [LOG.csv ...] --controller JSON|@FILE\n"
-    "                --steps T [--runs N] [--seed S] [--threads K] [--block B]\n"
-    "                [--out DIR] [--metrics FILE|-] [--metrics-only]\n"
-    "                [--centre 40] [--band 10] [--skip HISTORY]\n";
+    "usage: envi_sim --model MODEL.onnx --init LOG.csv [LOG.csv ...] [options]\n"
+    "  --model FILE         exported envi model (required)\n"
+    "  --init LOG.csv ...   real logs whose first `history` rows start the runs (required)\n"
+    "  --controller C       a registered name (lane-keeping, bang-bang, pid, combine), a JSON spec\n"
+    "                       {\"name\": ..., \"params\": {...}} or @FILE holding one (default: the model's\n"
+    "                       training controller from its envi.controllers metadata, when it has exactly one)\n"
+    "  --param K=V ...      parameters of a controller given by name (numbers where possible)\n"
+    "  --steps T            steps after the initial window (default: each log's length minus the history)\n"
+    "  --runs N             runs per initial window (default 1)\n"
+    "  --seed S             seed of a stochastic model's draws (default 0)\n"
+    "  --threads K          worker threads (default 0: one per core)\n"
+    "  --block B            runs per block of the batched engine (default 256)\n"
+    "  --out DIR            write every run as a log (CSV + .meta.json sidecar) into DIR\n"
+    "  --metrics FILE|-     write the driving metrics as JSON (- for standard output)\n"
+    "  --metrics-only       keep no traces, only the metrics (needs --metrics)\n"
+    "  --centre X           lane centre of the metrics (default 40)\n"
+    "  --band X             half-width of the steady band (default 10)\n"
+    "  --skip N             rows left out of the metrics (default: the model's history)\n"
+    "Options take their value as --opt VALUE or --opt=VALUE. Errors: one line, exit code 2.\n";
 
 struct Args {
   std::string model, controller, out, metrics;
-  std::vector<std::string> init;
-  long steps = -1, runs = 1, skip = -1;
+  std::vector<std::string> init, params;
+  long steps = -1, runs = 1, skip = -1;  // -1: each log's length minus the history; the history
   uint64_t seed = 0;
   int threads = 0, block = 256;
   double centre = 40.0, band = 10.0;
@@ -60,36 +76,50 @@ double to_double(const std::string& flag, const std::string& v) {
 Args parse(int argc, char** argv) {
   Args a;
   for (int i = 1; i < argc; ++i) {
-    std::string f = argv[i];
+    std::string f = argv[i], inline_value;
+    bool has_inline = false;
+    if (f.rfind("--", 0) == 0 && f.find('=') != std::string::npos) {
+      inline_value = f.substr(f.find('=') + 1);
+      f = f.substr(0, f.find('='));
+      has_inline = true;
+    }
     auto val = [&]() -> std::string {
+      if (has_inline) return inline_value;
       if (i + 1 >= argc) throw std::invalid_argument(f + " needs a value");
       return argv[++i];
     };
+    // the values of a list option run up to the next option
+    auto more = [&](std::vector<std::string>& list) {
+      list.push_back(val());
+      while (i + 1 < argc && std::strncmp(argv[i + 1], "--", 2) != 0) list.push_back(argv[++i]);
+    };
     if (f == "--model") a.model = val();
-    else if (f == "--init") {
-      a.init.push_back(val());
-      while (i + 1 < argc && std::strncmp(argv[i + 1], "--", 2) != 0) a.init.push_back(argv[++i]);
-    }
+    else if (f == "--init") more(a.init);
     else if (f == "--controller") a.controller = val();
-    else if (f == "--steps") a.steps = to_long(f, val());
+    else if (f == "--param") more(a.params);
+    else if (f == "--steps") {
+      a.steps = to_long(f, val());
+      if (a.steps < 0) throw std::invalid_argument("--steps must not be negative");
+    }
     else if (f == "--runs") a.runs = to_long(f, val());
     else if (f == "--seed") a.seed = uint64_t(to_long(f, val()));
     else if (f == "--threads") a.threads = int(to_long(f, val()));
     else if (f == "--block") a.block = int(to_long(f, val()));
     else if (f == "--out") a.out = val();
     else if (f == "--metrics") a.metrics = val();
-    else if (f == "--metrics-only") a.metrics_only = true;
+    else if (f == "--metrics-only" && !has_inline) a.metrics_only = true;
     else if (f == "--centre") a.centre = to_double(f, val());
     else if (f == "--band") a.band = to_double(f, val());
     else if (f == "--skip") a.skip = to_long(f, val());
     else if (f == "-h" || f == "--help") { std::cout << kUsage; std::exit(0); }
-    else throw std::invalid_argument("unknown option " + f);
+    else throw std::invalid_argument("unknown option " + std::string(argv[i]) + " (see --help)");
   }
-  if (a.model.empty() || a.init.empty() || a.controller.empty() || a.steps < 0)
-    throw std::invalid_argument("--model, --init, --controller and --steps are required");
+  if (a.model.empty() || a.init.empty()) throw std::invalid_argument("--model and --init are required (see --help)");
   if (a.runs < 1) throw std::invalid_argument("--runs must be at least 1");
   if (a.metrics_only && a.metrics.empty()) throw std::invalid_argument("--metrics-only needs --metrics FILE (or -)");
   if (!a.metrics_only && a.out.empty() && a.metrics.empty()) throw std::invalid_argument("nothing to write: give --out and/or --metrics");
+  if (!a.params.empty() && (a.controller.empty() || a.controller[0] == '{' || a.controller[0] == '@'))
+    throw std::invalid_argument("--param goes with a controller given by name (--controller NAME)");
   if (!a.controller.empty() && a.controller[0] == '@') {
     std::ifstream in(a.controller.substr(1));
     if (!in) throw std::invalid_argument("cannot read controller file " + a.controller.substr(1));
@@ -161,43 +191,73 @@ struct MetricRows {
   long chunk_first = 0;
 };
 
+// The controller to run: a JSON spec as given, a registered name with its --param values, or the
+// model's only training controller (its envi.controllers metadata).
+Json controller_spec(const Args& a, const Model& m) {
+  if (a.controller.empty()) {
+    Json list = Json::parse(metadata(m, "envi.controllers"));
+    size_t n = list.type == Json::Type::Array ? list.array.size() : 0;
+    if (n != 1)
+      throw std::invalid_argument(a.model + ": the model records " + std::to_string(n) +
+                                  " training controller(s); choose one with --controller");
+    return list.array[0];
+  }
+  size_t first = a.controller.find_first_not_of(" \t\r\n");
+  if (first != std::string::npos && a.controller[first] == '{') {
+    try {
+      return Json::parse(a.controller);
+    } catch (const std::exception& e) {
+      throw std::invalid_argument(std::string("--controller: ") + e.what());
+    }
+  }
+  std::vector<std::pair<std::string, Json>> params;  // as envi_py.controllers.parse_params
+  for (const std::string& item : a.params) {
+    size_t eq = item.find('=');
+    if (eq == std::string::npos || eq == 0) throw std::invalid_argument("--param " + item + ": expected name=value");
+    std::string value = item.substr(eq + 1);
+    char* end = nullptr;
+    double v = std::strtod(value.c_str(), &end);
+    bool numeric = !value.empty() && end == value.c_str() + value.size();
+    params.emplace_back(item.substr(0, eq), numeric ? num(v) : str(value));
+  }
+  return obj({{"name", str(a.controller)}, {"params", obj(std::move(params))}});
+}
+
+// Initial windows that run for the same number of steps, in the order they were first seen.
+struct Group {
+  long steps;
+  std::vector<long> windows;
+};
+
 int run(const Args& a) {
   Model m = load_model_file(a.model);
-  ControllerSpec ctrl = ControllerSpec::parse(a.controller);
-  Json ctrl_in = Json::parse(a.controller);
-  const Json* params = ctrl_in.find("params");
-  Json ctrl_json = obj({{"name", ctrl_in.at("name")}, {"params", params && !params->is_null() ? *params : obj({})}});
+  Json spec = controller_spec(a, m);
+  Controller ctrl = Controller::from_json(spec, m.period_ms);
+  ctrl.check(m.n_state(), m.n_action());
+  const Json ctrl_json = Json::parse(ctrl.to_json());
 
-  const long l = m.history, c = m.channels(), length = l + a.steps;
+  const long l = m.history, c = m.channels();
   std::vector<InitialWindow> windows;
-  std::vector<double> init;
+  std::vector<Group> groups;
   for (const auto& p : a.init) {
     windows.push_back(read_initial_window(p, m));
-    init.insert(init.end(), windows.back().values.begin(), windows.back().values.end());
+    long steps = a.steps >= 0 ? a.steps : windows.back().rows - l;
+    auto g = std::find_if(groups.begin(), groups.end(), [&](const Group& x) { return x.steps == steps; });
+    if (g == groups.end()) groups.push_back({steps, {}}), g = groups.end() - 1;
+    g->windows.push_back(long(windows.size()) - 1);
   }
   const long K = long(windows.size()), R = K * a.runs;
   MetricConfig mcfg{a.centre, a.band, a.skip >= 0 ? a.skip : l, 0};
   const bool want_logs = !a.metrics_only && !a.out.empty(), want_metrics = !a.metrics.empty();
-  if (want_metrics && length - mcfg.skip <= 0) throw std::invalid_argument("nothing left to score after --skip rows");
+  for (const Group& g : groups)
+    if (want_metrics && l + g.steps - mcfg.skip <= 0) throw std::invalid_argument("nothing left to score after --skip rows");
   if (want_logs) ::mkdir(a.out.c_str(), 0777);
-
-  Job job;
-  job.init = init.data();
-  job.windows = K;
-  job.runs = a.runs;
-  job.steps = a.steps;
-  job.seed = a.seed;
-  job.threads = a.threads;
-  job.block = a.block;
-  const Plan full = plan(job);
-  // Chunk: a whole number of blocks (so block boundaries, hence results, do not depend on it),
-  // enough to keep every thread busy; logs bound it by memory (~64 MB of traces).
-  long blocks_per_chunk = 16;
-  if (want_logs) blocks_per_chunk = std::max<long>(1, std::min<long>(16, (long(8) << 20) / std::max<long>(1, length * c * full.block)));
-  const long chunk = blocks_per_chunk * full.block;
 
   std::ofstream metrics_file;
   std::ostream* mout = nullptr;
+  // per-run metric rows in window order; written as they come when there is one group of windows
+  std::vector<double> all_metrics;
+  const bool streamed = groups.size() == 1;
   if (want_metrics) {
     if (a.metrics == "-") mout = &std::cout;
     else {
@@ -205,75 +265,113 @@ int run(const Args& a) {
       if (!metrics_file) throw std::runtime_error(a.metrics + ": cannot write");
       mout = &metrics_file;
     }
+    std::string steps;
+    if (streamed) steps = std::to_string(groups[0].steps);
+    else
+      for (const auto& w : windows) steps += (steps.empty() ? "[" : ", ") + std::to_string(a.steps >= 0 ? a.steps : w.rows - l);
+    if (!streamed) steps += "]";
     *mout << "{\"metrics\": [";
     for (int k = 0; k < 8; ++k) *mout << (k ? ", " : "") << '"' << kMetricNames[k] << '"';
     *mout << "], \"config\": {\"centre\": " << py_float(mcfg.centre) << ", \"band\": " << py_float(mcfg.band)
           << ", \"skip\": " << mcfg.skip << ", \"channel\": " << mcfg.channel << "}, \"model\": " << json_quote(a.model)
           << ", \"controller\": " << ctrl.to_json() << ", \"windows\": " << K << ", \"runs_per_window\": " << a.runs
-          << ", \"steps\": " << a.steps << ", \"seed\": " << a.seed << ",\n\"per_run\": [";
+          << ", \"steps\": " << steps << ", \"seed\": " << a.seed << ",\n\"per_run\": [";
+    if (!streamed) all_metrics.assign(size_t(R) * 8, 0.0);
   }
   std::vector<double> sums(8, 0.0), traces;
   MetricRows mrows;
-  std::mutex mutex;
   const std::string schema = metadata(m, "envi.schema");
   Json schema_json = Json::parse(schema);
-  for (long first = 0; first < R; first += chunk) {
-    Job part = job;
-    part.first_run = first;
-    part.n_runs = std::min(chunk, R - first);
-    Plan p = plan(part);
-    if (want_logs) traces.assign(size_t(part.n_runs) * size_t(length) * size_t(c), 0.0);
-    mrows.rows.assign(size_t(part.n_runs) * 8, 0.0);
-    mrows.chunk_first = first;
-    std::unique_ptr<MetricsSink> ms;
-    if (want_metrics)
-      ms = std::make_unique<MetricsSink>(mcfg, int(c), p.threads, p.block, [](void* ctx, long f, int n, const double* v) {
-        auto* r = static_cast<MetricRows*>(ctx);
-        std::memcpy(r->rows.data() + (f - r->chunk_first) * 8, v, sizeof(double) * 8 * size_t(n));
-      }, &mrows);
-    ChunkSink sink(want_logs ? traces.data() : nullptr, length, int(c), first, p.threads, ms.get());
-    simulate(m, ctrl, part, sink);
-    for (long i = 0; i < part.n_runs; ++i) {
-      long g = first + i, k = g / a.runs, r = g % a.runs;
-      if (want_metrics) {
-        *mout << (g ? ",\n[" : "\n[");
-        for (int j = 0; j < 8; ++j) {
-          double v = mrows.rows[size_t(i) * 8 + size_t(j)];
-          sums[size_t(j)] += v;
-          *mout << (j ? ", " : "") << py_float(v);
+  int threads_used = 1;
+  long written = 0;  // metric rows written so far (streamed)
+  for (const Group& grp : groups) {
+    const long length = l + grp.steps, KG = long(grp.windows.size()), RG = KG * a.runs;
+    std::vector<double> init;
+    for (long k : grp.windows) init.insert(init.end(), windows[size_t(k)].values.begin(), windows[size_t(k)].values.end());
+    Job job;
+    job.init = init.data();
+    job.windows = KG;
+    job.runs = a.runs;
+    job.steps = grp.steps;
+    job.seed = a.seed + 7919 * uint64_t(grp.steps);  // as envi_py.simulate.simulate_logs seeds a length group
+    job.threads = a.threads;
+    job.block = a.block;
+    const Plan full = plan(job);
+    threads_used = std::max(threads_used, full.threads);
+    // Chunk: a whole number of blocks (so block boundaries, hence results, do not depend on it),
+    // enough to keep every thread busy; logs bound it by memory (~64 MB of traces).
+    long blocks_per_chunk = 16;
+    if (want_logs) blocks_per_chunk = std::max<long>(1, std::min<long>(16, (long(8) << 20) / std::max<long>(1, length * c * full.block)));
+    const long chunk = blocks_per_chunk * full.block;
+    for (long first = 0; first < RG; first += chunk) {
+      Job part = job;
+      part.first_run = first;
+      part.n_runs = std::min(chunk, RG - first);
+      Plan p = plan(part);
+      if (want_logs) traces.assign(size_t(part.n_runs) * size_t(length) * size_t(c), 0.0);
+      mrows.rows.assign(size_t(part.n_runs) * 8, 0.0);
+      mrows.chunk_first = first;
+      std::unique_ptr<MetricsSink> ms;
+      if (want_metrics)
+        ms = std::make_unique<MetricsSink>(mcfg, int(c), p.threads, p.block, [](void* ctx, long f, int n, const double* v) {
+          auto* r = static_cast<MetricRows*>(ctx);
+          std::memcpy(r->rows.data() + (f - r->chunk_first) * 8, v, sizeof(double) * 8 * size_t(n));
+        }, &mrows);
+      ChunkSink sink(want_logs ? traces.data() : nullptr, length, int(c), first, p.threads, ms.get());
+      simulate(m, ctrl, part, sink);
+      for (long i = 0; i < part.n_runs; ++i) {
+        long g = first + i, k = grp.windows[size_t(g / a.runs)], r = g % a.runs;
+        if (want_metrics) {
+          const double* row = mrows.rows.data() + size_t(i) * 8;
+          for (int j = 0; j < 8; ++j) sums[size_t(j)] += row[j];
+          if (streamed) {
+            *mout << (written++ ? ",\n[" : "\n[");
+            for (int j = 0; j < 8; ++j) *mout << (j ? ", " : "") << py_float(row[j]);
+            *mout << "]";
+          } else {
+            std::copy_n(row, 8, all_metrics.data() + size_t(k * a.runs + r) * 8);
+          }
         }
-        *mout << "]";
-      }
-      if (want_logs) {
-        const InitialWindow& w = windows[size_t(k)];
-        double period = l > 1 ? median_period(w.time) : (m.period_ms > 0 ? m.period_ms : 40.0);
-        std::vector<double> time(w.time);
-        for (long t = 1; t <= a.steps; ++t) time.push_back(w.time.back() + period * double(t));
-        std::string run_id = w.run_id + "-sim" + std::to_string(r);
-        Json meta = obj({{"schema_version", num(1, true)},
-                         {"states", schema_json.at("states")},
-                         {"actions", schema_json.at("actions")},
-                         {"controller", ctrl_json},
-                         {"period_ms", num(period)},
-                         {"run_id", str(run_id)},
-                         {"source", str("sim")},
-                         {"provenance", obj({{"init_log", str(w.name)},
-                                             {"model_algorithm", str(m.algorithm)},
-                                             {"seed", num(double(a.seed), true)},
-                                             {"replicate", num(double(r), true)}})}});
-        write_log(a.out, run_id, m, meta, time, traces.data() + size_t(i) * size_t(length) * size_t(c), length);
+        if (want_logs) {
+          const InitialWindow& w = windows[size_t(k)];
+          double period = l > 1 ? median_period(w.time) : (m.period_ms > 0 ? m.period_ms : 40.0);
+          std::vector<double> time(w.time);
+          for (long t = 1; t <= grp.steps; ++t) time.push_back(w.time.back() + period * double(t));
+          std::string run_id = w.run_id + "-sim" + std::to_string(r);
+          Json meta = obj({{"schema_version", num(1, true)},
+                           {"states", schema_json.at("states")},
+                           {"actions", schema_json.at("actions")},
+                           {"controller", ctrl_json},
+                           {"period_ms", num(period)},
+                           {"run_id", str(run_id)},
+                           {"source", str("sim")},
+                           {"provenance", obj({{"init_log", str(w.name)},
+                                               {"model_algorithm", str(m.algorithm)},
+                                               {"seed", num(double(a.seed), true)},
+                                               {"replicate", num(double(r), true)}})}});
+          write_log(a.out, run_id, m, meta, time, traces.data() + size_t(i) * size_t(length) * size_t(c), length);
+        }
       }
     }
   }
   if (want_metrics) {
+    if (!streamed)
+      for (long g = 0; g < R; ++g) {
+        *mout << (g ? ",\n[" : "\n[");
+        for (int j = 0; j < 8; ++j) *mout << (j ? ", " : "") << py_float(all_metrics[size_t(g) * 8 + size_t(j)]);
+        *mout << "]";
+      }
     *mout << "],\n\"mean\": [";
     for (int j = 0; j < 8; ++j) *mout << (j ? ", " : "") << py_float(sums[size_t(j)] / double(R));
     *mout << "]}\n";
     mout->flush();
     if (!*mout) throw std::runtime_error(a.metrics + ": write failed");
   }
-  if (mout != &std::cout)
-    std::cerr << "envi_sim: " << R << " runs x " << a.steps << " steps (" << full.threads << " threads)\n";
+  if (mout != &std::cout) {
+    std::cerr << "envi_sim: " << R << " runs";
+    if (streamed) std::cerr << " x " << groups[0].steps << " steps";
+    std::cerr << " (" << threads_used << " threads)\n";
+  }
   return 0;
 }
 
@@ -282,11 +380,11 @@ int run(const Args& a) {
 int main(int argc, char** argv) {
   try {
     return run(parse(argc, argv));
-  } catch (const std::invalid_argument& e) {
-    std::cerr << "envi_sim: " << e.what() << "\n" << kUsage;
+  } catch (const std::exception& e) {  // bad arguments, files, models or controllers alike
+    std::string what = e.what();
+    for (char& ch : what)
+      if (ch == '\n') ch = ' ';
+    std::cerr << "envi_sim: " << what << "\n";
     return 2;
-  } catch (const std::exception& e) {
-    std::cerr << "envi_sim: " << e.what() << "\n";
-    return 1;
   }
 }

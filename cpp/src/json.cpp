@@ -214,16 +214,49 @@ std::string py_float(double v) {
   return out + digits.substr(0, size_t(exp + 1)) + "." + digits.substr(size_t(exp + 1));
 }
 
+Json Json::object_of(std::vector<std::pair<std::string, Json>> members) {
+  Json j;
+  j.type = Type::Object;
+  j.object = std::move(members);
+  return j;
+}
+
+namespace {
+std::string dump_number(const Json& v) {
+  if (std::isnan(v.number)) return "NaN";
+  if (std::isinf(v.number)) return v.number > 0 ? "Infinity" : "-Infinity";
+  if (v.integer) return std::to_string(static_cast<long long>(v.number));
+  return py_float(v.number);
+}
+}  // namespace
+
+std::string dump(const Json& v) {
+  switch (v.type) {
+    case Json::Type::Null: return "null";
+    case Json::Type::Bool: return v.boolean ? "true" : "false";
+    case Json::Type::Number: return dump_number(v);
+    case Json::Type::String: return json_quote(v.string);
+    case Json::Type::Array: {
+      std::string out = "[";
+      for (size_t k = 0; k < v.array.size(); ++k) out += (k ? ", " : "") + dump(v.array[k]);
+      return out + "]";
+    }
+    case Json::Type::Object: {
+      std::string out = "{";
+      for (size_t k = 0; k < v.object.size(); ++k)
+        out += (k ? ", " : "") + json_quote(v.object[k].first) + ": " + dump(v.object[k].second);
+      return out + "}";
+    }
+  }
+  return "null";
+}
+
 std::string dump_indent1(const Json& v, int depth) {
   std::string pad(size_t(depth + 1), ' '), close(size_t(depth), ' ');
   switch (v.type) {
     case Json::Type::Null: return "null";
     case Json::Type::Bool: return v.boolean ? "true" : "false";
-    case Json::Type::Number:
-      if (std::isnan(v.number)) return "NaN";
-      if (std::isinf(v.number)) return v.number > 0 ? "Infinity" : "-Infinity";
-      if (v.integer) return std::to_string(static_cast<long long>(v.number));
-      return py_float(v.number);
+    case Json::Type::Number: return dump_number(v);
     case Json::Type::String: return json_quote(v.string);
     case Json::Type::Array: {
       if (v.array.empty()) return "[]";

@@ -60,7 +60,8 @@ Job make_job(const Model& m, const ArrayD& init, long steps, long runs, uint64_t
 
 py::array_t<double> rollout(const Model& m, const std::string& controller, const ArrayD& init, long steps, long runs,
                             uint64_t seed, int threads, int block) {
-  ControllerSpec ctrl = ControllerSpec::parse(controller);
+  Controller ctrl = Controller::parse(controller, m.period_ms);
+  ctrl.check(m.n_state(), m.n_action());
   Job job = make_job(m, init, steps, runs, seed, threads, block);
   long total = job.windows * runs, length = m.history + steps;
   py::array_t<double> out({py::ssize_t(total), py::ssize_t(length), py::ssize_t(m.channels())});
@@ -77,7 +78,8 @@ py::array_t<double> rollout(const Model& m, const std::string& controller, const
 py::array_t<double> rollout_metrics(const Model& m, const std::string& controller, const ArrayD& init, long steps,
                                     long runs, uint64_t seed, int threads, int block, double centre, double band,
                                     long skip, int channel) {
-  ControllerSpec ctrl = ControllerSpec::parse(controller);
+  Controller ctrl = Controller::parse(controller, m.period_ms);
+  ctrl.check(m.n_state(), m.n_action());
   Job job = make_job(m, init, steps, runs, seed, threads, block);
   MetricConfig cfg{centre, band, skip, channel};
   if (m.history + steps - skip <= 0) throw std::invalid_argument("nothing left to score after skipping " + std::to_string(skip) + " rows");
@@ -96,6 +98,32 @@ py::array_t<double> rollout_metrics(const Model& m, const std::string& controlle
   return out;
 }
 
+// A controller alone over given state sequences, as the simulator drives it: reset, warm-up on the
+// first `history` rows of each run (answers discarded), then one call per remaining row.
+py::array_t<double> controller_actions(const std::string& spec, const ArrayD& states, long history, int n_action,
+                                       double period_ms) {
+  if (states.ndim() != 3) throw std::invalid_argument("states must be (N, T, n_state)");
+  const long N = long(states.shape(0)), T = long(states.shape(1));
+  const int ns = int(states.shape(2));
+  if (history < 0 || history > T) throw std::invalid_argument("history must be within 0 .. T");
+  Controller c = Controller::parse(spec, period_ms);
+  c.check(ns, n_action);
+  py::array_t<double> out({py::ssize_t(N), py::ssize_t(T - history), py::ssize_t(n_action)});
+  std::vector<double> memory(size_t(N) * size_t(c.memory_per_run())), row(size_t(N) * size_t(ns)),
+      actions(size_t(N) * size_t(n_action));
+  c.reset(memory.data(), int(N));
+  const double* src = states.data();
+  double* dst = out.mutable_data();
+  for (long t = 0; t < T; ++t) {
+    for (long b = 0; b < N; ++b) std::copy_n(src + (b * T + t) * ns, ns, row.data() + b * ns);
+    c.act(row.data(), ns, actions.data(), int(N), memory.data());
+    if (t >= history)
+      for (long b = 0; b < N; ++b)
+        std::copy_n(actions.data() + b * n_action, n_action, dst + (b * (T - history) + t - history) * n_action);
+  }
+  return out;
+}
+
 }  // namespace
 
 #ifndef ENVI_MODULE_NAME
@@ -104,6 +132,8 @@ py::array_t<double> rollout_metrics(const Model& m, const std::string& controlle
 PYBIND11_MODULE(ENVI_MODULE_NAME, mod) {
   mod.doc() = "envi native runtime: ONNX environment models in closed loop with controllers";
   py::register_exception<ModelError>(mod, "ModelError", PyExc_ValueError);
+  // Python's envi_py.controllers.WidthError is a ValueError too; tests match on the message.
+  py::register_exception<WidthError>(mod, "WidthError", PyExc_ValueError);
 
   py::class_<Model>(mod, "Model")
       .def(py::init([](py::bytes data) {
@@ -113,6 +143,9 @@ PYBIND11_MODULE(ENVI_MODULE_NAME, mod) {
            }),
            py::arg("onnx_bytes"))
       .def_readonly("history", &Model::history)
+      // A PID's default period (ms); from the file's envi.period_ms, 0 when unknown (then 40 ms).
+      // Writable so a checkpoint's resolved period travels with the model compiled from it.
+      .def_readwrite("period_ms", &Model::period_ms)
       .def_property_readonly("n_state", &Model::n_state)
       .def_property_readonly("n_action", &Model::n_action)
       .def_property_readonly("gaussian", &Model::gaussian)
@@ -131,20 +164,10 @@ PYBIND11_MODULE(ENVI_MODULE_NAME, mod) {
           py::arg("steps"), py::arg("runs") = 1, py::arg("seed") = 0, py::arg("threads") = 0, py::arg("block") = 256,
           py::arg("centre") = 40.0, py::arg("band") = 10.0, py::arg("skip") = 10, py::arg("channel") = 0,
           "Closed-loop runs scored on the fly: (K*runs, 8) driving metrics, no traces kept.");
-  mod.def("controller_sequence",
-          [](const std::string& spec, const ArrayD& states, int n_action) {
-            // states (T, N, ns): T successive calls on N runs after one reset -> actions (T, N, n_action)
-            if (states.ndim() != 3) throw std::invalid_argument("states must be (T, N, n_state)");
-            ControllerSpec c = ControllerSpec::parse(spec);
-            long T = long(states.shape(0)), N = long(states.shape(1));
-            int ns = int(states.shape(2));
-            py::array_t<double> out({py::ssize_t(T), py::ssize_t(N), py::ssize_t(n_action)});
-            std::vector<double> memory(size_t(N) * ControllerSpec::kStateSize, 0.0);
-            for (long t = 0; t < T; ++t)
-              c.act(states.data() + t * N * ns, ns, out.mutable_data() + t * N * n_action, n_action, int(N), memory.data(), t == 0);
-            return out;
-          },
-          py::arg("spec"), py::arg("states"), py::arg("n_action") = 1);
+  mod.def("controller_actions", &controller_actions, py::arg("spec"), py::arg("states"), py::arg("history"),
+          py::arg("n_action"), py::arg("period_ms") = 0.0,
+          "A controller alone: states (N, T, n_state) -> actions (N, T - history, n_action) after a reset "
+          "and a warm-up on the first `history` rows; period_ms is a PID's default period (0: 40 ms).");
   mod.def("driving_metrics",
           [](const ArrayD& traces, double centre, double band, long skip) {
             if (traces.ndim() != 2) throw std::invalid_argument("traces must be (runs, T)");

@@ -33,7 +33,7 @@ int main(int argc, char** argv) {
       job.steps = 4;
       job.threads = 1;
       Discard sink(m.channels());
-      envi::simulate(m, envi::ControllerSpec::parse(R"({"name": "pid", "params": {"ki": 1}})"), job, sink);
+      envi::simulate(m, envi::Controller::parse(R"({"name": "pid", "params": {"ki": 1}})"), job, sink);
       ++loaded;
     } catch (const envi::ModelError&) {
       ++rejected;

@@ -56,17 +56,19 @@ inline Bytes value_info(const std::string& name) {
 
 struct Spec {
   int history = 3, hidden = 8;
+  int n_state = 1, n_action = 1;  // more than one: channels color<i> / angle<i>, limits 0..100 each
   bool gaussian = false;
   std::string post = R"({"clamp": true, "limits": [[0.0, 100.0]], "round_to": null})";
   uint32_t seed = 1;
 };
 
-// A model (history*2) -> hidden tanh -> 1 tanh [+ log-std head], lane-keeping schema and metadata.
+// A model (history*channels) -> hidden tanh -> n_state tanh [+ log-std head], the lane-keeping
+// schema and metadata (or as many colour states and angle actions as asked).
 inline Bytes model(const Spec& s, std::vector<Bytes> extra_nodes = {}) {
   std::mt19937 rng(s.seed);
   std::normal_distribution<float> g(0.f, 0.4f);
   auto rnd = [&](size_t n) { std::vector<float> v(n); for (auto& x : v) x = g(rng); return v; };
-  int in = s.history * 2;
+  const int ns = s.n_state, na = s.n_action, in = s.history * (ns + na);
   Bytes graph;
   field_bytes(graph, 1, node("Gemm", {"x", "w0", "b0"}, "h0", {attr_int("transB", 1)}));
   field_bytes(graph, 1, node("Tanh", {"h0"}, "a0"));
@@ -81,11 +83,11 @@ inline Bytes model(const Spec& s, std::vector<Bytes> extra_nodes = {}) {
   field_bytes(graph, 2, "g");
   field_bytes(graph, 5, tensor("w0", {s.hidden, in}, rnd(size_t(s.hidden * in))));
   field_bytes(graph, 5, tensor("b0", {s.hidden}, rnd(size_t(s.hidden))));
-  field_bytes(graph, 5, tensor("w1", {1, s.hidden}, rnd(size_t(s.hidden))));
-  field_bytes(graph, 5, tensor("b1", {1}, rnd(1)));
+  field_bytes(graph, 5, tensor("w1", {ns, s.hidden}, rnd(size_t(ns * s.hidden))));
+  field_bytes(graph, 5, tensor("b1", {ns}, rnd(size_t(ns))));
   if (s.gaussian) {
-    field_bytes(graph, 5, tensor("w2", {s.hidden, 1}, rnd(size_t(s.hidden))));
-    field_bytes(graph, 5, tensor("b2", {1}, {-1.5f}));
+    field_bytes(graph, 5, tensor("w2", {s.hidden, ns}, rnd(size_t(s.hidden * ns))));
+    field_bytes(graph, 5, tensor("b2", {ns}, std::vector<float>(size_t(ns), -1.5f)));
     field_bytes(graph, 5, tensor("lo", {}, {-7.f}));
     field_bytes(graph, 5, tensor("hi", {}, {1.f}));
   }
@@ -108,14 +110,36 @@ inline Bytes model(const Spec& s, std::vector<Bytes> extra_nodes = {}) {
     field_bytes(m, 14, e);
   };
   meta("envi.format", "\"envi-onnx\"");
-  meta("envi.schema", R"({"states": [{"name": "color", "unit": "%", "range": [0.0, 100.0]}], )"
-                      R"("actions": [{"name": "angle", "unit": "deg", "range": [-90.0, 90.0]}]})");
-  meta("envi.normaliser", R"({"low": [5.0, -30.0], "high": [80.0, 30.0]})");
+  if (ns == 1 && na == 1) {
+    meta("envi.schema", R"({"states": [{"name": "color", "unit": "%", "range": [0.0, 100.0]}], )"
+                        R"("actions": [{"name": "angle", "unit": "deg", "range": [-90.0, 90.0]}]})");
+    meta("envi.normaliser", R"({"low": [5.0, -30.0], "high": [80.0, 30.0]})");
+  } else {
+    std::string states, actions, low, high;
+    for (int i = 0; i < ns; ++i) {
+      states += std::string(i ? ", " : "") + R"({"name": "color)" + std::to_string(i) + R"(", "unit": "%", "range": [0.0, 100.0]})";
+      low += std::string(i ? ", " : "") + "5.0";
+      high += std::string(i ? ", " : "") + "80.0";
+    }
+    for (int i = 0; i < na; ++i) {
+      actions += std::string(i ? ", " : "") + R"({"name": "angle)" + std::to_string(i) + R"(", "unit": "deg", "range": [-90.0, 90.0]})";
+      low += ", -30.0";
+      high += ", 30.0";
+    }
+    meta("envi.schema", R"({"states": [)" + states + R"(], "actions": [)" + actions + "]}");
+    meta("envi.normaliser", R"({"low": [)" + low + R"(], "high": [)" + high + "]}");
+  }
   meta("envi.history", std::to_string(s.history));
   meta("envi.period_ms", "40.0");
   meta("envi.head", s.gaussian ? "\"gaussian\"" : "\"deterministic\"");
   meta("envi.algorithm", "\"bc\"");
-  meta("envi.post", s.post);  // required and last: no prefix of the file is a complete model
+  std::string post = s.post;
+  if (ns > 1) {
+    std::string limits;
+    for (int i = 0; i < ns; ++i) limits += std::string(i ? ", " : "") + "[0.0, 100.0]";
+    post = R"({"clamp": true, "limits": [)" + limits + R"(], "round_to": null})";
+  }
+  meta("envi.post", post);  // required and last: no prefix of the file is a complete model
   return m;
 }
 

@@ -14,6 +14,7 @@ struct InitialWindow {
   std::string run_id;  // from the sidecar, else the file stem
   std::vector<double> time;    // history rows, ms
   std::vector<double> values;  // history x channels, physical
+  long rows = 0;               // data rows in the whole log (its length)
 };
 
 // First `model.history` data rows of a CSV log whose header holds the model's columns (any order).

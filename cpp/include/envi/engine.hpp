@@ -33,8 +33,10 @@ struct Job {
   int block = 256;      // runs per block (columns of the GEMMs)
 };
 
-// Runs the job; throws std::invalid_argument on bad arguments. Allocates only before the loop.
-void simulate(const Model& model, const ControllerSpec& controller, const Job& job, Sink& sink);
+// Runs the job; throws std::invalid_argument on bad arguments (WidthError when the controller does
+// not fit the model). Each run's controller is reset, then warmed up on its initial window's rows
+// (as envi_py.simulate.rollout does), then the closed loop starts. Allocates only before the loop.
+void simulate(const Model& model, const Controller& controller, const Job& job, Sink& sink);
 
 // How `simulate` splits a job: worker threads and runs per block (sinks size their state by it).
 struct Plan {

@@ -20,6 +20,7 @@ struct Json {
   std::vector<std::pair<std::string, Json>> object;  // insertion order, as Python's json keeps it
 
   static Json parse(const std::string& text);  // throws std::runtime_error with the offset
+  static Json object_of(std::vector<std::pair<std::string, Json>> members);
 
   bool is_null() const { return type == Type::Null; }
   const Json* find(const std::string& key) const;
@@ -32,6 +33,9 @@ struct Json {
 
 // json.dumps(value, indent=1) of Python, byte for byte (ints stay ints, floats as repr).
 std::string dump_indent1(const Json& v, int depth = 0);
+
+// json.dumps(value) of Python: one line, ", " and ": " separators.
+std::string dump(const Json& v);
 
 // Python's repr(float): shortest round-trip digits, exponent form outside 1e-4 <= |v| < 1e16.
 std::string py_float(double v);
