@@ -100,10 +100,9 @@ class WidthError(ValueError):
 
 
 def _channel(name: str, value: Any, n_state: int | None) -> int:
-    try:
-        idx = int(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"controller {name!r}: 'input' must be a state channel index, not {value!r}") from None
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or float(value) != int(value):
+        raise ValueError(f"controller {name!r}: 'input' must be a state channel index, not {value!r:.40}")
+    idx = int(value)
     if idx < 0 or (n_state is not None and idx >= n_state):
         raise WidthError(f"controller {name!r}: reads state channel {idx}, the model has {n_state} state(s)")
     return idx
@@ -271,8 +270,8 @@ def _import(path: str) -> Any:
 
 
 def _number(name: str, key: str, value: Any) -> float | None:
-    if value is None:
-        return None
+    if value is None and key == "dt":
+        return None  # the period the controller is built for
     if isinstance(value, bool) or not isinstance(value, (int, float, str)):
         raise ValueError(f"controller {name!r}: parameter {key!r} must be a number, not {value!r:.40}")
     try:

@@ -136,3 +136,10 @@ def test_rollout_warms_the_controller_up_on_sigma0(tmp_path):
     out = rollout(ck, ControllerSpec("tests.test_controllers:CountingController", {"gain": 2.0}),
                   np.stack([lg.values[:10] for lg in logs]), steps=3)
     assert out[:, 10:, 1].tolist() == [[22.0, 24.0, 26.0]] * 2  # 10 warm-up rows, then 11, 12, 13
+
+
+@pytest.mark.parametrize("params, why", [({"kp": None}, "'kp' must be a number"), ({"input": 1.5}, "'input' must be"),
+                                         ({"input": True}, "'input' must be"), ({"input": "1"}, "'input' must be")])
+def test_bad_parameter_types_are_value_errors_naming_the_controller(params, why):
+    with pytest.raises(ValueError, match=why):
+        ControllerSpec("pid", params).build(n_state=2, n_action=1)
