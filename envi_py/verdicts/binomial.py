@@ -13,7 +13,7 @@ from dataclasses import dataclass
 from enum import Enum
 from typing import Any
 
-from scipy import stats
+from scipy import special
 
 from ._checks import count, probability
 
@@ -36,8 +36,9 @@ def clopper_pearson(k: int, n: int, confidence: float = 0.95) -> tuple[float, fl
     if k > n:
         raise ValueError(f"k must be <= n, got k={k}, n={n}")
     alpha = 1.0 - probability("confidence", confidence)
-    lo = 0.0 if k == 0 else float(stats.beta.ppf(alpha / 2, k, n - k + 1))
-    hi = 1.0 if k == n else float(stats.beta.ppf(1 - alpha / 2, k + 1, n - k))
+    # special.betaincinv(a, b, q) is stats.beta.ppf(q, a, b) without its ~100 us of argument handling per call
+    lo = 0.0 if k == 0 else float(special.betaincinv(k, n - k + 1, alpha / 2))
+    hi = 1.0 if k == n else float(special.betaincinv(k + 1, n - k, 1 - alpha / 2))
     return lo, hi
 
 
