@@ -1,0 +1,130 @@
+"""How honest and how economical the goal verdicts are, on synthetic data with a known true P(goal).
+
+Real-system part: starts x ~ N(0, 1); a real run meets the goal with p(x) = expit(2 + slope x) (slope:
+how much the start decides the outcome). The model's p is expit(2 + shift + slope x), estimated from 20
+simulated runs per start: faithful (shift 0), slightly wrong (shift 0.7) and badly wrong (shift -5).
+Each repetition draws 10 real runs with their paired predictions and 400 simulated starts, and runs the
+whole verdict (PPI, and the control-variate variant): coverage of the nominal 95 % interval for the true
+real P(goal) when the claim is kept, of the interval finally reported (the real-only Clopper-Pearson one
+after a withdrawal), its width over the real-only width, and how often the claim is withdrawn.
+
+Sequential part: Bernoulli streams with p around p_required = 0.9 (indifference +-0.05, alpha = beta =
+0.05), batches of 10: runs used by the SPRT and by the any-time confidence sequence against the
+fixed-size exact test with the same error rates, and the realised error rates.
+
+    python benchmarks/bench_verdicts.py [--reps 300] [--slope 6] [--out bench_out/bench_verdicts.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from envi_py.verdicts import Verdict, clopper_pearson, confidence_sequence, fixed_sample_size, ppi_verdict, sprt
+
+MODELS = {"faithful": 0.0, "slightly wrong": 0.7, "badly wrong": -5.0}
+SIMS_PER_START, STARTS, N_REAL = 20, 400, 10
+
+
+def expit(z: np.ndarray) -> np.ndarray:
+    return 1 / (1 + np.exp(-z))
+
+
+def true_rate(slope: float) -> float:
+    z, w = np.polynomial.hermite_e.hermegauss(80)
+    return float(np.sum(w * expit(2 + slope * z)) / np.sqrt(2 * np.pi))
+
+
+def real_system(reps: int, slope: float, seed: int) -> list[dict]:
+    truth, rows = true_rate(slope), []
+    for name, shift in MODELS.items():
+        for estimator in ("ppi", "control-variate"):
+            rng = np.random.default_rng(seed)
+            claimed, final, ratio, withdrawn, real_cover = [], [], [], [], []
+            for _ in range(reps):
+                x = rng.normal(size=N_REAL)
+                y = rng.random(N_REAL) < expit(2 + slope * x)
+                paired = rng.binomial(SIMS_PER_START, expit(2 + shift + slope * x)) / SIMS_PER_START
+                sims = rng.binomial(SIMS_PER_START, expit(2 + shift + slope * rng.normal(size=STARTS))) / SIMS_PER_START
+                v = ppi_verdict(sims, y, paired, p_required=0.5, estimator=estimator)
+                lo, hi = clopper_pearson(int(y.sum()), y.size)
+                real_cover.append(lo <= truth <= hi)
+                final.append(v.low <= truth <= v.high)
+                withdrawn.append(v.withdrawn)
+                if not v.withdrawn:
+                    claimed.append(v.low <= truth <= v.high)
+                    ratio.append((v.high - v.low) / (hi - lo))
+            rows.append({"model": name, "logit_shift": shift, "estimator": estimator, "reps": reps, "n_real": N_REAL,
+                         "n_sim_starts": STARTS, "sims_per_start": SIMS_PER_START, "true_p": truth,
+                         "coverage_when_claimed": float(np.mean(claimed)) if claimed else None,
+                         "claims": len(claimed), "coverage_final": float(np.mean(final)),
+                         "coverage_real_only": float(np.mean(real_cover)),
+                         "median_width_ratio": float(np.median(ratio)) if ratio else None,
+                         "withdrawn_rate": float(np.mean(withdrawn))})
+    return rows
+
+
+def sequential(reps: int, seed: int) -> list[dict]:
+    p_req, delta, batch = 0.9, 0.05, 10
+    n_fixed, c_fixed = fixed_sample_size(p_req, delta, 0.05, 0.05)
+    rows = []
+    for p in (0.8, 0.85, 0.9, 0.95, 0.99):
+        rng = np.random.default_rng(seed)
+        s = [sprt(lambda n, p=p, rng=rng: rng.random(n) < p, p_req, delta, batch=batch) for _ in range(reps)]
+        cs = [confidence_sequence(lambda n, p=p, rng=rng: rng.random(n) < p, p_req, batch=batch, max_runs=5000)
+              for _ in range(reps)]
+        wrong = Verdict.PASS if p < p_req else Verdict.FAIL if p > p_req else None
+        rows.append({"p": p, "reps": reps, "batch": batch, "fixed_n": n_fixed, "fixed_critical": c_fixed,
+                     "sprt_median_runs": float(np.median([r.runs for r in s])),
+                     "sprt_mean_runs": float(np.mean([r.runs for r in s])),
+                     "sprt_error_rate": None if wrong is None else float(np.mean([r.verdict is wrong for r in s])),
+                     "sprt_interval_coverage": float(np.mean([r.low <= p <= r.high for r in s])),
+                     "cs_median_runs": float(np.median([r.runs for r in cs])),
+                     "cs_undecided_rate": float(np.mean([r.verdict is Verdict.UNDECIDED for r in cs])),
+                     "cs_error_rate": None if wrong is None else float(np.mean([r.verdict is wrong for r in cs])),
+                     "cs_interval_coverage": float(np.mean([r.low <= p <= r.high for r in cs]))})
+    return rows
+
+
+def _f(x: float | None, fmt: str = ".3f") -> str:
+    return "-" if x is None else format(x, fmt)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--reps", type=int, default=300)
+    ap.add_argument("--slope", type=float, default=6.0, help="how strongly the start decides the outcome")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--out", type=Path, default=Path("bench_out/bench_verdicts.json"))
+    args = ap.parse_args()
+    t0 = time.time()
+    rs = real_system(args.reps, args.slope, args.seed)
+    print(f"Real system, {N_REAL} real runs, {STARTS} starts x {SIMS_PER_START} sims, {args.reps} repetitions, "
+          f"slope {args.slope:g}, true P(goal) {rs[0]['true_p']:.3f}, nominal 95 %")
+    print(f"{'model':<15} {'estimator':<16} {'cover|claim':>11} {'cover final':>11} {'cover CP':>8} "
+          f"{'width/CP':>8} {'withdrawn':>9}")
+    for r in rs:
+        print(f"{r['model']:<15} {r['estimator']:<16} {_f(r['coverage_when_claimed']):>11} "
+              f"{_f(r['coverage_final']):>11} {_f(r['coverage_real_only']):>8} {_f(r['median_width_ratio']):>8} "
+              f"{_f(r['withdrawn_rate']):>9}")
+    sq = sequential(args.reps, args.seed)
+    print(f"\nSequential, p_required 0.9 +- 0.05, alpha = beta = 0.05, batches of 10, {args.reps} repetitions; "
+          f"fixed-size exact test: n = {sq[0]['fixed_n']}")
+    print(f"{'p':>5} {'SPRT med':>8} {'SPRT mean':>9} {'SPRT/fixed':>10} {'SPRT err':>8} {'CS med':>7} "
+          f"{'CS undec':>8} {'CS err':>6} {'CS cover':>8}")
+    for r in sq:
+        print(f"{r['p']:>5.2f} {r['sprt_median_runs']:>8.0f} {r['sprt_mean_runs']:>9.1f} "
+              f"{r['sprt_median_runs'] / r['fixed_n']:>10.2f} {_f(r['sprt_error_rate']):>8} {r['cs_median_runs']:>7.0f} "
+              f"{r['cs_undecided_rate']:>8.3f} {_f(r['cs_error_rate']):>6} {r['cs_interval_coverage']:>8.3f}")
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps({"reps": args.reps, "slope": args.slope, "seed": args.seed,
+                                    "seconds": time.time() - t0, "real_system": rs, "sequential": sq}, indent=1))
+    print(f"\nwrote {args.out} ({time.time() - t0:.0f} s)")
+
+
+if __name__ == "__main__":
+    main()
