@@ -50,7 +50,7 @@ def real_system(reps: int, slope: float, seed: int) -> list[dict]:
                 y = rng.random(N_REAL) < expit(2 + slope * x)
                 paired = rng.binomial(SIMS_PER_START, expit(2 + shift + slope * x)) / SIMS_PER_START
                 sims = rng.binomial(SIMS_PER_START, expit(2 + shift + slope * rng.normal(size=STARTS))) / SIMS_PER_START
-                v = ppi_verdict(sims, y, paired, p_required=0.5, estimator=estimator)
+                v = ppi_verdict(sims, y, paired, p_required=0.5, estimator=estimator, sims_per_start=SIMS_PER_START)
                 lo, hi = clopper_pearson(int(y.sum()), y.size)
                 real_cover.append(lo <= truth <= hi)
                 final.append(v.low <= truth <= v.high)

@@ -7,6 +7,7 @@ import pytest
 from scipy import stats
 
 from envi_py.verdicts import Verdict, clopper_pearson, control_variate, model_only, ppi, ppi_verdict, rectifier_check
+from envi_py.verdicts.real_system import calibration_p_value
 
 SIMS_PER_START, STARTS = 20, 400
 
@@ -47,7 +48,8 @@ def test_ppi_covers_and_is_narrower_than_real_only_with_a_faithful_model():
 
 def test_verdict_keeps_the_claim_with_a_faithful_model_and_covers():
     rng, truth, reps = np.random.default_rng(1), true_rate(8.0), 300
-    verdicts = [ppi_verdict(*synthetic(rng, 10, 8.0), p_required=0.5) for _ in range(reps)]
+    verdicts = [ppi_verdict(*synthetic(rng, 10, 8.0), p_required=0.5, sims_per_start=SIMS_PER_START)
+                for _ in range(reps)]
     assert np.mean([v.withdrawn for v in verdicts]) <= 0.05 + 3 * np.sqrt(0.05 * 0.95 / reps)
     assert np.mean([v.low <= truth <= v.high for v in verdicts]) >= 0.93
 
@@ -59,23 +61,24 @@ def test_control_variate_by_hand():
     # cov(y, f) = (0.25*0.3 + 0.75*0.4 + 0 + 0.25*0.1) / 3 = 0.4/3; var(f) = (0.09+0.16+0+0.01)/3 = 0.26/3
     c = 0.4 / 0.26
     theta = 0.75 - c * (0.6 - 0.5)
-    r = y - c * f
-    se2 = r.var(ddof=1) / 4 + c**2 * 0.1 / 4 / 5  # sims: squared deviations sum to 0.1
+    # var(y - c f) = 0.044872 lies below the model's own mean f(1-f) = (0.09+0.16+0.24+0.21)/4 = 0.175: the floor
+    assert (y - c * f).var(ddof=1) == pytest.approx(0.044872, abs=1e-6)
+    se2 = 0.175 / 4 + c**2 * 0.1 / 4 / 5  # sims: squared deviations sum to 0.1
     est = control_variate(sims, y, f)
     assert est.coefficient == pytest.approx(1.5384615, abs=1e-7)
     assert est.estimate == pytest.approx(0.5961538, abs=1e-7) == pytest.approx(theta)
-    assert est.se == pytest.approx(np.sqrt(se2), rel=1e-12) == pytest.approx(0.151830, abs=1e-6)
-    half = stats.t.ppf(0.975, est.df) * est.se
-    assert (est.low, est.high) == pytest.approx((theta - half, theta + half))
-    assert 3 <= est.df <= 7  # Welch-Satterthwaite lies between the smaller and the summed degrees of freedom
+    assert est.se == pytest.approx(np.sqrt(se2), rel=1e-12) == pytest.approx(0.235763, abs=1e-6)
+    half = 1.959964 * est.se
+    assert (est.low, est.high) == pytest.approx((theta - half, 1.0), abs=1e-6)  # theta + half = 1.058, clipped
 
 
 def test_ppi_is_the_control_variate_with_coefficient_one():
-    y = np.array([1, 0, 1, 1, 1])
-    f = np.array([0.8, 0.3, 0.9, 0.6, 0.7])
+    y = np.array([1, 0, 1, 0, 1])
+    f = np.array([0.1, 0.9, 0.95, 0.05, 0.6])  # rectifier spread 0.58 > mean f(1-f) = 0.0975: no floor
     sims = np.array([0.5, 0.9, 0.6, 0.7])
     est = ppi(sims, y, f)
     assert est.estimate == pytest.approx(sims.mean() + (y - f).mean())
+    assert (y - f).var(ddof=1) > np.mean(f * (1 - f))
     assert est.se == pytest.approx(np.sqrt(sims.var(ddof=1) / 4 + (y - f).var(ddof=1) / 5))
 
 
@@ -87,12 +90,14 @@ def test_claim_withdrawn_when_the_model_is_badly_wrong():
     assert v.model_estimate.estimate == pytest.approx(1.0)  # what was refused is still shown
 
 
-@pytest.mark.parametrize("n_real, shift, at_least", [(40, -5.0, 0.95), (10, -5.0, 0.65)])
-def test_badly_biased_model_is_caught_at_a_rate_that_grows_with_real_runs(n_real, shift, at_least):
-    """Logit shift -5 (predicts ~0.3 where the real rate is ~0.8). Measured: withdrawn 100 % at 40 real
-    runs, ~80 % at 10: the t test on 10 runs has limited power, and the report must say so."""
+@pytest.mark.parametrize("n_real, slope, at_least", [(10, 4.0, 0.9), (40, 8.0, 0.95)])
+def test_badly_biased_model_is_caught(n_real, slope, at_least):
+    """Logit shift -5: the model predicts failure where the real runs mostly succeed. Measured withdrawal
+    at 10 real runs: 96 % with slope 4, but 67 % with slope 8, where the model is wrong only for the few
+    starts in the middle and 10 real runs often miss them; 40 real runs catch it."""
     rng, reps = np.random.default_rng(4), 200
-    rate = np.mean([ppi_verdict(*synthetic(rng, n_real, 4.0, shift), p_required=0.5).withdrawn for _ in range(reps)])
+    rate = np.mean([ppi_verdict(*synthetic(rng, n_real, slope, -5.0), p_required=0.5,
+                                sims_per_start=SIMS_PER_START).withdrawn for _ in range(reps)])
     assert rate >= at_least
 
 
@@ -100,9 +105,21 @@ def test_rectifier_check_values():
     chk = rectifier_check([1, 0, 1, 1], [0.5, 0.5, 0.5, 0.5], level=0.05)
     r = np.array([0.5, -0.5, 0.5, 0.5])
     assert chk.mean == pytest.approx(0.25) and chk.sd == pytest.approx(r.std(ddof=1))
-    assert chk.p_value == pytest.approx(stats.ttest_1samp(r, 0).pvalue) and chk.passed
+    assert (chk.low, chk.high) == pytest.approx(tuple(stats.ttest_1samp(r, 0).confidence_interval(0.95)))
+    # 3 of 4 under Binomial(4, 1/2): counts no likelier than 3 are 0, 1, 3, 4 -> (1 + 4 + 4 + 1) / 16
+    assert chk.p_value == pytest.approx(10 / 16) and chk.passed
     exact = rectifier_check([1, 1, 1], [1.0, 1.0, 1.0])
     assert exact.mean == 0 and exact.passed and exact.p_value == 1.0
+
+
+def test_calibration_test_matches_binomtest_and_shrinks_estimated_predictions():
+    y = np.r_[np.ones(9), np.zeros(11)]
+    assert calibration_p_value(y, np.full(20, 0.3)) == pytest.approx(stats.binomtest(9, 20, 0.3).pvalue)
+    # three real successes where the model saw 0, 20 and 20 successes in 20 simulated runs
+    y, f = np.array([1, 1, 1]), np.array([0.0, 1.0, 1.0])
+    assert rectifier_check(y, f).p_value < 1e-12  # as exact probabilities: a count of 3 is impossible
+    shrunk = rectifier_check(y, f, level=0.01, sims_per_start=20)  # as estimates from 20 runs: rare, not impossible
+    assert shrunk.passed and shrunk.p_value == pytest.approx((0.5 / 21) * (20.5 / 21) ** 2 + (20.5 / 21) * (0.5 / 21) ** 2)
 
 
 def test_model_only_carries_the_measured_error():
