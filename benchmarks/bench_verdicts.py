@@ -3,7 +3,7 @@
 Real-system part: starts x ~ N(0, 1); a real run meets the goal with p(x) = expit(2 + slope x) (slope:
 how much the start decides the outcome). The model's p is expit(2 + shift + slope x), estimated from 20
 simulated runs per start: faithful (shift 0), slightly wrong (shift 0.7) and badly wrong (shift -5).
-Each repetition draws 10 real runs with their paired predictions and 400 simulated starts, and runs the
+Each repetition draws 10 (or 30) real runs with their paired predictions and 400 simulated starts, and runs the
 whole verdict (PPI, and the control-variate variant): coverage of the nominal 95 % interval for the true
 real P(goal) when the claim is kept, of the interval finally reported (the real-only Clopper-Pearson one
 after a withdrawal), its width over the real-only width, and how often the claim is withdrawn.
@@ -12,7 +12,11 @@ Sequential part: Bernoulli streams with p around p_required = 0.9 (indifference 
 0.05), batches of 10: runs used by the SPRT and by the any-time confidence sequence against the
 fixed-size exact test with the same error rates, and the realised error rates.
 
-    python benchmarks/bench_verdicts.py [--reps 300] [--slope 6] [--out bench_out/bench_verdicts.json]
+Floor part: how often the old rule (all sims vs all real runs against two real halves) and the fair
+matched-size permutation rule say "within the floor", for sims from the real distribution and for too
+narrow sims.
+
+    python benchmarks/bench_verdicts.py [--reps 300] [--slopes 4 6 8] [--real 10 30] [--out bench_out/bench_verdicts.json]
 """
 
 from __future__ import annotations
@@ -24,10 +28,19 @@ from pathlib import Path
 
 import numpy as np
 
-from envi_py.verdicts import Verdict, clopper_pearson, confidence_sequence, fixed_sample_size, ppi_verdict, sprt
+from envi_py.verdicts import (
+    Verdict,
+    clopper_pearson,
+    confidence_sequence,
+    fair_floor,
+    fixed_sample_size,
+    kld_gaussian,
+    ppi_verdict,
+    sprt,
+)
 
 MODELS = {"faithful": 0.0, "slightly wrong": 0.7, "badly wrong": -5.0}
-SIMS_PER_START, STARTS, N_REAL = 20, 400, 10
+SIMS_PER_START, STARTS = 20, 400
 
 
 def expit(z: np.ndarray) -> np.ndarray:
@@ -39,15 +52,15 @@ def true_rate(slope: float) -> float:
     return float(np.sum(w * expit(2 + slope * z)) / np.sqrt(2 * np.pi))
 
 
-def real_system(reps: int, slope: float, seed: int) -> list[dict]:
+def real_system(reps: int, slope: float, n_real: int, seed: int) -> list[dict]:
     truth, rows = true_rate(slope), []
     for name, shift in MODELS.items():
         for estimator in ("ppi", "control-variate"):
             rng = np.random.default_rng(seed)
             claimed, final, ratio, withdrawn, real_cover = [], [], [], [], []
             for _ in range(reps):
-                x = rng.normal(size=N_REAL)
-                y = rng.random(N_REAL) < expit(2 + slope * x)
+                x = rng.normal(size=n_real)
+                y = rng.random(n_real) < expit(2 + slope * x)
                 paired = rng.binomial(SIMS_PER_START, expit(2 + shift + slope * x)) / SIMS_PER_START
                 sims = rng.binomial(SIMS_PER_START, expit(2 + shift + slope * rng.normal(size=STARTS))) / SIMS_PER_START
                 v = ppi_verdict(sims, y, paired, p_required=0.5, estimator=estimator, sims_per_start=SIMS_PER_START)
@@ -58,7 +71,7 @@ def real_system(reps: int, slope: float, seed: int) -> list[dict]:
                 if not v.withdrawn:
                     claimed.append(v.low <= truth <= v.high)
                     ratio.append((v.high - v.low) / (hi - lo))
-            rows.append({"model": name, "logit_shift": shift, "estimator": estimator, "reps": reps, "n_real": N_REAL,
+            rows.append({"slope": slope, "model": name, "logit_shift": shift, "estimator": estimator, "reps": reps, "n_real": n_real,
                          "n_sim_starts": STARTS, "sims_per_start": SIMS_PER_START, "true_p": truth,
                          "coverage_when_claimed": float(np.mean(claimed)) if claimed else None,
                          "claims": len(claimed), "coverage_final": float(np.mean(final)),
@@ -90,6 +103,32 @@ def sequential(reps: int, seed: int) -> list[dict]:
     return rows
 
 
+def floors(reps: int, seed: int) -> list[dict]:
+    """Old floor (halves of the real runs vs all sims) against the fair matched-size floor, KLD, 10 real runs.
+
+    Per-run figures are 2-D Gaussian (like (safety, comfort)); sims are 10x the real runs, drawn from the same
+    distribution ("same") or with 60 % of the real spread ("too narrow"). Old rule: the KLD of all real runs vs
+    all sims at or below the mean KLD between two real halves (20 halvings), as envi_py.metrics.floor is used.
+    """
+    rows = []
+    for name, spread in (("same", 1.0), ("too narrow", 0.6)):
+        rng = np.random.default_rng(seed)
+        old_pass, fair_pass, ratios = [], [], []
+        for i in range(reps):
+            real, sim = rng.normal(size=(10, 2)), spread * rng.normal(size=(100, 2))
+            halves = [rng.permutation(10) for _ in range(20)]
+            old_floor = np.mean([kld_gaussian(real[h[:5]], real[h[5:]]) for h in halves])
+            old_pass.append(kld_gaussian(real, sim) <= old_floor)
+            res = fair_floor(real, sim, kld_gaussian, repetitions=5, permutations=49, seed=i)
+            fair_pass.append(res.within_floor)
+            ratios.append(res.ratio)
+        rows.append({"sims": name, "spread": spread, "reps": reps, "n_real": 10, "n_sim": 100, "per_side": 5,
+                     "old_within_floor_rate": float(np.mean(old_pass)),
+                     "fair_within_floor_rate": float(np.mean(fair_pass)), "fair_median_ratio": float(np.median(ratios)),
+                     "fair_level": 0.05, "repetitions": 5, "permutations": 49})
+    return rows
+
+
 def _f(x: float | None, fmt: str = ".3f") -> str:
     return "-" if x is None else format(x, fmt)
 
@@ -97,20 +136,23 @@ def _f(x: float | None, fmt: str = ".3f") -> str:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--reps", type=int, default=300)
-    ap.add_argument("--slope", type=float, default=6.0, help="how strongly the start decides the outcome")
+    ap.add_argument("--slopes", type=float, nargs="+", default=[4.0, 6.0, 8.0],
+                    help="how strongly the start decides the outcome")
+    ap.add_argument("--real", type=int, nargs="+", default=[10, 30], help="real runs per repetition")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", type=Path, default=Path("bench_out/bench_verdicts.json"))
     args = ap.parse_args()
     t0 = time.time()
-    rs = real_system(args.reps, args.slope, args.seed)
-    print(f"Real system, {N_REAL} real runs, {STARTS} starts x {SIMS_PER_START} sims, {args.reps} repetitions, "
-          f"slope {args.slope:g}, true P(goal) {rs[0]['true_p']:.3f}, nominal 95 %")
-    print(f"{'model':<15} {'estimator':<16} {'cover|claim':>11} {'cover final':>11} {'cover CP':>8} "
-          f"{'width/CP':>8} {'withdrawn':>9}")
+    rs = [r for n in args.real for slope in args.slopes for r in real_system(args.reps, slope, n, args.seed)]
+    print(f"Real system: {STARTS} simulated starts x {SIMS_PER_START} sims, {args.reps} repetitions per row, "
+          f"nominal 95 %; 'cover|claim': coverage of the true P(goal) when the claim is kept, 'cover final': of "
+          f"the interval reported (real-only after a withdrawal), 'cover CP': real-only Clopper-Pearson")
+    print(f"{'real':>4} {'slope':>5} {'true p':>6} {'model':<15} {'estimator':<16} {'cover|claim':>11} "
+          f"{'cover final':>11} {'cover CP':>8} {'width/CP':>8} {'withdrawn':>9}")
     for r in rs:
-        print(f"{r['model']:<15} {r['estimator']:<16} {_f(r['coverage_when_claimed']):>11} "
-              f"{_f(r['coverage_final']):>11} {_f(r['coverage_real_only']):>8} {_f(r['median_width_ratio']):>8} "
-              f"{_f(r['withdrawn_rate']):>9}")
+        print(f"{r['n_real']:>4} {r['slope']:>5g} {r['true_p']:>6.3f} {r['model']:<15} {r['estimator']:<16} "
+              f"{_f(r['coverage_when_claimed']):>11} {_f(r['coverage_final']):>11} {_f(r['coverage_real_only']):>8} "
+              f"{_f(r['median_width_ratio']):>8} {_f(r['withdrawn_rate']):>9}")
     sq = sequential(args.reps, args.seed)
     print(f"\nSequential, p_required 0.9 +- 0.05, alpha = beta = 0.05, batches of 10, {args.reps} repetitions; "
           f"fixed-size exact test: n = {sq[0]['fixed_n']}")
@@ -120,9 +162,17 @@ def main() -> None:
         print(f"{r['p']:>5.2f} {r['sprt_median_runs']:>8.0f} {r['sprt_mean_runs']:>9.1f} "
               f"{r['sprt_median_runs'] / r['fixed_n']:>10.2f} {_f(r['sprt_error_rate']):>8} {r['cs_median_runs']:>7.0f} "
               f"{r['cs_undecided_rate']:>8.3f} {_f(r['cs_error_rate']):>6} {r['cs_interval_coverage']:>8.3f}")
+    fl = floors(min(args.reps, 100), args.seed)
+    print(f"\nFloor, KLD of 2-D Gaussian fits, 10 real runs, 100 sims, {fl[0]['reps']} repetitions: how often each rule "
+          f"says 'within the floor' (fair: permutation p >= 0.05 at 5 runs per side)")
+    print(f"{'sims':<11} {'old rule':>8} {'fair rule':>9} {'fair ratio':>10}")
+    for r in fl:
+        print(f"{r['sims']:<11} {r['old_within_floor_rate']:>8.3f} {r['fair_within_floor_rate']:>9.3f} "
+              f"{r['fair_median_ratio']:>10.2f}")
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({"reps": args.reps, "slope": args.slope, "seed": args.seed,
-                                    "seconds": time.time() - t0, "real_system": rs, "sequential": sq}, indent=1))
+    args.out.write_text(json.dumps({"reps": args.reps, "slopes": args.slopes, "n_real": args.real, "seed": args.seed,
+                                    "seconds": time.time() - t0, "real_system": rs, "sequential": sq,
+                                    "floor": fl}, indent=1))
     print(f"\nwrote {args.out} ({time.time() - t0:.0f} s)")
 
 

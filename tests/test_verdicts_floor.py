@@ -36,7 +36,8 @@ def test_too_narrow_simulation_is_outside_the_floor_with_kld():
     real = rng.normal(size=(10, 2))
     sim = 0.3 * rng.normal(size=(100, 2))  # a model with a third of the real spread
     res = fair_floor(real, sim, kld_gaussian, repetitions=10, permutations=99)
-    assert not res.within_floor and res.p_value <= 0.05 and res.ratio > res.ratio_null_band[1]
+    assert not res.within_floor and res.p_value <= 0.05 and res.statistic > res.statistic_null_band[1]
+    assert res.ratio > res.ratio_null_band[1]
     assert res.per_side == 5 and res.n_sim == 100 and res.to_json()["per_side"] == 5
 
 
@@ -45,6 +46,7 @@ def test_faithful_simulation_is_within_the_floor_with_w1():
     res = fair_floor(rng.normal(size=(10, 2)), rng.normal(size=(200, 2)), w1_normalised(4.0), repetitions=10,
                      permutations=99)
     assert res.within_floor and res.ratio_null_band[0] <= res.ratio <= res.ratio_null_band[1]
+    assert res.statistic_null_band[0] <= res.statistic <= res.statistic_null_band[1]
 
 
 def test_both_sides_have_the_same_size():
@@ -55,7 +57,8 @@ def test_both_sides_have_the_same_size():
         return float(abs(a.mean() - b.mean()))
 
     fair_floor(np.arange(9.0), np.arange(50.0), spy, repetitions=3, permutations=4)
-    assert set(seen) == {(4, 4)} and len(seen) == 2 * 3 * 5  # sim and floor, 3 repetitions, 1 + 4 labellings
+    # halves: sim and floor at 4 vs 4; the test statistic at 9 vs 9; 3 repetitions, 1 + 4 labellings
+    assert set(seen) == {(4, 4), (9, 9)} and seen.count((9, 9)) == 3 * 5 and len(seen) == 3 * 3 * 5
 
 
 def test_ks_statistic_equals_scipy():
@@ -72,5 +75,5 @@ def test_bad_inputs():
         fair_floor(np.array([1.0, np.nan, 2.0]), np.ones(5), ks_statistic)
     with pytest.raises(ValueError, match="features per run"):
         fair_floor(np.ones((4, 2)), np.ones((5, 3)), ks_statistic)
-    with pytest.raises(ValueError, match="at least 3 simulated"):
-        fair_floor(np.ones((6, 1)), np.ones((2, 1)), ks_statistic)
+    with pytest.raises(ValueError, match="at least as many simulated runs as real ones"):
+        fair_floor(np.ones((6, 1)), np.ones((5, 1)), ks_statistic)

@@ -62,7 +62,7 @@ class RectifierCheck:
     high: float
     p_value: float  # of the exact Poisson-binomial calibration test
     level: float
-    passed: bool  # p_value >= level: the real runs do not contradict the model at this level
+    passed: bool  # p_value > level (p <= level rejects): the real runs do not contradict the model at this level
 
     def to_json(self) -> dict[str, Any]:
         return {"n": self.n, "mean": self.mean, "sd": self.sd, "interval": [self.low, self.high],
@@ -111,9 +111,9 @@ def rectifier_check(real_outcomes: object, paired_predictions: object, level: fl
     r = y - f
     mean, sd = float(r.mean()), float(r.std(ddof=1))
     if sd == 0.0:  # every real run off by the same amount: the error is known exactly
-        return RectifierCheck(r.size, mean, 0.0, mean, mean, p, level, p >= level)
+        return RectifierCheck(r.size, mean, 0.0, mean, mean, p, level, p > level)
     lo, hi = stats.ttest_1samp(r, 0.0).confidence_interval(1.0 - level)
-    return RectifierCheck(r.size, mean, sd, float(lo), float(hi), p, level, p >= level)
+    return RectifierCheck(r.size, mean, sd, float(lo), float(hi), p, level, p > level)
 
 
 @dataclass(frozen=True)
@@ -224,12 +224,12 @@ def ppi_verdict(sim_predictions: object, real_outcomes: object, paired_predictio
     check = rectifier_check(real_outcomes, paired_predictions, check_level, sims_per_start)
     if not check.passed:
         reason = (f"claim withdrawn: the {check.n} real runs contradict the model (mean(real - predicted) = "
-                  f"{check.mean:+.3f}, calibration test p = {check.p_value:.3g} < {check.level:g}); "
+                  f"{check.mean:+.3f}, calibration test p = {check.p_value:.3g} <= {check.level:g}); "
                   f"verdict from the {real.n} real runs alone")
         return RealSystemVerdict(real.verdict, "real-only", real.low, real.high, p_required, confidence, est, real,
                                  check, reason)
     reason = (f"{est.method} from {est.n_sim} simulated starts and {est.n_real} paired real runs; model error "
-              f"{check.mean:+.3f}, calibration test p = {check.p_value:.3g} >= {check.level:g}")
+              f"{check.mean:+.3f}, calibration test p = {check.p_value:.3g} > {check.level:g}")
     return RealSystemVerdict(verdict_of(est.low, est.high, p_required), "model+real", est.low, est.high, p_required,
                              confidence, est, real, check, reason)
 
