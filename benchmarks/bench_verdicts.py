@@ -14,9 +14,11 @@ fixed-size exact test with the same error rates, and the realised error rates.
 
 Floor part: how often the old rule (all sims vs all real runs against two real halves) and the fair
 matched-size permutation rule say "within the floor", for sims from the real distribution and for too
-narrow sims.
+narrow sims; with ``--logs``, the same on the lane-keeping field logs (runs of one controller against the
+others of that controller, and against the next controller).
 
     python benchmarks/bench_verdicts.py [--reps 300] [--slopes 4 6 8] [--real 10 30] [--out bench_out/bench_verdicts.json]
+        [--logs /work/shared/data/lane-keeping-fot]
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
+from envi_py.metrics import safety_comfort
 from envi_py.verdicts import (
     Verdict,
     clopper_pearson,
@@ -129,6 +132,36 @@ def floors(reps: int, seed: int) -> list[dict]:
     return rows
 
 
+def real_log_floors(folder: Path, seed: int) -> list[dict]:
+    """The floor on the lane-keeping field logs (``log_<x>_<i>.csv``: time, color, angle), (safety, comfort) KLD.
+
+    Per controller x: the KLD between two disjoint random sets of 5 runs (the old floor's halves) and of 10
+    runs (20 draws each), then the fair floor of 10 runs of x against the other runs of x (the same system:
+    should be within) and against the runs of the next x (another controller: should be outside).
+    """
+    figures: dict[int, list[np.ndarray]] = {}
+    for path in sorted(folder.glob("log_*_*.csv")):
+        x = int(path.stem.split("_")[1])
+        color = np.loadtxt(path, delimiter=",", skiprows=1, usecols=1, ndmin=1)
+        figures.setdefault(x, []).append(color)
+    keys = sorted(figures)
+    sc = {x: safety_comfort(np.stack([c[:min(map(len, figures[x]))] for c in figures[x]])) for x in keys}
+    rng, rows = np.random.default_rng(seed), []
+    for j, x in enumerate(keys):
+        runs = sc[x]
+        kld = {size: [kld_gaussian(*np.split(runs[rng.permutation(len(runs))[:2 * size]], 2)) for _ in range(20)]
+               for size in (5, 10)}
+        order = rng.permutation(len(runs))
+        same = fair_floor(runs[order[:10]], runs[order[10:]], kld_gaussian, repetitions=10, permutations=199, seed=seed)
+        row = {"x": x, "runs": len(runs), "kld_5_vs_5_mean": float(np.mean(kld[5])),
+               "kld_10_vs_10_mean": float(np.mean(kld[10])), "same_controller": same.to_json()}
+        if j + 1 < len(keys):
+            row["next_controller"] = fair_floor(runs[order[:10]], sc[keys[j + 1]], kld_gaussian, repetitions=10,
+                                                permutations=199, seed=seed).to_json()
+        rows.append(row)
+    return rows
+
+
 def _f(x: float | None, fmt: str = ".3f") -> str:
     return "-" if x is None else format(x, fmt)
 
@@ -141,6 +174,7 @@ def main() -> None:
     ap.add_argument("--real", type=int, nargs="+", default=[10, 30], help="real runs per repetition")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", type=Path, default=Path("bench_out/bench_verdicts.json"))
+    ap.add_argument("--logs", type=Path, default=None, help="folder of lane-keeping field logs for the floor part")
     args = ap.parse_args()
     t0 = time.time()
     rs = [r for n in args.real for slope in args.slopes for r in real_system(args.reps, slope, n, args.seed)]
@@ -164,15 +198,27 @@ def main() -> None:
               f"{r['cs_undecided_rate']:>8.3f} {_f(r['cs_error_rate']):>6} {r['cs_interval_coverage']:>8.3f}")
     fl = floors(min(args.reps, 100), args.seed)
     print(f"\nFloor, KLD of 2-D Gaussian fits, 10 real runs, 100 sims, {fl[0]['reps']} repetitions: how often each rule "
-          f"says 'within the floor' (fair: permutation p >= 0.05 at 5 runs per side)")
+          f"says 'within the floor' (fair: permutation p > 0.05, test at 10 vs 10 runs, ratio at 5 vs 5)")
     print(f"{'sims':<11} {'old rule':>8} {'fair rule':>9} {'fair ratio':>10}")
     for r in fl:
         print(f"{r['sims']:<11} {r['old_within_floor_rate']:>8.3f} {r['fair_within_floor_rate']:>9.3f} "
               f"{r['fair_median_ratio']:>10.2f}")
+    logs = []
+    if args.logs is not None:
+        logs = real_log_floors(args.logs, args.seed)
+        print(f"\nFloor on the field logs in {args.logs}, KLD of (safety, comfort) Gaussian fits; fair test: 10 runs "
+              f"of x against the other runs of x (same) and against the runs of the next x (next)")
+        print(f"{'x':>3} {'runs':>4} {'KLD 5v5':>8} {'KLD 10v10':>9} {'same p':>7} {'same ratio':>10} "
+              f"{'next p':>7} {'next ratio':>10}")
+        for r in logs:
+            nxt = r.get("next_controller")
+            print(f"{r['x']:>3} {r['runs']:>4} {r['kld_5_vs_5_mean']:>8.2f} {r['kld_10_vs_10_mean']:>9.2f} "
+                  f"{r['same_controller']['p_value']:>7.3f} {_f(r['same_controller']['ratio'], '.2f'):>10} "
+                  f"{(_f(nxt['p_value']) if nxt else '-'):>7} {(_f(nxt['ratio'], '.2f') if nxt else '-'):>10}")
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps({"reps": args.reps, "slopes": args.slopes, "n_real": args.real, "seed": args.seed,
                                     "seconds": time.time() - t0, "real_system": rs, "sequential": sq,
-                                    "floor": fl}, indent=1))
+                                    "floor": fl, "field_log_floor": logs}, indent=1))
     print(f"\nwrote {args.out} ({time.time() - t0:.0f} s)")
 
 
