@@ -157,7 +157,7 @@ def _rectified(method: str, sim: np.ndarray, y: np.ndarray, f: np.ndarray, c: fl
 
 def ppi(sim_predictions: object, real_outcomes: object, paired_predictions: object,
         confidence: float = 0.95) -> Estimate:
-    """Prediction-powered estimate of the real P(goal) with its t interval (see the module docstring)."""
+    """Prediction-powered estimate of the real P(goal) with its normal interval (see the module docstring)."""
     sim = unit_vector("sim_predictions", sim_predictions, 2)
     y, f = _paired(real_outcomes, paired_predictions)
     return _rectified("ppi", sim, y, f, 1.0, probability("confidence", confidence))
