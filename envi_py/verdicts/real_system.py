@@ -1,0 +1,293 @@
+"""Verdicts about the REAL system's P(goal) from many simulated runs plus a few real ones.
+
+Prediction-powered inference (PPI, Angelopoulos et al. 2023). Let f(s) be the model's probability
+that a run started from the initial window s (sigma_0) meets the goal, estimated by simulating from s.
+
+* ``sim_predictions``: f over N simulated starts (per-run 0/1 outcomes, or per-start probabilities),
+  the starts drawn like the real runs' starts. If they are only the real runs' own starts, PPI gains
+  nothing (it collapses to the real mean): the gain comes from starts without a real run.
+* ``real_outcomes`` Y_i and ``paired_predictions`` f(s_i): each real run and the simulated
+  satisfaction probability from its own sigma_0.
+
+theta_PPI = mean(f over sims) + mean(Y_i - f(s_i)). The second term, the rectifier, removes the model's
+bias whatever it is, so theta_PPI is unbiased for the real P(goal); its variance is
+var(f)/N + var(Y - f)/n, with var(Y - f) at least the model's own mean f (1 - f) (see ``_rectified``),
+and the interval is theta +- z se (normal, as in the PPI paper; measured coverage at 10 real runs in
+benchmarks/bench_verdicts.py). It is narrower than the real-only one only as far as the start explains
+the outcome (var(Y - f) < var(Y)); with a model that predicts nothing from the start it is about as wide
+as the real-only interval.
+
+The control-variate estimator (PPI++ "power tuning") uses c * f instead of f, with
+c = cov(Y, f) / var(f) from the paired runs: never much worse than real-only when f is uninformative.
+
+Validity check: the rectifier mean is the model's measured error on this version (reported with its t
+interval). The claim is WITHDRAWN when an exact test of calibration rejects at ``check_level``: if the
+model is calibrated, the number of real runs meeting the goal is Poisson-binomial with the paired
+predictions as probabilities (independent runs), and the two-sided p-value sums the probabilities of all
+counts no likelier than the observed one (as ``scipy.stats.binomtest``). Predictions estimated from m
+simulated runs per start are shrunk to (m f + 1/2) / (m + 1) for this test (``sims_per_start``), so a
+start where the model saw no failure in m runs is "rare", not "impossible". Using the model's own
+variance makes this far more powerful at 10 runs than a t test of the rectifier mean (whose sample
+variance is tiny when no surprising run was drawn). On withdrawal the interval falls back to the exact
+real-only (Clopper-Pearson) interval and the verdict says why: a user should not be told P(goal) "from
+4000 simulated runs" by a model the real runs contradict. Conditional on the claim being kept, coverage
+can still fall below nominal for a badly wrong model that the few real runs do not expose (the check's
+power at 10 runs is measured in the benchmark); the reported n says how few runs back the check.
+
+Versions never field-tested (TMVU): :func:`model_only` states that the verdict rests on the model only
+and carries the model's measured error on the versions that have real runs beside it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from scipy import stats
+
+from ._checks import count, outcomes, probability, unit_vector
+from .binomial import BinomialDecision, Verdict, clopper_pearson, decide, verdict_of
+
+
+@dataclass(frozen=True)
+class RectifierCheck:
+    """The model's measured error on one version: the rectifier Y - f over its paired real runs."""
+
+    n: int
+    mean: float  # mean(real outcome - paired prediction): the model's measured error
+    sd: float
+    low: float  # two-sided (1 - level) t interval of the rectifier mean
+    high: float
+    p_value: float  # of the exact Poisson-binomial calibration test
+    level: float
+    passed: bool  # p_value > level (p <= level rejects): the real runs do not contradict the model at this level
+
+    def to_json(self) -> dict[str, Any]:
+        return {"n": self.n, "mean": self.mean, "sd": self.sd, "interval": [self.low, self.high],
+                "p_value": self.p_value, "level": self.level, "passed": self.passed,
+                "test": "exact two-sided Poisson-binomial test of the count of real runs meeting the goal, "
+                        "paired predictions as probabilities"}
+
+
+def _paired(real_outcomes: object, paired_predictions: object) -> tuple[np.ndarray, np.ndarray]:
+    y = outcomes("real_outcomes", real_outcomes, 2).astype(np.float64)
+    f = unit_vector("paired_predictions", paired_predictions, 2)
+    if y.size != f.size:
+        raise ValueError(f"real_outcomes ({y.size}) and paired_predictions ({f.size}) must pair run by run")
+    return y, f
+
+
+def calibration_p_value(real_outcomes: np.ndarray, probabilities: np.ndarray) -> float:
+    """Exact two-sided p-value of the count of successes under independent Bernoulli(probabilities).
+
+    The Poisson-binomial distribution by convolution (O(n^2), fine for thousands of runs); the p-value
+    sums the probabilities of all counts no likelier than the observed one (relative tolerance 1e-7 for
+    ties, as scipy.stats.binomtest does).
+    """
+    pmf = np.array([1.0])
+    for p in probabilities:
+        pmf = np.convolve(pmf, [1.0 - p, p])
+    observed = pmf[int(np.sum(real_outcomes))]
+    return float(min(1.0, pmf[pmf <= observed * (1 + 1e-7)].sum()))
+
+
+def rectifier_check(real_outcomes: object, paired_predictions: object, level: float = 0.05,
+                    sims_per_start: int | None = None) -> RectifierCheck:
+    """The model's measured error on paired real runs (at least 2) and the exact calibration test at ``level``.
+
+    ``sims_per_start``: how many simulated runs each paired prediction was estimated from (None: the
+    predictions are exact probabilities); used to shrink the predictions for the test (module docstring).
+    """
+    y, f = _paired(real_outcomes, paired_predictions)
+    level = probability("level", level)
+    if sims_per_start is None:
+        shrunk = f
+    else:
+        m = count("sims_per_start", sims_per_start, 1)
+        shrunk = (m * f + 0.5) / (m + 1)
+    p = calibration_p_value(y, shrunk)
+    r = y - f
+    mean, sd = float(r.mean()), float(r.std(ddof=1))
+    if sd == 0.0:  # every real run off by the same amount: the error is known exactly
+        return RectifierCheck(r.size, mean, 0.0, mean, mean, p, level, p > level)
+    lo, hi = stats.ttest_1samp(r, 0.0).confidence_interval(1.0 - level)
+    return RectifierCheck(r.size, mean, sd, float(lo), float(hi), p, level, p > level)
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """A point estimate of the real P(goal) with its interval and what it rests on."""
+
+    method: str  # "ppi" or "control-variate"
+    estimate: float
+    se: float
+    low: float
+    high: float
+    confidence: float
+    coefficient: float  # c multiplying the prediction (1 for PPI)
+    n_real: int
+    n_sim: int
+
+    def to_json(self) -> dict[str, Any]:
+        return {"method": self.method, "estimate": self.estimate, "se": self.se,
+                "interval": [self.low, self.high], "confidence": self.confidence, "coefficient": self.coefficient,
+                "n_real": self.n_real, "n_sim": self.n_sim}
+
+
+def _rectified(method: str, sim: np.ndarray, y: np.ndarray, f: np.ndarray, c: float,
+               confidence: float) -> Estimate:
+    """theta = c mean(sim) + mean(Y - c f), variance c^2 var(sim)/N + var(Y - c f)/n, normal interval.
+
+    var(Y - c f) is taken as at least mean(f (1 - f)): from 10 runs the sample variance is often far too
+    small, because a run whose outcome the model did not foresee is rare and may not be among them (the
+    interval then under-covers). For any c, var(Y - c f) >= E[var(Y | start)], which a calibrated model
+    puts at E[f (1 - f)]: the floor costs nothing when the sample variance is already that large.
+    """
+    r = y - c * f
+    v_sim = c**2 * float(sim.var(ddof=1)) / sim.size
+    v_real = max(float(r.var(ddof=1)), float(np.mean(f * (1 - f)))) / r.size
+    se = float(np.sqrt(v_sim + v_real))
+    theta = c * float(sim.mean()) + float(r.mean())
+    half = float(stats.norm.ppf(0.5 + confidence / 2)) * se
+    return Estimate(method, theta, se, max(0.0, theta - half), min(1.0, theta + half), confidence, c, y.size,
+                    sim.size)
+
+
+def ppi(sim_predictions: object, real_outcomes: object, paired_predictions: object,
+        confidence: float = 0.95) -> Estimate:
+    """Prediction-powered estimate of the real P(goal) with its normal interval (see the module docstring)."""
+    sim = unit_vector("sim_predictions", sim_predictions, 2)
+    y, f = _paired(real_outcomes, paired_predictions)
+    return _rectified("ppi", sim, y, f, 1.0, probability("confidence", confidence))
+
+
+def control_variate(sim_predictions: object, real_outcomes: object, paired_predictions: object,
+                    confidence: float = 0.95) -> Estimate:
+    """Control-variate estimate: theta = mean(Y) - c (mean(f) - mean(sim)), c = cov(Y, f) / var(f) on the pairs.
+
+    c = 0 when the paired predictions do not vary (they carry no information): the real-only mean.
+    Estimating c from the same n runs adds a bias of order 1/n, negligible beside the interval.
+    """
+    sim = unit_vector("sim_predictions", sim_predictions, 2)
+    y, f = _paired(real_outcomes, paired_predictions)
+    var_f = float(f.var(ddof=1))
+    c = float(np.cov(y, f, ddof=1)[0, 1]) / var_f if var_f > 0 else 0.0
+    return _rectified("control-variate", sim, y, f, c, probability("confidence", confidence))
+
+
+@dataclass(frozen=True)
+class RealSystemVerdict:
+    """The verdict about the real system, what it rests on, and the real-only verdict beside it."""
+
+    verdict: Verdict
+    basis: str  # "model+real" (the model-based estimate holds) or "real-only" (the claim was withdrawn)
+    low: float
+    high: float
+    p_required: float
+    confidence: float
+    model_estimate: Estimate  # reported even when withdrawn, so a reader sees what was refused
+    real_only: BinomialDecision
+    check: RectifierCheck
+    reason: str
+
+    @property
+    def withdrawn(self) -> bool:
+        return self.basis == "real-only"
+
+    def to_json(self) -> dict[str, Any]:
+        return {"verdict": self.verdict.value, "basis": self.basis, "withdrawn": self.withdrawn,
+                "interval": [self.low, self.high], "p_required": self.p_required, "confidence": self.confidence,
+                "n_real": self.model_estimate.n_real, "n_sim": self.model_estimate.n_sim,
+                "model_estimate": self.model_estimate.to_json(), "real_only": self.real_only.to_json(),
+                "check": self.check.to_json(), "reason": self.reason}
+
+
+def ppi_verdict(sim_predictions: object, real_outcomes: object, paired_predictions: object, p_required: float,
+                alpha: float = 0.05, check_level: float = 0.05, estimator: str = "ppi",
+                sims_per_start: int | None = None) -> RealSystemVerdict:
+    """PASS / FAIL / UNDECIDED for the real system at confidence 1 - ``alpha``, from sims plus paired real runs.
+
+    ``estimator``: "ppi" or "control-variate". If the calibration check rejects at ``check_level`` the
+    model-based claim is withdrawn and the verdict comes from the real runs alone (Clopper-Pearson).
+    ``sims_per_start``: simulated runs behind each paired prediction (see :func:`rectifier_check`).
+    """
+    if estimator not in ("ppi", "control-variate"):
+        raise ValueError(f"estimator must be 'ppi' or 'control-variate', got {estimator!r}")
+    p_required = probability("p_required", p_required, open_interval=False)
+    confidence = 1.0 - probability("alpha", alpha)
+    est = (ppi if estimator == "ppi" else control_variate)(sim_predictions, real_outcomes, paired_predictions,
+                                                             confidence)
+    y = outcomes("real_outcomes", real_outcomes, 2)
+    real = decide(int(y.sum()), y.size, p_required, alpha)
+    check = rectifier_check(real_outcomes, paired_predictions, check_level, sims_per_start)
+    if not check.passed:
+        reason = (f"claim withdrawn: the {check.n} real runs contradict the model (mean(real - predicted) = "
+                  f"{check.mean:+.3f}, calibration test p = {check.p_value:.3g} <= {check.level:g}); "
+                  f"verdict from the {real.n} real runs alone")
+        return RealSystemVerdict(real.verdict, "real-only", real.low, real.high, p_required, confidence, est, real,
+                                 check, reason)
+    reason = (f"{est.method} from {est.n_sim} simulated starts and {est.n_real} paired real runs; model error "
+              f"{check.mean:+.3f}, calibration test p = {check.p_value:.3g} > {check.level:g}")
+    return RealSystemVerdict(verdict_of(est.low, est.high, p_required), "model+real", est.low, est.high, p_required,
+                             confidence, est, real, check, reason)
+
+
+@dataclass(frozen=True)
+class ModelOnlyVerdict:
+    """A verdict for a version without real runs: it rests on the model only."""
+
+    verdict: Verdict
+    low: float  # the model's own P(goal) interval (Clopper-Pearson over the simulated runs)
+    high: float
+    widened_low: float  # widened by the largest measured model error; the verdict uses these
+    widened_high: float
+    k: int
+    n_sim: int
+    p_required: float
+    confidence: float
+    measured_errors: dict[str, RectifierCheck]
+    reason: str
+    basis: str = "model only"
+
+    def to_json(self) -> dict[str, Any]:
+        return {"verdict": self.verdict.value, "basis": self.basis, "model_interval": [self.low, self.high],
+                "interval": [self.widened_low, self.widened_high], "k": self.k, "n_sim": self.n_sim,
+                "p_required": self.p_required, "confidence": self.confidence,
+                "measured_errors": {v: c.to_json() for v, c in self.measured_errors.items()}, "reason": self.reason}
+
+
+def model_only(sim_outcomes: object, p_required: float, measured_errors: Mapping[str, RectifierCheck],
+               alpha: float = 0.05) -> ModelOnlyVerdict:
+    """The verdict for a never field-tested version, with the model's measured error carried beside it.
+
+    The model's P(goal) interval is Clopper-Pearson over the simulated runs. The real system may differ by
+    the model's error, which was measured only on other versions (``measured_errors``: their rectifier
+    checks). The verdict uses the interval widened by the largest |bound| of those rectifier intervals:
+    an assumption (the error transfers to this version), not a guarantee, and the reason says so. No
+    measured versions, or a version whose check failed, leave the verdict UNDECIDED.
+    """
+    y = outcomes("sim_outcomes", sim_outcomes, 1)
+    p_required = probability("p_required", p_required, open_interval=False)
+    confidence = 1.0 - probability("alpha", alpha)
+    k, n = int(y.sum()), y.size
+    lo, hi = clopper_pearson(k, n, confidence)
+    errors = dict(measured_errors)
+    failed = sorted(v for v, c in errors.items() if not c.passed)
+    if not errors:
+        wl, wh = 0.0, 1.0
+        reason = "rests on the model only, and no version has real runs to measure the model's error: no claim"
+    elif failed:
+        wl, wh = 0.0, 1.0
+        reason = (f"rests on the model only, and the model failed its validity check on {', '.join(failed)}: "
+                  f"no claim for a version without real runs")
+    else:
+        bound = max(max(abs(c.low), abs(c.high)) for c in errors.values())
+        wl, wh = max(0.0, lo - bound), min(1.0, hi + bound)
+        runs = sum(c.n for c in errors.values())
+        reason = (f"rests on the model only ({n} simulated runs, no real runs of this version); the model's error "
+                  f"measured on {len(errors)} other version(s) ({runs} real runs) is up to +-{bound:.3f}, and the "
+                  f"interval is widened by it assuming the error transfers to this version")
+    return ModelOnlyVerdict(verdict_of(wl, wh, p_required), lo, hi, wl, wh, k, n, p_required, confidence, errors,
+                            reason)

@@ -1,0 +1,149 @@
+"""PPI coverage and width on synthetic paired runs, a control-variate case by hand, withdrawal, model-only verdicts."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from envi_py.verdicts import Verdict, clopper_pearson, control_variate, model_only, ppi, ppi_verdict, rectifier_check
+from envi_py.verdicts.real_system import calibration_p_value
+
+SIMS_PER_START, STARTS = 20, 400
+
+
+def expit(z: np.ndarray) -> np.ndarray:
+    return 1 / (1 + np.exp(-z))
+
+
+def synthetic(rng: np.random.Generator, n_real: int, slope: float, shift: float = 0.0):
+    """Starts x ~ N(0, 1); the real run meets the goal with p(x) = expit(2 + slope x); the model's p is
+    expit(2 + shift + slope x), estimated from 20 simulated runs per start (the paired prediction)."""
+    x = rng.normal(size=n_real)
+    y = rng.random(n_real) < expit(2 + slope * x)
+    paired = rng.binomial(SIMS_PER_START, expit(2 + shift + slope * x)) / SIMS_PER_START
+    xs = rng.normal(size=STARTS)
+    sims = rng.binomial(SIMS_PER_START, expit(2 + shift + slope * xs)) / SIMS_PER_START
+    return sims, y, paired
+
+
+def true_rate(slope: float) -> float:
+    z, w = np.polynomial.hermite_e.hermegauss(80)  # E[expit(2 + slope X)], X ~ N(0, 1), by quadrature
+    return float(np.sum(w * expit(2 + slope * z)) / np.sqrt(2 * np.pi))
+
+
+def test_ppi_covers_and_is_narrower_than_real_only_with_a_faithful_model():
+    """500 repetitions, 10 real runs each; the start explains most of the outcome (slope 8)."""
+    rng, truth, reps = np.random.default_rng(0), true_rate(8.0), 500
+    covered, ratio = [], []
+    for _ in range(reps):
+        sims, y, paired = synthetic(rng, 10, 8.0)
+        est = ppi(sims, y, paired)
+        lo, hi = clopper_pearson(int(y.sum()), y.size)
+        covered.append(est.low <= truth <= est.high)
+        ratio.append((est.high - est.low) / (hi - lo))
+    assert np.mean(covered) >= 0.93
+    assert np.median(ratio) <= 0.6
+
+
+def test_verdict_keeps_the_claim_with_a_faithful_model_and_covers():
+    rng, truth, reps = np.random.default_rng(1), true_rate(8.0), 300
+    verdicts = [ppi_verdict(*synthetic(rng, 10, 8.0), p_required=0.5, sims_per_start=SIMS_PER_START)
+                for _ in range(reps)]
+    assert np.mean([v.withdrawn for v in verdicts]) <= 0.05 + 3 * np.sqrt(0.05 * 0.95 / reps)
+    assert np.mean([v.low <= truth <= v.high for v in verdicts]) >= 0.93
+
+
+def test_control_variate_by_hand():
+    y = np.array([1, 0, 1, 1])
+    f = np.array([0.9, 0.2, 0.6, 0.7])
+    sims = np.array([0.5, 0.7, 0.3, 0.4, 0.6])
+    # cov(y, f) = (0.25*0.3 + 0.75*0.4 + 0 + 0.25*0.1) / 3 = 0.4/3; var(f) = (0.09+0.16+0+0.01)/3 = 0.26/3
+    c = 0.4 / 0.26
+    theta = 0.75 - c * (0.6 - 0.5)
+    # var(y - c f) = 0.044872 lies below the model's own mean f(1-f) = (0.09+0.16+0.24+0.21)/4 = 0.175: the floor
+    assert (y - c * f).var(ddof=1) == pytest.approx(0.044872, abs=1e-6)
+    se2 = 0.175 / 4 + c**2 * 0.1 / 4 / 5  # sims: squared deviations sum to 0.1
+    est = control_variate(sims, y, f)
+    assert est.coefficient == pytest.approx(1.5384615, abs=1e-7)
+    assert est.estimate == pytest.approx(0.5961538, abs=1e-7) == pytest.approx(theta)
+    assert est.se == pytest.approx(np.sqrt(se2), rel=1e-12) == pytest.approx(0.235763, abs=1e-6)
+    half = 1.959964 * est.se
+    assert (est.low, est.high) == pytest.approx((theta - half, 1.0), abs=1e-6)  # theta + half = 1.058, clipped
+
+
+def test_ppi_is_the_control_variate_with_coefficient_one():
+    y = np.array([1, 0, 1, 0, 1])
+    f = np.array([0.1, 0.9, 0.95, 0.05, 0.6])  # rectifier spread 0.58 > mean f(1-f) = 0.0975: no floor
+    sims = np.array([0.5, 0.9, 0.6, 0.7])
+    est = ppi(sims, y, f)
+    assert est.estimate == pytest.approx(sims.mean() + (y - f).mean())
+    assert (y - f).var(ddof=1) > np.mean(f * (1 - f))
+    assert est.se == pytest.approx(np.sqrt(sims.var(ddof=1) / 4 + (y - f).var(ddof=1) / 5))
+
+
+def test_claim_withdrawn_when_the_model_is_badly_wrong():
+    # the model predicts 10 % where all ten real runs met the goal: the rectifier is 0.9 every time
+    v = ppi_verdict(np.full(100, 0.1), np.ones(10), np.full(10, 0.1), p_required=0.5)
+    assert v.withdrawn and v.basis == "real-only" and "withdrawn" in v.reason
+    assert (v.low, v.high) == (v.real_only.low, v.real_only.high) and v.verdict is Verdict.PASS
+    assert v.model_estimate.estimate == pytest.approx(1.0)  # what was refused is still shown
+
+
+@pytest.mark.parametrize("n_real, slope, at_least", [(10, 4.0, 0.9), (40, 8.0, 0.95)])
+def test_badly_biased_model_is_caught(n_real, slope, at_least):
+    """Logit shift -5: the model predicts failure where the real runs mostly succeed. Measured withdrawal
+    at 10 real runs: 96 % with slope 4, but 67 % with slope 8, where the model is wrong only for the few
+    starts in the middle and 10 real runs often miss them; 40 real runs catch it."""
+    rng, reps = np.random.default_rng(4), 200
+    rate = np.mean([ppi_verdict(*synthetic(rng, n_real, slope, -5.0), p_required=0.5,
+                                sims_per_start=SIMS_PER_START).withdrawn for _ in range(reps)])
+    assert rate >= at_least
+
+
+def test_rectifier_check_values():
+    chk = rectifier_check([1, 0, 1, 1], [0.5, 0.5, 0.5, 0.5], level=0.05)
+    r = np.array([0.5, -0.5, 0.5, 0.5])
+    assert chk.mean == pytest.approx(0.25) and chk.sd == pytest.approx(r.std(ddof=1))
+    assert (chk.low, chk.high) == pytest.approx(tuple(stats.ttest_1samp(r, 0).confidence_interval(0.95)))
+    # 3 of 4 under Binomial(4, 1/2): counts no likelier than 3 are 0, 1, 3, 4 -> (1 + 4 + 4 + 1) / 16
+    assert chk.p_value == pytest.approx(10 / 16) and chk.passed
+    exact = rectifier_check([1, 1, 1], [1.0, 1.0, 1.0])
+    assert exact.mean == 0 and exact.passed and exact.p_value == 1.0
+
+
+def test_calibration_test_matches_binomtest_and_shrinks_estimated_predictions():
+    y = np.r_[np.ones(9), np.zeros(11)]
+    assert calibration_p_value(y, np.full(20, 0.3)) == pytest.approx(stats.binomtest(9, 20, 0.3).pvalue)
+    # three real successes where the model saw 0, 20 and 20 successes in 20 simulated runs
+    y, f = np.array([1, 1, 1]), np.array([0.0, 1.0, 1.0])
+    assert rectifier_check(y, f).p_value < 1e-12  # as exact probabilities: a count of 3 is impossible
+    shrunk = rectifier_check(y, f, level=0.01, sims_per_start=20)  # as estimates from 20 runs: rare, not impossible
+    assert shrunk.passed and shrunk.p_value == pytest.approx((0.5 / 21) * (20.5 / 21) ** 2 + (20.5 / 21) * (0.5 / 21) ** 2)
+
+
+def test_model_only_carries_the_measured_error():
+    sims = np.r_[np.ones(950), np.zeros(50)]
+    good = rectifier_check([1, 0, 1, 1, 1, 1, 0, 1, 1, 1], [0.9, 0.3, 0.8, 0.9, 0.7, 0.8, 0.4, 0.9, 0.8, 0.9])
+    v = model_only(sims, 0.8, {"x=10": good})
+    lo, hi = clopper_pearson(950, 1000)
+    bound = max(abs(good.low), abs(good.high))
+    assert (v.low, v.high) == (lo, hi) and v.n_sim == 1000 and v.basis == "model only"
+    assert v.widened_low == pytest.approx(max(0.0, lo - bound)) and v.widened_high == pytest.approx(min(1, hi + bound))
+    assert "rests on the model only" in v.reason and v.to_json()["measured_errors"]["x=10"]["n"] == 10
+    assert v.verdict.value == ("PASS" if v.widened_low >= 0.8 else "UNDECIDED")
+    assert model_only(sims, 0.8, {}).verdict is Verdict.UNDECIDED
+    bad = rectifier_check(np.ones(10), np.full(10, 0.1))
+    refused = model_only(sims, 0.8, {"x=10": good, "x=50": bad})
+    assert refused.verdict is Verdict.UNDECIDED and "x=50" in refused.reason
+
+
+@pytest.mark.parametrize("args, match", [
+    (([0.5, 0.5], [1, 0, 1], [0.5, 0.5]), "must pair run by run"),
+    (([0.5, 0.5], [1, 0.5], [0.5, 0.5]), "goal outcomes"),
+    (([0.5, float("nan")], [1, 0], [0.5, 0.5]), "sim_predictions holds 1 NaN"),
+    (([0.5, 0.5], [1, 0], [0.5, 1.5]), "probabilities in"),
+])
+def test_bad_inputs(args, match):
+    with pytest.raises(ValueError, match=match):
+        ppi_verdict(*args, p_required=0.5)
