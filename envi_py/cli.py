@@ -248,6 +248,63 @@ def cmd_verify(args: argparse.Namespace) -> int:
     return 0
 
 
+# ------------------------------------------------------------------------------------ check
+
+def cmd_check(args: argparse.Namespace) -> int:
+    """A verdict per controller version and requirement, for the real system, with as few runs as needed."""
+    import datetime
+
+    from . import __version__
+    from .check import check, requirements_of, write_check
+    from .model import Checkpoint
+
+    if not 0 < args.alpha < 0.5:
+        raise ValueError(f"--alpha must lie in (0, 0.5), got {args.alpha}")
+    _positive(args, "max_runs", "batch", "sims_per_start")
+    ckpt = Checkpoint.load(args.model)
+    real = read_logs(args, "real", min_length=ckpt.config.history + 1)
+    system = ckpt.system
+    reqs = requirements_of(system, args.require or [], args.probability)
+    unseen = [system.controller_for(parse_where_one(v)) if system and system.controller else None
+              for v in args.unseen or []]
+    if any(u is None for u in unseen):
+        raise ValueError("--unseen needs a system description with a [controller] to build the version from")
+    extra = ckpt.recorded_logs("data", missing_ok=True) + ckpt.recorded_logs("validation", missing_ok=True)
+    rows = check(ckpt, real, reqs, [u for u in unseen if u is not None], extra, alpha=args.alpha, delta=args.delta,
+                 max_runs=args.max_runs, batch=args.batch, sims_per_start=args.sims_per_start, seed=args.seed,
+                 engine=args.engine)
+    meta = {"model": str(args.model), "envi": __version__, "command": " ".join(sys.argv),
+            "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+            "alpha": args.alpha, "delta": args.delta, "max_runs": args.max_runs, "batch": args.batch,
+            "sims_per_start": args.sims_per_start, "seed": args.seed}
+    width = max(len(r.version) for r in rows)
+    print(f"{'version':<{width}} {'requirement':<14} {'P req':>6} {'real':>4} {'sim runs':>8} "
+          f"{'P real system':>16} {'basis':<11} verdict")
+    for r in rows:
+        q = r.real_system
+        print(f"{r.version:<{width}} {r.requirement[:14]:<14} {r.p_required:>6g} {r.n_real:>4} "
+              f"{r.simulation['runs']:>8} [{q['interval'][0]:.3f}, {q['interval'][1]:.3f}] {q['basis'][:11]:<11} "
+              f"{r.verdict}")
+    if args.out:
+        md, js = write_check(rows, Path(args.out), meta)
+        print(f"report: {md} {js}")
+    return 0
+
+
+def parse_where_one(text: str) -> dict[str, Any]:
+    """``kp_steer=0.8,kp_speed=18`` -> ``{"kp_steer": 0.8, "kp_speed": 18.0}``."""
+    out: dict[str, Any] = {}
+    for part in text.split(","):
+        key, sep, value = part.partition("=")
+        if not sep or not key.strip():
+            raise ValueError(f"--unseen {text!r}: expected name=value[,name=value]")
+        try:
+            out[key.strip()] = float(value)
+        except ValueError:
+            out[key.strip()] = value.strip()
+    return out
+
+
 # ------------------------------------------------------------------------------------ demo
 
 def cmd_demo(args: argparse.Namespace) -> int:
@@ -351,6 +408,29 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default=None, help="folder for report.md and report.json")
     p.set_defaults(func=cmd_verify)
+
+    p = sub.add_parser("check", help="verdict per version and requirement: P(goal) with an interval, for the real "
+                                     "system, deciding with as few simulated runs as needed")
+    p.add_argument("--model", required=True, help="checkpoint (.pt)")
+    add_log_args(p, "--real", help="real logs: their initial windows start the simulations, their outcomes "
+                                   "make the verdict about the real system")
+    p.add_argument("--require", nargs="*", default=None, metavar="EXPR[@P]",
+                   help="requirements, e.g. 'max_abs_dev(color, 40) <= 35@0.9' or 'always (distance >= 10)' "
+                        "(default: the system description's)")
+    p.add_argument("--probability", type=float, default=0.9, help="required probability of --require without '@P'")
+    p.add_argument("--unseen", nargs="*", default=None, metavar="NAME=VALUE[,...]",
+                   help="versions never field-tested (TMVU), e.g. x=20; their verdict rests on the model")
+    p.add_argument("--alpha", type=float, default=0.05, help="each wrong PASS or FAIL has probability at most alpha")
+    p.add_argument("--delta", type=float, default=0.05,
+                   help="indifference region of the sequential test around the required probability")
+    p.add_argument("--max-runs", type=int, default=4000, help="simulated runs at most per version and requirement")
+    p.add_argument("--batch", type=int, default=100, help="simulated runs per look of the sequential test")
+    p.add_argument("--sims-per-start", type=int, default=20,
+                   help="simulated runs from each real run's own initial window (its paired prediction)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the simulations")
+    p.add_argument("--engine", choices=("auto", "native", "torch"), default="auto", help="simulation engine")
+    p.add_argument("--out", default=None, help="folder for check.md and check.json")
+    p.set_defaults(func=cmd_check)
 
     p = sub.add_parser("demo", help="the main job on the built-in twin data")
     p.add_argument("--system", choices=("lane-keeping", "car"), default="lane-keeping",

@@ -27,7 +27,7 @@ from torch import nn
 
 from . import __version__
 from .dataset import Dataset, Normaliser, actuator_position, context_of, extra_channels, play_offsets
-from .logs import Log
+from .logs import Log, LogError, LogMeta, read_log, sidecar_path
 from .system import LogSchema, SystemDescription
 
 CHECKPOINT_FORMAT = "envi-model"
@@ -282,6 +282,29 @@ class Checkpoint:
         return self.decode_states(self.model.eval().step(x, generator).numpy())
 
     # ------------------------------------------------------------------ files
+
+    def recorded_logs(self, which: str = "data", missing_ok: bool = False) -> list[Log]:
+        """The training (``data``) or ``validation`` logs the checkpoint names, each checked against its
+        recorded hash and read with the controller version recorded for it (so logs whose version came
+        from a file-name pattern read back without it). ``missing_ok`` skips files that are gone."""
+        out = []
+        for e in getattr(self.record, which):
+            path = Path(e["file"])
+            if not path.is_file():
+                if missing_ok:
+                    continue
+                raise LogError(f"{path}: recorded in the model's {which} but missing; pass the logs explicitly")
+            meta = None
+            if not sidecar_path(path).exists():
+                controller = e.get("controller")
+                if controller is None and len(self.record.controllers) == 1:
+                    controller = self.record.controllers[0]  # older checkpoints: their one controller
+                meta = LogMeta(schema=self.schema, controller=controller, run_id=path.stem)
+            lg = read_log(path, meta, ignore=self.system.ignore if self.system else ())
+            if lg.sha256() != e["sha256"]:
+                raise LogError(f"{path}: content differs from the log the model was trained on (hash mismatch)")
+            out.append(lg)
+        return out
 
     def check_finite(self, where: str) -> None:
         """Weights and normaliser must be finite, with non-empty ranges: a model with a NaN weight

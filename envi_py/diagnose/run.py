@@ -15,7 +15,7 @@ from ..simulate import initial_windows, rollout
 from .effects import MIN_SHARE, Finding, misfit_share, run_candidates
 from .gap import by_run, by_version, coverage, horizon_gap, metric_gaps, residual_map, windows_of
 from .residuals import one_step_residuals
-from .shrink import load_recorded, shrink, simulate_groups
+from .shrink import shrink, simulate_groups
 
 
 @dataclass
@@ -112,9 +112,9 @@ def diagnose(ckpt: Checkpoint, real: Sequence[Log], confirm: Sequence[Log] | Non
     if not has_gap(gaps):
         findings = [replace(f, significant=False) for f in findings]
     horizon = [{"controller": label, **horizon_gap(r, s, metric.skip, seed)} for label, r, s in groups]
-    train_logs = list(train_logs) if train_logs is not None else load_recorded(ckpt.record.data, ckpt)
+    train_logs = list(train_logs) if train_logs is not None else ckpt.recorded_logs("data")
     if val_logs is None:
-        val_logs = load_recorded(ckpt.record.validation, ckpt) if ckpt.record.validation else []
+        val_logs = ckpt.recorded_logs("validation") if ckpt.record.validation else []
     hist = ckpt.config.history
     train_w = np.concatenate(ckpt.dataset(train_logs).X)[:, :hist * ckpt.config.row_width]
     sims_full = []

@@ -4,12 +4,11 @@ hyper-parameters), simulate the confirmation logs with both models, compare the 
 from __future__ import annotations
 
 from dataclasses import asdict
-from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
 
-from ..logs import Log, LogError, LogMeta, group_by_controller, read_log, sidecar_path
+from ..logs import Log, group_by_controller
 from ..metrics import MetricConfig
 from ..model import Checkpoint
 from ..simulate import simulate_logs
@@ -17,32 +16,6 @@ from ..train import train
 from ..verify import traces
 from .effects import Finding
 from .gap import metric_gaps
-
-
-def load_recorded(entries: Sequence[dict[str, str]], ckpt: Checkpoint) -> list[Log]:
-    """The logs a checkpoint names, each checked against its recorded hash."""
-    out = []
-    for e in entries:
-        path = Path(e["file"])
-        if not path.exists():
-            raise LogError(f"{path}: recorded in the model's training data but missing; pass --train-logs")
-        lg = _read_recorded(path, ckpt, e.get("controller"))
-        if lg.sha256() != e["sha256"]:
-            raise LogError(f"{path}: content differs from the log the model was trained on (hash mismatch)")
-        out.append(lg)
-    return out
-
-
-def _read_recorded(path: Path, ckpt: Checkpoint, controller: dict[str, Any] | None) -> Log:
-    """Read a recorded log; a log without sidecar gets the controller recorded for it at training
-    (older checkpoints: the model's controller when it had only one)."""
-    meta = None
-    if not sidecar_path(path).exists():
-        ctrls = ckpt.record.controllers
-        if controller is None and len(ctrls) == 1:
-            controller = ctrls[0]
-        meta = LogMeta(schema=ckpt.schema, controller=controller, run_id=path.stem)
-    return read_log(path, meta, ignore=ckpt.system.ignore if ckpt.system else ())
 
 
 def retrain_with(ckpt: Checkpoint, finding: Finding, train_logs: Sequence[Log], val_logs: Sequence[Log]) -> Checkpoint:

@@ -1,0 +1,218 @@
+"""``envi check``: does each controller version meet each requirement, and how sure are we?
+
+For every version and requirement (the system description's, or given on the command line):
+
+1. **In simulation**: runs from the versions' initial windows are simulated in batches until a
+   sequential test decides (Wald's SPRT around the required probability, with an any-time interval;
+   :mod:`envi_py.verdicts.sequential`), so an easy verdict costs few runs.
+2. **For the real system**, when real runs of the version exist (TOVK, TMVK): each real run's
+   outcome is paired with the model's prediction from that run's own sigma_0 (the fraction of
+   ``sims_per_start`` runs meeting the requirement), and prediction-powered inference combines them
+   with the model's predictions from further starts of that version (the training and validation
+   logs the checkpoint records). A calibration test withdraws the model-based claim when the real
+   runs contradict the model, and the verdict then rests on the real runs alone.
+3. **Without real runs** (TMVU, ``--unseen``): the verdict rests on the model only, and the model's
+   error measured on the versions that do have real runs is carried beside it.
+
+Simulated runs that leave the training data's range are counted and reported with each row.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from .controllers import ControllerSpec
+from .goals.evaluate import Runs, signals_of
+from .goals.requirements import Requirement, parse, satisfied
+from .logs import Log, group_by_controller
+from .model import Checkpoint
+from .simulate import simulate_logs
+from .system import RequirementSpec, SystemDescription, describe_schema
+from .verdicts import RectifierCheck, model_only, ppi_verdict, sprt
+from .verify import version_label
+
+
+@dataclass
+class CheckRow:
+    """One version against one requirement: the simulation's verdict and the real system's."""
+
+    version: str
+    requirement: str
+    expr: str
+    p_required: float
+    n_real: int
+    simulation: dict[str, Any]
+    real_system: dict[str, Any]
+    outside_training: int  # simulated runs that left the training data's range
+    sim_runs: int
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def verdict(self) -> str:
+        return str(self.real_system["verdict"])
+
+    def to_json(self) -> dict[str, Any]:
+        return {"version": self.version, "requirement": self.requirement, "expr": self.expr,
+                "p_required": self.p_required, "verdict": self.verdict, "n_real": self.n_real,
+                "simulation": self.simulation, "real_system": self.real_system,
+                "outside_training": self.outside_training, "sim_runs": self.sim_runs, "notes": self.notes}
+
+
+@dataclass
+class Checker:
+    """Simulates a version from given starts and scores requirements on the runs."""
+
+    ckpt: Checkpoint
+    engine: str = "auto"
+    seed: int = 0
+    _calls: int = 0
+
+    def runs(self, spec: ControllerSpec, starts: Sequence[Log], per_start: int) -> tuple[Runs, int]:
+        """``per_start`` simulated runs from each start, as goal-ready signals, and how many of them
+        left the training data's range (beyond the normaliser's fitted limits) at any step."""
+        self._calls += 1
+        sims = simulate_logs(self.ckpt, spec, starts, runs=per_start, seed=self.seed + 9973 * self._calls,
+                             engine=self.engine)
+        hist = self.ckpt.config.history
+        states = np.stack([lg.states[hist:] for lg in sims])
+        ns = self.ckpt.config.n_state
+        low, high = self.ckpt.norm.low[:ns], self.ckpt.norm.high[:ns]
+        outside = int(np.any((states < low) | (states > high), axis=(1, 2)).sum())
+        return signals_of(sims, sims[0].meta.schema, hist, self.ckpt.period_ms), outside
+
+
+def _outcomes(req: Requirement, runs: Runs) -> np.ndarray:
+    return satisfied(req, runs).astype(float)
+
+
+def check(ckpt: Checkpoint, real: Sequence[Log], requirements: Sequence[RequirementSpec],
+          unseen: Sequence[ControllerSpec] = (), extra_starts: Sequence[Log] = (), alpha: float = 0.05,
+          delta: float = 0.05, max_runs: int = 4000, batch: int = 100, sims_per_start: int = 20,
+          seed: int = 0, engine: str = "auto") -> list[CheckRow]:
+    """Every version of ``real`` and every ``unseen`` one against every requirement (module docstring).
+
+    ``extra_starts``: further logs whose initial windows the model may start from (their outcomes
+    are not used): with them the model's predictions cover more starts than the real runs'.
+    """
+    if not real:
+        raise ValueError("envi check needs real logs: their initial windows start the simulations")
+    system = ckpt.system or describe_schema(ckpt.schema)
+    signals = [c.name for c in ckpt.schema.channels]
+    reqs = [parse(r, signals) for r in requirements]
+    if not reqs:
+        raise ValueError("no requirements: declare [[requirements]] in the system description or pass --require")
+    hist = ckpt.config.history
+    checker = Checker(ckpt, engine, seed)
+    groups = group_by_controller(real)
+    extra = group_by_controller(extra_starts) if extra_starts else {}
+    rows: list[CheckRow] = []
+    measured: dict[str, dict[str, RectifierCheck]] = {r.name: {} for r in requirements}
+    for spec, logs in groups.items():
+        label = version_label(spec, system)
+        real_runs = signals_of(logs, logs[0].meta.schema, hist, ckpt.period_ms)
+        starts = list(logs) + [lg for lg in extra.get(spec, []) if lg not in logs]
+        paired_runs, outside = checker.runs(spec, logs, sims_per_start)
+        extra_runs = checker.runs(spec, starts[len(logs):], sims_per_start)[0] if len(starts) > len(logs) else None
+        for spec_req, req in zip(requirements, reqs):
+            y = _outcomes(req, real_runs)
+            paired = _outcomes(req, paired_runs).reshape(len(logs), sims_per_start).mean(axis=1)
+            preds = paired if extra_runs is None else np.concatenate(
+                [paired, _outcomes(req, extra_runs).reshape(-1, sims_per_start).mean(axis=1)])
+            sim = _sequential(checker, spec, starts, req, spec_req.probability, alpha, delta, max_runs, batch)
+            notes = []
+            if extra_runs is None:
+                notes.append("no further starts of this version than its real runs: the model-based estimate "
+                             "cannot narrow the real-only interval much")
+            if len(y) >= 2:
+                verdict = ppi_verdict(preds, y, paired, spec_req.probability, alpha, sims_per_start=sims_per_start)
+                measured[spec_req.name][label] = verdict.check
+                real_json = verdict.to_json()
+            else:
+                real_json = {"verdict": "UNDECIDED", "basis": "too few real runs", "interval": [0.0, 1.0],
+                             "reason": f"{len(y)} real run(s): at least 2 are needed to pair with the model"}
+            rows.append(CheckRow(label, spec_req.name, spec_req.expr, spec_req.probability, len(y), sim.to_json(),
+                                 real_json, outside, sim.runs + len(logs) * sims_per_start, notes))
+    for spec in unseen:
+        label = version_label(spec, system)
+        starts = list(real)
+        runs, outside = checker.runs(spec, starts, max(1, -(-max_runs // (4 * len(starts)))))
+        for spec_req, req in zip(requirements, reqs):
+            sim = _sequential(checker, spec, starts, req, spec_req.probability, alpha, delta, max_runs, batch)
+            verdict = model_only(_outcomes(req, runs), spec_req.probability, measured[spec_req.name], alpha)
+            rows.append(CheckRow(label, spec_req.name, spec_req.expr, spec_req.probability, 0, sim.to_json(),
+                                 verdict.to_json(), outside, sim.runs + runs.count,
+                                 ["never field-tested: started from the initial windows of the other versions' "
+                                  "real logs"]))
+    return rows
+
+
+def _sequential(checker: Checker, spec: ControllerSpec, starts: Sequence[Log], req: Requirement, p: float,
+                alpha: float, delta: float, max_runs: int, batch: int) -> Any:
+    """Wald's SPRT on simulated runs drawn batch by batch from the starts, in turn."""
+    def sample(n: int) -> np.ndarray:
+        per_start = -(-n // len(starts))
+        runs, _ = checker.runs(spec, starts, per_start)
+        return _outcomes(req, runs)[:n].astype(bool)
+
+    lo, hi = max(p - delta, 1e-6), min(p + delta, 1 - 1e-6)
+    return sprt(sample, p, delta=min(delta, p - lo + 1e-12, hi - p + 1e-12) if 0 < p < 1 else delta,
+                alpha=alpha, beta=alpha, max_runs=max_runs, batch=batch)
+
+
+def parse_requirement(text: str, probability: float, index: int) -> RequirementSpec:
+    """``expr`` or ``expr @ 0.95`` from the command line; STL when it starts with always/eventually."""
+    expr, sep, p = text.rpartition("@") if "@" in text else (text, "", "")
+    try:
+        prob = float(p) if sep else probability
+    except ValueError:
+        raise ValueError(f"--require {text!r}: the probability after '@' must be a number") from None
+    expr = expr.strip()
+    kind = "stl" if expr.split("(")[0].split("[")[0].strip() in ("always", "eventually", "not") else "metric"
+    if not 0 < prob < 1:
+        raise ValueError(f"--require {text!r}: the probability must lie strictly between 0 and 1")
+    return RequirementSpec(f"R{index + 1}", expr, kind, prob)
+
+
+def requirements_of(system: SystemDescription | None, given: Sequence[str], probability: float) -> list[RequirementSpec]:
+    """The command line's requirements when given, else the system description's."""
+    if given:
+        return [parse_requirement(t, probability, i) for i, t in enumerate(given)]
+    return list(system.requirements) if system else []
+
+
+def to_markdown(rows: Sequence[CheckRow], meta: dict[str, Any]) -> str:
+    """The verdict table first, then the evidence."""
+    lines = ["# Requirement check", "",
+             "| version | requirement | P required | real runs | P (simulation) [interval], runs | "
+             "P (real system) [interval] | basis | verdict |", "|---|---|---:|---:|---|---|---|---|"]
+    for r in rows:
+        s, q = r.simulation, r.real_system
+        p_sim = s["successes"] / s["runs"] if s["runs"] else float("nan")
+        lines.append(f"| {r.version} | {r.requirement}: `{r.expr}` | {r.p_required:g} | {r.n_real} | "
+                     f"{p_sim:.3f} [{s['interval'][0]:.3f}, {s['interval'][1]:.3f}], {s['runs']} ({s['verdict']}) | "
+                     f"[{q['interval'][0]:.3f}, {q['interval'][1]:.3f}] | {q['basis']} | **{q['verdict']}** |")
+    lines += ["", f"Confidence {1 - meta['alpha']:.0%} (each wrong PASS or FAIL at most {meta['alpha']:.0%}). "
+              "Simulation: Wald's SPRT with an indifference region of "
+              f"+-{meta['delta']:g} around the required probability, stopped at {meta['max_runs']} runs at most; "
+              "its interval is valid at the stopping time. Real system: prediction-powered inference from the "
+              "model's predictions and the paired real runs, withdrawn to the real runs alone when a calibration "
+              "test rejects the model; a version without real runs rests on the model only.", "", "## Evidence", ""]
+    for r in rows:
+        q = r.real_system
+        lines.append(f"- {r.version}, {r.requirement}: {q.get('reason', '')}. Simulated runs outside the "
+                     f"training data: {r.outside_training} of {r.sim_runs}." + "".join(f" {n}." for n in r.notes))
+    lines += ["", "## Provenance", "", *(f"- {k}: {v}" for k, v in meta.items())]
+    return "\n".join(lines) + "\n"
+
+
+def write_check(rows: Sequence[CheckRow], out: Path, meta: dict[str, Any]) -> tuple[Path, Path]:
+    out.mkdir(parents=True, exist_ok=True)
+    md, js = out / "check.md", out / "check.json"
+    md.write_text(to_markdown(rows, meta))
+    js.write_text(json.dumps({**meta, "rows": [r.to_json() for r in rows]}, indent=1))
+    return md, js
