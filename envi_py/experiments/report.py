@@ -41,13 +41,13 @@ NONE = (float("nan"), float("nan"))  # a figure a cell does not have
 
 
 def mean_ci(values: Sequence[float]) -> tuple[float, float]:
-    """Mean and the half-width of its 95% t-interval (0 for a single value)."""
+    """Mean and the half-width of its 95% t-interval (NaN for a single value: no interval)."""
     v = np.asarray(values, dtype=float)
     v = v[np.isfinite(v)]
     if len(v) == 0:
         return float("nan"), float("nan")
     if len(v) == 1:
-        return float(v[0]), 0.0
+        return float(v[0]), float("nan")
     return float(v.mean()), float(stats.t.ppf(0.975, len(v) - 1) * v.std(ddof=1) / np.sqrt(len(v)))
 
 
@@ -74,8 +74,22 @@ def _number(v: float | None) -> float:
 
 
 def _fmt(mc: tuple[float, float], scale: float = 1.0, digits: int = 2) -> str:
-    m, h = mc
-    return "-" if not np.isfinite(m) else f"{m * scale:.{digits}f} ± {h * scale:.{digits}f}"
+    m, h = (float("nan") if x is None else x for x in mc)
+    if not np.isfinite(m):
+        return "-"
+    mean = f"{m * scale:.{digits}f}"
+    return f"{mean} ± {h * scale:.{digits}f}" if np.isfinite(h) else f"{mean} (one rep.)"
+
+
+def strict_json(obj: Any) -> Any:
+    """``obj`` with every non-finite number as None: results.json stays standard JSON (no NaN)."""
+    if isinstance(obj, float):
+        return obj if np.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: strict_json(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [strict_json(v) for v in obj]
+    return obj
 
 
 def _cell() -> dict[str, list]:
@@ -259,7 +273,7 @@ def plot(summary: dict[str, Any], results: Sequence[dict[str, Any]], out: Path,
             for a, cells in v["cells"].items():
                 ns = sorted(int(n) for n in cells)
                 m = np.array([cells[str(n)]["acc"][0] for n in ns]) * 100
-                h = np.array([cells[str(n)]["acc"][1] for n in ns]) * 100
+                h = np.nan_to_num(np.array([cells[str(n)]["acc"][1] for n in ns]) * 100)  # no bar for one rep.
                 ax.errorbar(ns, m, yerr=h, marker="o", capsize=3, label=a)
             if v["floor"]:
                 ax.axhline(v["floor"]["acc"][0] * 100, color="k", ls="--", lw=1, label="FOT vs FOT")
@@ -291,8 +305,10 @@ def _plot_traces(plt: Any, uc: str, results: Sequence[dict[str, Any]], out: Path
     chosen = [r for r in mine if r["rep"] == 0 and r["n"] == top]
     groups = chosen[0]["evals"][uc]["groups"]
     rows = [(gi, ch) for gi, g in enumerate(groups) for ch in g["traces"]["real"]]
+    # shared axes and a fixed layout: tick placement dominates the cost of a figure with many panels
     fig, axes = plt.subplots(len(rows), len(chosen) + 1, figsize=(3.2 * (len(chosen) + 1), 2.4 * len(rows)),
-                             squeeze=False)
+                             squeeze=False, sharex=True, sharey="row")
+    fig.subplots_adjust(left=0.12, right=0.98, bottom=0.04, top=1 - 0.5 / len(rows), hspace=0.25, wspace=0.08)
     for ri, (gi, ch) in enumerate(rows):
         axes[ri, 0].set_ylabel(f"{groups[gi]['version']}\n{ch}", fontsize=8)
         for tr in groups[gi]["traces"]["real"][ch]:
@@ -308,7 +324,6 @@ def _plot_traces(plt: Any, uc: str, results: Sequence[dict[str, Any]], out: Path
             if band is not None and ch == "color":
                 ax.axhspan(*band, color="0.9")
     fig.suptitle(f"{uc.upper()}: real vs simulated state traces (same initial windows, n={top}, rep 0)")
-    fig.tight_layout()
     p = out / f"traces_{uc}.png"
     fig.savefig(p, dpi=90)
     plt.close(fig)
@@ -319,7 +334,8 @@ def write_report(results: Sequence[dict[str, Any]], meta: dict[str, Any], out: P
     """``report.md``, ``results.json`` (every job, its logs and numbers) and the PNGs in ``out``."""
     out.mkdir(parents=True, exist_ok=True)
     summary = summarise(results, meta["use_cases"])
-    (out / "results.json").write_text(json.dumps({"meta": meta, "summary": summary, "jobs": list(results)}, indent=1))
+    (out / "results.json").write_text(json.dumps(strict_json({"meta": meta, "summary": summary, "jobs": list(results)}),
+                                                      indent=1, allow_nan=False))
     md = out / "report.md"
     md.write_text(to_markdown(summary, meta))
     band = meta.get("lane_band")

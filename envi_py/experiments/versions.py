@@ -170,7 +170,8 @@ def plan_versions(versions: dict[str, Version], use_cases: Sequence[str], choice
     if unknown:
         raise ValueError(f"unknown use case {unknown[0]!r}; known: {', '.join(USE_CASES)}")
     for given, flag, needs in ((choice.train, "--train-versions", ("tmvk", "tmvu")),
-                               (choice.eval, "--eval-versions", ("tmvk",)), (choice.unseen, "--unseen-versions", ("tmvu",)),
+                               (choice.eval, "--eval-versions", ("tmvk",)),
+                               (choice.unseen, "--unseen-versions", ("tmvu",)),
                                (choice.tovk, "--tovk-version", ("tovk",))):
         if given and not set(needs) & set(use_cases):
             raise ValueError(f"{flag} applies to {' and '.join(needs)}, which is not asked for")

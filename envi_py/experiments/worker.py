@@ -74,6 +74,8 @@ def run_job(job: Job) -> dict[str, Any]:
             g["version"] = version_label(spec, job.system)
             g["traces"] = {"real": state_traces(real_v), "sim": state_traces(sim_v)}
             groups.append(g)
+        order = job.versions.get(uc, [])
+        groups.sort(key=lambda g: order.index(g["version"]) if g["version"] in order else len(order))
         evals[uc] = {"groups": groups, "goals": groups[0]["goals"] if groups else [],
                      "kld_geomean": geometric_mean_kld([g["sim_vs_real"]["kld"] for g in groups]),
                      "test_logs": [lg.name for lg in logs]}
