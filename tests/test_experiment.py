@@ -10,6 +10,7 @@ import pytest
 from envi_py.controllers import ControllerSpec
 from envi_py.experiments.executor import DaskExecutor, LocalExecutor
 from envi_py.experiments.grid import make_jobs
+from envi_py.experiments.report import paper_accuracy
 from envi_py.experiments.run import run_experiment
 from envi_py.experiments.versions import VersionChoice, version_label, versions_of
 from envi_py.system import SystemDescription, lane_keeping, load_system
@@ -61,6 +62,22 @@ def test_car_versions_are_chosen_by_label_with_numbers_compared_as_numbers(car_l
     only = make_jobs(car_logs, ["tmvk"], ["bc"], ns=(3,), reps=1, n_val=2, n_test=4,
                      versions=VersionChoice(train=CAR_TRAIN, eval=CAR_TRAIN[:1]))[1]
     assert only.eval["tmvk"] == CAR_TRAIN[:1]
+
+
+def test_without_version_parameters_versions_are_chosen_by_the_controllers_label(car_logs) -> None:
+    bare = SystemDescription("bare", CAR.schema)  # e.g. drafted without [versions]
+    spec = car_logs[0].controller
+    assert spec.label().startswith("combine(loops=[pid(")
+    jobs, plan = make_jobs(car_logs, ["tovk"], ["bc"], ns=(3,), reps=1, n_val=2, n_test=4, system=bare,
+                           versions=VersionChoice(tovk=spec.label()))
+    assert plan.train["tovk"] == (spec.label(),) and {lg.controller for lg in jobs[0].train} == {spec}
+
+
+def test_the_papers_figures_belong_to_the_papers_versions_only() -> None:
+    assert paper_accuracy("tmvk", "x=30")["bcxgail"] == (98.78, 99.20, 99.33)
+    assert paper_accuracy("tmvu", "x=40.0")["random"] == 81.60
+    assert paper_accuracy("tmvu", "x=30") is None and paper_accuracy("tovk", "x=30.5") is None
+    assert paper_accuracy("tovk", "kp_steer=0.8,kp_speed=18") is None and paper_accuracy("tovk", "y=30") is None
 
 
 @pytest.mark.parametrize("choice, uses, message", [
