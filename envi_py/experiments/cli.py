@@ -7,17 +7,21 @@ from typing import Any
 
 
 def _cmd(args: argparse.Namespace) -> int:
-    from ..cli import read_logs
+    from ..cli import read_logs, system_of
     from .executor import make_executor
     from .run import run_experiment
+    from .versions import VersionChoice
 
     logs = read_logs(args, min_length=args.history + 1)
+    versions = VersionChoice(tuple(args.train_versions or ()), tuple(args.eval_versions or ()),
+                             tuple(args.unseen_versions or ()), args.tovk_version)
     executor = make_executor(args.dask, args.workers)
     try:
         res = run_experiment(logs, args.use_cases, args.out, algorithms=args.algorithms, ns=args.n, reps=args.reps,
                              seed=args.seed, protocol=args.protocol, epochs=args.epochs, n_val=args.n_val,
                              n_test=args.n_test, runs=args.runs, executor=executor, progress=not args.quiet,
-                             train_kwargs={"history": args.history}, resume=not args.fresh)
+                             train_kwargs={"history": args.history}, resume=not args.fresh,
+                             system=system_of(args), versions=versions)
     finally:
         executor.close()
     print(f"{res['meta']['jobs']} trainings in {res['meta']['wall_seconds']:.0f} s; report: {res['report']}")
@@ -33,6 +37,15 @@ def register(sub: Any) -> None:
     p.add_argument("use_cases", nargs="+", choices=("tovk", "tmvk", "tmvu"),
                    help="one or more; tmvk and tmvu share their trainings when given together")
     add_log_args(p, "--logs", required=True)
+    version = "name=value[,name=value] as the report labels versions, e.g. x=30 or kp_steer=0.8,kp_speed=18"
+    p.add_argument("--train-versions", nargs="+", metavar="VERSION",
+                   help=f"versions TMVK and TMVU train on, each {version} (default for lane keeping: x=10 x=30 x=50)")
+    p.add_argument("--eval-versions", nargs="+", metavar="VERSION",
+                   help="trained versions TMVK verifies (default: every trained one)")
+    p.add_argument("--unseen-versions", nargs="+", metavar="VERSION",
+                   help="versions TMVU verifies, never trained on (default for lane keeping: x=20 x=40)")
+    p.add_argument("--tovk-version", metavar="VERSION",
+                   help="the one version TOVK trains on and verifies (default for lane keeping: x=30)")
     p.add_argument("--algorithms", nargs="+", default=["random", "bc", "gail", "bcxgail"],
                    choices=("random", "bc", "gail", "bcxgail"))
     p.add_argument("--n", nargs="+", type=int, default=[3, 15, 30], help="training logs per version")

@@ -1,16 +1,16 @@
 """The experiment grid: which logs train, validate and test each model, for the paper's use cases.
 
-Paper, Section 6: TOVK trains and verifies on x=30; TMVK trains on x=10, 30, 50 and verifies each
-of them; TMVU verifies the unseen x=20 and 40 with the TMVK models. TMVK and TMVU therefore share
-their trainings: a job is one training (use-case family, algorithm, n, repetition) evaluated on
-every requested evaluation set.
+Paper, Section 6: TOVK trains and verifies one version; TMVK trains on several and verifies each of
+them; TMVU verifies unseen versions with the TMVK models (:mod:`.versions` says which, for any
+system). TMVK and TMVU therefore share their trainings: a job is one training (use-case family,
+algorithm, n, repetition) evaluated on every requested evaluation set.
 
 Two protocols choose the logs:
 
-``random`` (ours): per repetition r, each version's logs are shuffled with seed (seed, r, x); the
-last ``n_test`` are that version's test logs, the ``n_val`` before them its validation logs, and the
-first n of the rest its training logs. The test logs are therefore the same for every n and every
-algorithm of a repetition and never overlap training or validation logs.
+``random`` (ours): per repetition r, each version's logs are shuffled with seed (seed, r, version);
+the last ``n_test`` are that version's test logs, the ``n_val`` before them its validation logs,
+and the first n of the rest its training logs. The test logs are therefore the same for every n
+and every algorithm of a repetition and never overlap training or validation logs.
 
 ``authors``: the authors' published split, reproduced: files in sorted order, 5 folds; fold f
 rotates each version's list by f * len / 5; the first n of the rotated list train, the last 10
@@ -21,30 +21,18 @@ from __future__ import annotations
 
 import hashlib
 import json
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 
 from ..logs import Log
+from ..system import SystemDescription, describe_schema
+from .versions import Plan, Version, VersionChoice, plan_versions, versions_of
 
-#: Which controller versions (x) each use case trains on and verifies.
-TRAIN_X = {"tovk": (30,), "tmvk": (10, 30, 50), "tmvu": (10, 30, 50)}
-EVAL_X = {"tovk": (30,), "tmvk": (10, 30, 50), "tmvu": (20, 40)}
 FAMILY = {"tovk": "tovk", "tmvk": "tmv", "tmvu": "tmv"}  # use cases sharing a family share trainings
 ALGORITHMS = ("random", "bc", "gail", "bcxgail")
-
-
-def version_of(log: Log) -> float:
-    return float(log.meta.controller["params"]["x"])
-
-
-def by_version(logs: Sequence[Log]) -> dict[float, list[Log]]:
-    """Logs per controller version x, each list in sorted file order (the reader's order)."""
-    out: dict[float, list[Log]] = {}
-    for lg in logs:
-        out.setdefault(version_of(lg), []).append(lg)
-    return out
 
 
 @dataclass
@@ -59,6 +47,8 @@ class Job:
     train: list[Log]
     val: list[Log]
     evals: dict[str, list[Log]]  # use case -> test logs
+    system: SystemDescription
+    versions: dict[str, list[str]]  # "train" and each use case -> version labels
     train_kwargs: dict[str, Any] = field(default_factory=dict)
     runs: int = 1
 
@@ -71,19 +61,20 @@ class Job:
         blob = json.dumps({"key": self.key, "seed": self.seed, "train": [lg.sha256() for lg in self.train],
                            "val": [lg.sha256() for lg in self.val],
                            "evals": {k: [lg.sha256() for lg in v] for k, v in sorted(self.evals.items())},
-                           "kwargs": self.train_kwargs, "runs": self.runs}, sort_keys=True, default=str)
+                           "kwargs": self.train_kwargs, "runs": self.runs, "versions": self.versions,
+                           "system": self.system.to_json()}, sort_keys=True, default=str)
         return hashlib.sha256(blob.encode()).hexdigest()
 
 
-def _split_random(pool: dict[float, list[Log]], xs: Sequence[float], n: int, rep: int, seed: int,
-                  n_val: int, n_test: int, max_n: int) -> tuple[list[Log], list[Log], dict[float, list[Log]]]:
+def _split_random(pool: dict[str, Version], labels: Sequence[str], n: int, rep: int, seed: int,
+                  n_val: int, n_test: int, max_n: int) -> tuple[list[Log], list[Log], dict[str, list[Log]]]:
     train, val, test = [], [], {}
-    for x in xs:
-        logs = pool[x]
-        perm = np.random.default_rng([seed, rep, int(x)]).permutation(len(logs))
+    for x in labels:
+        logs = pool[x].logs
+        perm = np.random.default_rng([seed, rep, *pool[x].entropy()]).permutation(len(logs))
         k_test = min(n_test, len(logs) - max_n - n_val)
         if k_test < 2:
-            raise ValueError(f"x={x:g}: {len(logs)} logs cannot hold {max_n} training, {n_val} validation "
+            raise ValueError(f"{x}: {len(logs)} logs cannot hold {max_n} training, {n_val} validation "
                              f"and 2 test logs")
         test[x] = [logs[i] for i in sorted(perm[len(logs) - k_test:])]
         val += [logs[i] for i in sorted(perm[len(logs) - k_test - n_val:len(logs) - k_test])]
@@ -91,15 +82,15 @@ def _split_random(pool: dict[float, list[Log]], xs: Sequence[float], n: int, rep
     return train, val, test
 
 
-def _split_authors(pool: dict[float, list[Log]], xs: Sequence[float], n: int, fold: int, folds: int = 5,
-                   n_test: int = 10) -> tuple[list[Log], list[Log], dict[float, list[Log]]]:
+def _split_authors(pool: dict[str, Version], labels: Sequence[str], n: int, fold: int, folds: int = 5,
+                   n_test: int = 10) -> tuple[list[Log], list[Log], dict[str, list[Log]]]:
     train, test = [], {}
-    for x in xs:
-        logs = sorted(pool[x], key=lambda lg: lg.name)
+    for x in labels:
+        logs = sorted(pool[x].logs, key=lambda lg: lg.name)
         shift = fold * len(logs) // folds
         rotated = logs[shift:] + logs[:shift]
         if n + n_test > len(rotated):
-            raise ValueError(f"x={x:g}: {len(logs)} logs cannot hold {n} training and {n_test} test logs")
+            raise ValueError(f"{x}: {len(logs)} logs cannot hold {n} training and {n_test} test logs")
         train += rotated[:n]
         test[x] = rotated[-n_test:]
     return train, [], test
@@ -108,18 +99,20 @@ def _split_authors(pool: dict[float, list[Log]], xs: Sequence[float], n: int, fo
 def make_jobs(logs: Sequence[Log], use_cases: Sequence[str], algorithms: Sequence[str] = ALGORITHMS,
               ns: Sequence[int] = (3, 15, 30), reps: int = 5, seed: int = 0, protocol: str = "random",
               n_val: int = 3, n_test: int = 30, train_kwargs: dict[str, Any] | None = None,
-              runs: int = 1) -> list[Job]:
-    """Every (family, algorithm, n, repetition) training with its logs, in a fixed order.
+              runs: int = 1, system: SystemDescription | None = None,
+              versions: VersionChoice | None = None) -> tuple[list[Job], Plan]:
+    """Every (family, algorithm, n, repetition) training with its logs, in a fixed order, and the
+    versions each use case trains on and verifies.
 
-    With the authors' protocol the repetitions are their folds (at most 5).
+    ``system`` names the versions (default: the description of the logs' schema); ``versions`` is
+    the user's choice of them (see :func:`.versions.plan_versions`). With the authors' protocol the
+    repetitions are their folds (at most 5).
     """
-    pool = by_version(logs)
-    for uc in use_cases:
-        if uc not in TRAIN_X:
-            raise ValueError(f"unknown use case {uc!r}; known: {', '.join(TRAIN_X)}")
-        missing = [x for x in TRAIN_X[uc] + EVAL_X[uc] if x not in pool]
-        if missing:
-            raise ValueError(f"{uc}: no logs for x={', '.join(f'{m:g}' for m in missing)}")
+    if not logs:
+        raise ValueError("no logs to experiment on")
+    system = system or describe_schema(logs[0].meta.schema)
+    pool = versions_of(logs, system)
+    plan = plan_versions(pool, use_cases, versions or VersionChoice())
     if protocol == "authors" and reps > 5:
         raise ValueError("the authors' protocol has 5 folds: --reps at most 5")
     families: dict[str, list[str]] = {}
@@ -129,20 +122,22 @@ def make_jobs(logs: Sequence[Log], use_cases: Sequence[str], algorithms: Sequenc
     max_n = max(ns)
     for rep in range(reps):  # repetition-major: an interrupted grid still holds whole repetitions
         for family, ucs in families.items():
-            xs = TRAIN_X[ucs[0]]
+            labels = plan.train[ucs[0]]
+            chosen = {"train": list(labels)} | {uc: list(plan.eval[uc]) for uc in ucs}
             for n in ns:
                 if protocol == "authors":
-                    train, val, test = _split_authors(pool, xs, n, rep)
+                    train, val, test = _split_authors(pool, labels, n, rep)
                 else:
-                    train, val, test = _split_random(pool, xs, n, rep, seed, n_val, n_test, max_n)
+                    train, val, test = _split_random(pool, labels, n, rep, seed, n_val, n_test, max_n)
                 evals = {}
                 for uc in ucs:
                     if uc == "tmvu":  # unseen versions: no log of them is used for anything else
-                        evals[uc] = [lg for x in EVAL_X[uc] for lg in
-                                     (pool[x] if protocol == "random" else sorted(pool[x], key=lambda g: g.name)[-10:])]
+                        evals[uc] = [lg for x in plan.eval[uc] for lg in
+                                     (pool[x].logs if protocol == "random"
+                                      else sorted(pool[x].logs, key=lambda g: g.name)[-10:])]
                     else:
-                        evals[uc] = [lg for x in EVAL_X[uc] for lg in test[x]]
+                        evals[uc] = [lg for x in plan.eval[uc] for lg in test[x]]
                 for algo in algorithms:
                     jobs.append(Job(family, algo, n, rep, int(seed * 100003 + rep * 1009 + n), train, val, evals,
-                                    dict(train_kwargs or {}), runs))
-    return jobs
+                                    system, chosen, dict(train_kwargs or {}), runs))
+    return jobs, plan
