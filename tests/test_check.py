@@ -1,0 +1,80 @@
+"""envi check: one verdict per version and requirement, for the real system, honest about what it rests on."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from envi_py.check import check, parse_requirement
+from envi_py.cli import main
+from envi_py.controllers import ControllerSpec
+from envi_py.system import RequirementSpec
+from envi_py.train import train
+from envi_py.twin import generate, write_logs
+
+
+@pytest.fixture(scope="module")
+def lane(tmp_path_factory):
+    d = tmp_path_factory.mktemp("lane")
+    logs = []
+    for x in (10, 30, 50):
+        logs += write_logs(generate(ControllerSpec("lane-keeping", {"x": x}), 8, 60, seed=x), d)
+    from envi_py.logs import load_logs
+
+    logs = load_logs(d)
+    fit = [lg for i, lg in enumerate(logs) if i % 8 < 4]
+    real = [lg for i, lg in enumerate(logs) if i % 8 >= 4]
+    ckpt = train("bc", fit, [], epochs=15, hidden=(32, 32), lr=1e-3, history=10, seed=0)
+    return ckpt, real, d
+
+
+REQS = [RequirementSpec("near", "max_abs_dev(color, 40) <= 35", "metric", 0.9),
+        RequirementSpec("stl", "always (color >= 5)", "stl", 0.8)]
+
+
+def test_every_version_and_requirement_gets_a_verdict_with_its_basis(lane):
+    ckpt, real, _ = lane
+    rows = check(ckpt, real, REQS, unseen=[ControllerSpec("lane-keeping", {"x": 20})], max_runs=300, batch=100,
+                 sims_per_start=5, engine="torch")
+    assert [(r.version, r.requirement) for r in rows] == [(v, q) for v in ("x=10", "x=30", "x=50", "x=20")
+                                                          for q in ("near", "stl")]
+    for r in rows:
+        s, q = r.simulation, r.real_system
+        assert s["verdict"] in ("PASS", "FAIL", "UNDECIDED") and 0 <= s["successes"] <= s["runs"] <= 300
+        assert s["interval"][0] <= s["successes"] / s["runs"] <= s["interval"][1]
+        assert q["verdict"] in ("PASS", "FAIL", "UNDECIDED") and 0 <= q["interval"][0] <= q["interval"][1] <= 1
+        if r.version == "x=20":
+            assert r.n_real == 0 and q["basis"] == "model only"
+        else:
+            assert r.n_real == 4 and q["basis"] in ("model+real", "real-only")
+            assert q["real_only"]["n"] == 4  # the real-only verdict is always shown beside
+            if q["verdict"] == "PASS":
+                assert q["interval"][0] >= r.p_required
+
+
+def test_requirements_from_the_command_line():
+    assert parse_requirement("min(distance) >= 10 @ 0.95", 0.9, 0) == \
+        RequirementSpec("R1", "min(distance) >= 10", "metric", 0.95)
+    assert parse_requirement("always (distance >= 10)", 0.8, 1).kind == "stl"
+    with pytest.raises(ValueError, match="strictly between"):
+        parse_requirement("min(distance) >= 10 @ 1.5", 0.9, 0)
+
+
+def test_check_cli_writes_the_verdict_table_first(lane, tmp_path, capsys):
+    ckpt, real, d = lane
+    model = ckpt.save(tmp_path / "m.pt")
+    paths = [str(lg.path) for lg in real]
+    assert main(["check", "--model", str(model), "--real", *paths, "--require", "max_abs_dev(color, 40) <= 35@0.9",
+                 "--max-runs", "200", "--batch", "100", "--sims-per-start", "4", "--engine", "torch",
+                 "--out", str(tmp_path / "c")]) == 0
+    md = (tmp_path / "c" / "check.md").read_text()
+    assert md.splitlines()[2].startswith("| version | requirement |") and "## Provenance" in md
+    js = json.loads((tmp_path / "c" / "check.json").read_text())
+    assert len(js["rows"]) == 3 and js["alpha"] == 0.05
+    assert main(["check", "--model", str(model), "--real", *paths, "--require", "max_abs_dev(nope, 40) <= 35",
+                 "--engine", "torch"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == "envi check: error: requirement 'R1': unknown signal 'nope'; signals: color, angle"
+    assert np.isfinite(js["rows"][0]["real_system"]["interval"][0])
