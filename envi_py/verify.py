@@ -28,6 +28,7 @@ from .goals.selection import default_goals
 from .controllers import ControllerSpec
 from .logs import Log, group_by_controller
 from .metrics import Distances, gaussian_kld
+from .verdicts import fair_floor, kld_gaussian
 from .system import GoalSpec, LogSchema, SystemDescription, describe_schema
 
 
@@ -103,26 +104,50 @@ def table_distances(mr: np.ndarray, ms: np.ndarray, scale: np.ndarray, pr: np.nd
     return Distances(w1, np.array([k.statistic for k in ks]), np.array([k.pvalue for k in ks]), acc, kld)
 
 
-def halves_floor(mr: np.ndarray, scale: np.ndarray, pr: np.ndarray | None, splits: int, seed: int) -> Distances:
-    """The same distances between two disjoint random halves of the real runs, averaged over
-    ``splits`` halvings (KS p-value: the median)."""
-    rng = np.random.default_rng(seed)
-    n = mr.shape[0]
-    parts = []
-    for _ in range(splits):
-        perm = rng.permutation(n)
-        a, b = perm[: n // 2], perm[n // 2:]
-        parts.append(table_distances(mr[a], mr[b], scale, None if pr is None else pr[a], None if pr is None else pr[b]))
+def _mean_distances(parts: Sequence[Distances]) -> Distances:
     return Distances(np.mean([d.w1 for d in parts], axis=0), np.mean([d.ks for d in parts], axis=0),
                      np.median([d.ks_p for d in parts], axis=0), float(np.mean([d.acc for d in parts])),
                      float(np.mean([d.kld for d in parts])))
 
 
+def fair_reference(mr: np.ndarray, ms: np.ndarray, scale: np.ndarray, pr: np.ndarray | None, ps: np.ndarray | None,
+                   seed: int, repetitions: int = 10, permutations: int = 99) -> tuple[Distances, Distances, dict[str, Any]]:
+    """The fair real-vs-real reference, at matched sizes (the design of :func:`envi_py.verdicts.fair_floor`,
+    one definition everywhere): over ``repetitions`` random splits, every distance between two halves
+    of the real runs (the floor) and between the first half and as many simulated runs (matched),
+    m = n_real // 2 runs per side; and the permutation tests of "simulated runs are exchangeable with
+    real ones" with all real runs against as many simulated runs, on the mean normalised W1 over the
+    goals and, for the lane-keeping preset, on the safety/comfort KLD."""
+    rng = np.random.default_rng(seed)
+    n, m = mr.shape[0], mr.shape[0] // 2
+    floors, matched = [], []
+    for _ in range(repetitions):
+        order, pick = rng.permutation(n), rng.choice(ms.shape[0], m, replace=False)
+        a, b = order[:m], order[m:2 * m]
+        floors.append(table_distances(mr[a], mr[b], scale, None if pr is None else pr[a], None if pr is None else pr[b]))
+        matched.append(table_distances(mr[a], ms[pick], scale, None if pr is None else pr[a],
+                                       None if ps is None else ps[pick]))
+
+    def mean_w1(x: np.ndarray, y: np.ndarray) -> float:
+        return float(np.mean([stats.wasserstein_distance(x[:, k], y[:, k]) / scale[k] for k in range(x.shape[1])]))
+
+    tests: dict[str, Any] = {"per_side": m,
+                             "goals_w1": fair_floor(mr, ms, mean_w1, repetitions, permutations, seed=seed).to_json()}
+    if pr is not None and ps is not None:
+        tests["kld"] = fair_floor(pr, ps, kld_gaussian, repetitions, permutations, seed=seed).to_json()
+    return _mean_distances(floors), _mean_distances(matched), tests
+
+
+def _num(v: float) -> float | None:
+    """A number for JSON: NaN (a figure that does not apply) becomes null, so reports are strict JSON."""
+    return None if math.isnan(v) else float(v)
+
+
 def _dist_json(d: Distances, names: Sequence[str]) -> dict[str, Any]:
-    return {"acc": d.acc, "kld": None if math.isnan(d.kld) else d.kld,
-            "w1": dict(zip(names, d.w1.tolist())),
-            "ks": dict(zip(names, d.ks.tolist())),
-            "ks_p": dict(zip(names, d.ks_p.tolist()))}
+    return {"acc": _num(d.acc), "kld": _num(d.kld),
+            "w1": {k: _num(v) for k, v in zip(names, d.w1.tolist())},
+            "ks": {k: _num(v) for k, v in zip(names, d.ks.tolist())},
+            "ks_p": {k: _num(v) for k, v in zip(names, d.ks_p.tolist())}}
 
 
 @dataclass
@@ -136,9 +161,17 @@ class GroupResult:
     n_sim: int
     real_mean: np.ndarray
     sim_mean: np.ndarray
-    sim: Distances
-    floor: Distances | None
+    sim: Distances  # all simulated runs against all real runs
+    floor: Distances | None  # real half vs real half (m = n_real // 2 runs per side)
+    matched: Distances | None = None  # real half vs m simulated runs: the like-for-like figure to the floor
+    tests: dict[str, Any] = field(default_factory=dict)  # permutation tests at n_real runs per side
     real_logs: list[str] = field(default_factory=list)
+
+    @property
+    def within_floor(self) -> bool | None:
+        """Simulated runs indistinguishable from real ones at equal sizes on every test (None: no test)."""
+        tested = [t for k, t in self.tests.items() if isinstance(t, dict)]
+        return all(t["within_floor"] for t in tested) if tested else None
 
     def to_json(self) -> dict[str, Any]:
         return {"controller": self.controller, "version": self.version, "goals": self.goals, "n_real": self.n_real, "n_sim": self.n_sim,
@@ -146,13 +179,15 @@ class GroupResult:
                 "sim_mean": dict(zip(self.goals, self.sim_mean.tolist())),
                 "sim_vs_real": _dist_json(self.sim, self.goals),
                 "floor": None if self.floor is None else _dist_json(self.floor, self.goals),
-                "real_logs": self.real_logs}
+                "matched": None if self.matched is None else _dist_json(self.matched, self.goals),
+                "tests": self.tests, "within_floor": self.within_floor, "real_logs": self.real_logs}
 
 
 def verify(real: Sequence[Log], sim: Sequence[Log], system: SystemDescription | None = None, skip: int = 10,
-           floor_splits: int = 20, seed: int = 0, period_ms: float | None = None) -> list[GroupResult]:
+           floor: bool = True, seed: int = 0, period_ms: float | None = None) -> list[GroupResult]:
     """Compare real and simulated logs per controller version. A version with no simulated runs is
-    an error. ``skip`` rows (sigma_0, copied from the real log) are not scored."""
+    an error. ``skip`` rows (sigma_0, copied from the real log) are not scored. With ``floor`` (and
+    at least 4 real runs) the fair real-vs-real reference is computed (:func:`fair_reference`)."""
     if not real or not sim:
         raise ValueError("verification needs real and simulated logs")
     schema = real[0].meta.schema
@@ -172,9 +207,14 @@ def verify(real: Sequence[Log], sim: Sequence[Log], system: SystemDescription | 
         sr = scoring.runs([_cut(lg, t) for lg in sl])
         mr, ms, scale = scoring.table(rr), scoring.table(sr), scoring.scales(rr)
         pr, ps = scoring.pair_of(rr, centre), scoring.pair_of(sr, centre)
-        fl = halves_floor(mr, scale, pr, floor_splits, seed) if floor_splits > 0 and len(rl) >= 4 else None
-        results.append(GroupResult(spec.to_json(), version_label(spec, system or describe_schema(schema)), scoring.names, len(rl), len(sl), mr.mean(axis=0), ms.mean(axis=0),
-                                   table_distances(mr, ms, scale, pr, ps), fl, [lg.name for lg in rl]))
+        fl = matched = None
+        tests: dict[str, Any] = {}
+        if floor and len(rl) >= 4 and len(sl) >= len(rl):
+            fl, matched, tests = fair_reference(mr, ms, scale, pr, ps, seed)
+        results.append(GroupResult(spec.to_json(), version_label(spec, system or describe_schema(schema)),
+                                   scoring.names, len(rl), len(sl), mr.mean(axis=0), ms.mean(axis=0),
+                                   table_distances(mr, ms, scale, pr, ps), fl, matched, tests,
+                                   [lg.name for lg in rl]))
     return results
 
 
@@ -204,43 +244,52 @@ def _fmt(v: float | None, spec: str) -> str:
     return "-" if v is None or (isinstance(v, float) and math.isnan(v)) else format(v, spec)
 
 
+def _test_cell(t: dict[str, Any] | None) -> str:
+    if not t:
+        return "-"
+    return f"p={t['p_value']:.2f} {'within' if t['within_floor'] else 'BEYOND'}"
+
+
 def to_markdown(results: Sequence[GroupResult], title: str = "Verification report") -> str:
-    """Tables a person reads: accuracy and KLD per controller, then per-goal distances vs the floor."""
+    """Tables a person reads: per version the accuracy, the distances at matched sizes beside the
+    real-vs-real floor and the permutation tests; then per goal."""
     lines = [f"# {title}", "",
              "acc: the paper's verification accuracy over the goal metrics (1 = identical means). W1: "
-             "Wasserstein-1 between real and simulated metric distributions, divided by the metric's scale. "
-             "KS: two-sample Kolmogorov-Smirnov statistic (p-value). KLD: the authors' safety/comfort KL "
-             "divergence (lane keeping only). Floor: the same between two halves of the real runs.", "",
-             "| controller | real runs | sim runs | acc | acc floor | KLD | KLD floor |",
-             "|---|---:|---:|---:|---:|---:|---:|"]
+             "Wasserstein-1 between real and simulated goal-metric distributions, divided by the metric's scale. "
+             "KLD: the authors' safety/comfort KL divergence (lane keeping only). Floor: the same between two "
+             "halves of the real runs; sim (matched): a real half against as many simulated runs, so the two "
+             "columns rest on equal numbers of runs. Test: permutation test of 'simulated runs are exchangeable "
+             "with real ones' with all real runs against as many simulated runs; 'within' means p > 0.05.", "",
+             "| version | real runs | sim runs | runs per side | acc | mean W1 sim (matched) | mean W1 floor | W1 test "
+             "| KLD sim (matched) | KLD floor | KLD test |", "|---|---:|---:|---:|---:|---:|---:|---|---:|---:|---|"]
     for r in results:
-        fl = r.floor
-        lines.append(f"| {r.version} | {r.n_real} | {r.n_sim} | {r.sim.acc:.2%} | "
-                     f"{_fmt(fl.acc if fl else None, '.2%')} | {_fmt(r.sim.kld, '.3f')} | "
-                     f"{_fmt(fl.kld if fl else None, '.3f')} |")
+        fl, mt = r.floor, r.matched
+        lines.append(f"| {r.version} | {r.n_real} | {r.n_sim} | {r.tests.get('per_side', '-')} | {r.sim.acc:.2%} | "
+                     f"{_fmt(mt.w1.mean() if mt else None, '.4f')} | {_fmt(fl.w1.mean() if fl else None, '.4f')} | "
+                     f"{_test_cell(r.tests.get('goals_w1'))} | {_fmt(mt.kld if mt else None, '.3f')} | "
+                     f"{_fmt(fl.kld if fl else None, '.3f')} | {_test_cell(r.tests.get('kld'))} |")
     for r in results:
-        lines += ["", f"## {r.version}", "",
-                  "| goal | real mean | sim mean | W1 | W1 floor | KS (p) | KS floor |",
+        lines += ["", f"## {r.version}", "", "Controller: `" + json.dumps(r.controller) + "`", "",
+                  "| goal | real mean | sim mean | W1 (all runs) | W1 sim (matched) | W1 floor | KS (p) |",
                   "|---|---:|---:|---:|---:|---:|---:|"]
         for j, m in enumerate(r.goals):
-            w1f = f"{r.floor.w1[j]:.4f}" if r.floor else "-"
-            ksf = f"{r.floor.ks[j]:.3f}" if r.floor else "-"
-            lines.append(f"| {m} | {r.real_mean[j]:.2f} | {r.sim_mean[j]:.2f} | {r.sim.w1[j]:.4f} | {w1f} | "
-                         f"{r.sim.ks[j]:.3f} ({r.sim.ks_p[j]:.2g}) | {ksf} |")
+            lines.append(f"| {m} | {r.real_mean[j]:.2f} | {r.sim_mean[j]:.2f} | {r.sim.w1[j]:.4f} | "
+                         f"{_fmt(r.matched.w1[j] if r.matched else None, '.4f')} | "
+                         f"{_fmt(r.floor.w1[j] if r.floor else None, '.4f')} | {r.sim.ks[j]:.3f} ({r.sim.ks_p[j]:.2g}) |")
         lines += ["", "Real logs: " + ", ".join(r.real_logs)]
     return "\n".join(lines) + "\n"
 
 
 def to_text(results: Sequence[GroupResult]) -> str:
-    """A compact screen table, the floor beside every figure."""
-    rows = [f"{'controller':<34} {'real':>5} {'sim':>5} {'acc':>8} {'floor':>8} {'meanW1':>8} {'floorW1':>8} "
-            f"{'KLD':>8} {'floorKLD':>8}"]
+    """A compact screen table: the matched figures beside the floor, and the tests' verdicts."""
+    rows = [f"{'version':<28} {'real':>5} {'sim':>5} {'acc':>8} {'W1 sim':>8} {'W1 floor':>8} {'W1 test':>14} "
+            f"{'KLD sim':>8} {'KLD floor':>9} {'KLD test':>14}"]
     for r in results:
-        fl = r.floor
-        rows.append(f"{r.version[:34]:<34} {r.n_real:>5} {r.n_sim:>5} {r.sim.acc:>8.2%} "
-                    f"{_fmt(fl.acc if fl else None, '.2%'):>8} {r.sim.w1.mean():>8.4f} "
-                    f"{_fmt(fl.w1.mean() if fl else None, '.4f'):>8} {_fmt(r.sim.kld, '.3f'):>8} "
-                    f"{_fmt(fl.kld if fl else None, '.3f'):>8}")
+        fl, mt = r.floor, r.matched
+        rows.append(f"{r.version[:28]:<28} {r.n_real:>5} {r.n_sim:>5} {r.sim.acc:>8.2%} "
+                    f"{_fmt(mt.w1.mean() if mt else None, '.4f'):>8} {_fmt(fl.w1.mean() if fl else None, '.4f'):>8} "
+                    f"{_test_cell(r.tests.get('goals_w1')):>14} {_fmt(mt.kld if mt else None, '.3f'):>8} "
+                    f"{_fmt(fl.kld if fl else None, '.3f'):>9} {_test_cell(r.tests.get('kld')):>14}")
     return "\n".join(rows)
 
 

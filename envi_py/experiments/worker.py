@@ -66,7 +66,7 @@ def run_job(job: Job) -> dict[str, Any]:
     for uc, logs in job.evals.items():
         sims = simulate_versions(ckpt, logs, runs=job.runs, seed=job.seed)
         groups = []
-        for r in verify(logs, sims, job.system, skip=skip, floor_splits=20, seed=0):
+        for r in verify(logs, sims, job.system, skip=skip, seed=0):
             spec = ControllerSpec.from_json(r.controller)
             real_v = [lg for lg in logs if lg.controller == spec][:TRACES_KEPT]
             sim_v = [s for s in sims if s.controller == spec][:TRACES_KEPT * job.runs:job.runs]
