@@ -307,22 +307,26 @@ def _header(path: Path, text: str, expected: list[str], ignore: Sequence[str]) -
     return header, [header.index(c) for c in expected]
 
 
-def _parse_rows(path: Path, text: str, header: list[str], order: list[int], expected: list[str]) -> np.ndarray:
-    """The data rows as floats in ``expected`` order. A fast vectorised parse for well-formed files;
-    any failure re-reads row by row so the error names the row and column."""
+def _parse_rows(path: Path, text: str, header: list[str], order: list[int],
+                expected: list[str]) -> tuple[np.ndarray, np.ndarray]:
+    """The data rows as floats in ``expected`` order, and each one's row number in the file (blank
+    lines count, as a spreadsheet shows them). A fast vectorised parse for well-formed files without
+    blank lines; anything else is read row by row so an error names the row and column."""
     body = text.split("\n", 1)[1] if "\n" in text else ""
-    if text.isascii():
+    if text.isascii() and "\n\n" not in body and not body.startswith("\n"):
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("error")  # an empty file body warns; treat it as the slow path
                 data = np.loadtxt(io.StringIO(body), delimiter=",", dtype=np.float64, comments=None, ndmin=2,
                                   quotechar='"')
             if data.shape[1] == len(header) and np.isfinite(data).all():
-                return data[:, order]
+                return data[:, order], np.arange(2, 2 + len(data))
         except (ValueError, UserWarning):
             pass
-    data_rows = []
-    for i, row in enumerate(csv.reader(io.StringIO(body)), start=2):
+    data_rows, numbers = [], []
+    reader = csv.reader(io.StringIO(body))
+    for row in reader:
+        i = reader.line_num + 1  # the line a row ends on; the header is line 1
         if not row:
             continue  # a blank line is not a reading
         if all(not c.strip() for c in row):
@@ -330,10 +334,11 @@ def _parse_rows(path: Path, text: str, header: list[str], order: list[int], expe
         if len(row) != len(header):
             raise LogError(f"{path}: row {i}: {len(row)} cells, header has {len(header)}")
         data_rows.append([_parse_cell(row[j].strip(), path, i, expected[k]) for k, j in enumerate(order)])
-    return np.array(data_rows, dtype=np.float64).reshape(len(data_rows), len(order))
+        numbers.append(i)
+    return np.array(data_rows, dtype=np.float64).reshape(len(data_rows), len(order)), np.array(numbers, dtype=int)
 
 
-def _check_ranges(path: Path, data: np.ndarray, schema: LogSchema) -> np.ndarray:
+def _check_ranges(path: Path, data: np.ndarray, rows: np.ndarray, schema: LogSchema) -> np.ndarray:
     """Declared valid ranges, enforced: a sensor that saturates is clipped at its range, any other
     value outside it is an error naming row, column and range (one 1e308 poisons a model)."""
     for k, ch in enumerate(schema.channels + schema.logged, start=1):
@@ -345,7 +350,7 @@ def _check_ranges(path: Path, data: np.ndarray, schema: LogSchema) -> np.ndarray
             data[:, k] = np.clip(col, ch.low, ch.high)
             continue
         r = int(bad[0])
-        raise LogError(f"{path}: row {r + 2}: column '{ch.name}' is {col[r]:g}, outside its valid range "
+        raise LogError(f"{path}: row {rows[r]}: column '{ch.name}' is {col[r]:g}, outside its valid range "
                        f"[{ch.low:g}, {ch.high:g}]")
     return data
 
@@ -369,7 +374,7 @@ def read_log(path: str | os.PathLike, meta: LogMeta | None = None, min_length: i
     text = _read_text(path)
     header, order = _header(path, text, expected, ignore)
     try:
-        data = _parse_rows(path, text, header, order, expected)
+        data, rows = _parse_rows(path, text, header, order, expected)
     except csv.Error as exc:
         raise LogError(f"{path}: not a valid CSV file ({exc})") from None
     n = data.shape[0]
@@ -378,9 +383,9 @@ def read_log(path: str | os.PathLike, meta: LogMeta | None = None, min_length: i
     dt = np.diff(data[:, 0])
     bad = np.nonzero(dt <= 0)[0]
     if bad.size:
-        r = int(bad[0]) + 3
-        raise LogError(f"{path}: row {r}: time {data[r - 2, 0]:g} does not increase (previous {data[r - 3, 0]:g})")
-    data = _check_ranges(path, data, meta.schema)
+        r = int(bad[0]) + 1
+        raise LogError(f"{path}: row {rows[r]}: time {data[r, 0]:g} does not increase (previous {data[r - 1, 0]:g})")
+    data = _check_ranges(path, data, rows, meta.schema)
     ns, nc = len(meta.schema.states), len(meta.schema.channels)
     return Log(path, data[:, 0].copy(), data[:, 1:1 + ns].copy(), data[:, 1 + ns:1 + nc].copy(), meta,
                data[:, 1 + nc:].copy())
