@@ -292,11 +292,17 @@ def mutated(base: dict[str, Any], paths: list[tuple[Any, ...]], draw: st.DrawFn)
     node = doc
     for k in path[:-1]:
         node = node[k]
-    if isinstance(node, dict) and draw(st.integers(0, 5)) == 0:
+    choice = draw(st.integers(0, 9))
+    if isinstance(node, dict) and choice == 0:
         node.pop(path[-1], None)
+    elif choice == 1:
+        node[path[-1]] = DEEP  # replaced by a deeply nested list in the text (json.dumps would recurse)
     else:
         node[path[-1]] = draw(RUN_IDS if path[-1] == "run_id" else JSON_VALUES)
     return doc
+
+
+DEEP = "\u2603deep\u2603"
 
 
 @st.composite
@@ -310,7 +316,9 @@ def json_texts(draw: st.DrawFn, base: dict[str, Any], paths: list[tuple[Any, ...
         return opener * depth + "1" + closer * depth
     if kind == 2:
         return draw(st.text(max_size=40))
-    return json.dumps(mutated(base, paths, draw))
+    text = json.dumps(mutated(base, paths, draw))
+    depth = draw(st.sampled_from([40, 900, 3000]))
+    return text.replace(json.dumps(DEEP), "[" * depth + "1" + "]" * depth)
 
 
 @settings(FUZZ, max_examples=120)
