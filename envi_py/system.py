@@ -256,7 +256,7 @@ class SystemDescription:
         if not isinstance(d, dict):
             raise ValueError(f"{where}: not an object")
         try:
-            v = d.get("versions") or {}
+            v = {} if d.get("versions") is None else d["versions"]
             if not isinstance(v, dict):
                 raise ValueError("'versions' must be an object")
             desc = SystemDescription(
