@@ -684,4 +684,5 @@ def test_zz_at_least_400_generated_inputs():
     expected = {"csv", "bytes", "sidecar", "manifest", "pattern", "toml", "system-json", "special", "cli", "init"}
     if set(GENERATED) != expected:
         pytest.skip(f"only part of the module ran ({sorted(GENERATED)})")
+    print(f"generated inputs: {sum(GENERATED.values())} ({', '.join(f'{k} {v}' for k, v in sorted(GENERATED.items()))})")
     assert sum(GENERATED.values()) >= MIN_TOTAL, GENERATED
