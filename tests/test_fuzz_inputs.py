@@ -498,6 +498,17 @@ def test_system_descriptions_are_valid_or_refused(text):
         desc.controller_for({p: 1 for p in desc.versions.params})
     except ValueError as exc:
         assert "\n" not in str(exc)
+    if desc.versions.pattern is None and desc.schema.columns == LANE.schema.columns:
+        with tempfile.TemporaryDirectory() as tmp:  # the fuzzed ranges, saturation and ignores, applied
+            path = Path(tmp) / "log.csv"
+            path.write_text(GOOD_CSV)
+            try:
+                with deadline():
+                    logs = load_logs(path, desc)
+            except LogError as exc:
+                assert_clean_error(exc, path)
+            else:
+                assert_contract(logs[0], desc.schema.columns)
 
 
 def check_description(desc: SystemDescription) -> None:
@@ -644,6 +655,28 @@ def test_command_lines_with_bad_arguments_exit_2_with_one_line(log_folder, tmp_p
     run()
 
 
+@settings(FUZZ, max_examples=60)
+@given(csv_cases())
+def test_init_drafts_what_reads_back_or_refuses(case):
+    """envi init on any generated log: a draft that loads and reads that log, or one error line."""
+    count("init")
+    data, expected, _, _ = case
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp) / "logs"
+        folder.mkdir()
+        (folder / "run.csv").write_bytes(data)
+        out = Path(tmp) / "system.toml"
+        code, err = run_cli(["init", "--logs", str(folder), "-o", str(out)])
+        if code != 0:
+            assert_cli_error(code, err, "init")
+            assert expected is None, f"a valid log refused: {err}"
+            return
+        logs = load_logs(folder, SystemDescription.load(out))
+        assert_contract(logs[0])
+        if expected is not None:
+            assert logs[0].time.tolist() == expected[:, 0].tolist()
+
+
 def test_init_drafts_a_description_that_reads_its_logs(log_folder, tmp_path):
     out = tmp_path / "system.toml"
     code, err = run_cli(["init", "--logs", str(log_folder), "-o", str(out)])
@@ -684,5 +717,6 @@ def test_zz_at_least_400_generated_inputs():
     expected = {"csv", "bytes", "sidecar", "manifest", "pattern", "toml", "system-json", "special", "cli", "init"}
     if set(GENERATED) != expected:
         pytest.skip(f"only part of the module ran ({sorted(GENERATED)})")
-    print(f"generated inputs: {sum(GENERATED.values())} ({', '.join(f'{k} {v}' for k, v in sorted(GENERATED.items()))})")
+    parts = ", ".join(f"{k} {v}" for k, v in sorted(GENERATED.items()))
+    print(f"generated inputs: {sum(GENERATED.values())} ({parts})")
     assert sum(GENERATED.values()) >= MIN_TOTAL, GENERATED
