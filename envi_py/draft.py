@@ -10,15 +10,14 @@ state, the second an action, further ones logged), the controller, and the goals
 
 from __future__ import annotations
 
-import csv
 import math
 import re
 from pathlib import Path
 
 import numpy as np
 
-from .logs import LogError, read_sidecar, sidecar_path
-from .system import pattern_regex, toml_value
+from .logs import Log, LogError, LogMeta, read_columns, read_log, read_sidecar, sidecar_path
+from .system import Channel, LogSchema, pattern_regex, toml_value
 
 MAX_FILES = 50
 
@@ -43,6 +42,8 @@ def guess_pattern(names: list[str]) -> str | None:
 def _round_out(low: float, high: float) -> tuple[float, float]:
     """A range around the observed one, on round numbers a tenth of the span outside it."""
     span = max(high - low, abs(high), 1e-9)
+    if not math.isfinite(span * 1.2):  # values near the float limit: no room to widen
+        return low, high
     step = 10 ** math.floor(math.log10(span / 10))
     return math.floor((low - span / 10) / step) * step, math.ceil((high + span / 10) / step) * step
 
@@ -53,6 +54,31 @@ def _resolution(values: np.ndarray) -> float | None:
         if np.allclose(values / step, np.round(values / step), atol=1e-9):
             return step
     return None
+
+
+def _read_any(path: Path, header: list[str]) -> Log:
+    """One log read as strictly as any log (finite numbers, increasing time, a regular UTF-8 file),
+    with the first file's columns in its own order and no range yet: the draft is to find them."""
+    columns = read_columns(path)
+    if sorted(columns) != sorted(header):
+        raise LogError(f"{path}: columns {','.join(columns)} differ from {','.join(header)} of the first log")
+    if "time" not in columns:
+        raise LogError(f"{path}: no 'time' column (milliseconds); envi logs start with it")
+    others = [Channel(c) for c in columns if c != "time"]
+    if len(others) < 2:
+        raise LogError(f"{path}: a log needs at least a state and an action column besides 'time'")
+    schema = LogSchema(states=(others[0],), actions=(others[1],), logged=tuple(others[2:]))
+    return read_log(path, LogMeta(schema=schema)) if not sidecar_path(path).exists() else _with_sidecar(path, schema)
+
+
+def _with_sidecar(path: Path, schema: LogSchema) -> Log:
+    """A log whose sidecar names its columns: read through the sidecar's schema (the draft takes
+    its roles) after checking it names the same columns as the header."""
+    log = read_log(path)
+    if sorted(log.meta.schema.columns) != sorted(schema.columns):
+        raise LogError(f"{sidecar_path(path)}: sidecar declares columns {','.join(log.meta.schema.columns)}, the "
+                       f"file holds {','.join(schema.columns)}")
+    return log
 
 
 def draft_system(folder: Path, pattern: str | None = None) -> str:
@@ -66,35 +92,11 @@ def draft_system(folder: Path, pattern: str | None = None) -> str:
     if pattern:
         pattern_regex(pattern)
     sidecar = next((sidecar_path(p) for p in files if sidecar_path(p).is_file()), None)
-    header: list[str] | None = None
-    columns: list[list[float]] = []
-    periods: list[float] = []
     sample = files[::max(1, len(files) // MAX_FILES)][:MAX_FILES]  # spread over every version
-    for path in sample:
-        with open(path, encoding="utf-8-sig", newline="") as fh:
-            rows = [r for r in csv.reader(fh) if r]
-        if not rows:
-            raise LogError(f"{path}: empty file")
-        head = [h.strip() for h in rows[0]]
-        if header is None:
-            header, columns = head, [[] for _ in head]
-        elif head != header:
-            raise LogError(f"{path}: columns {','.join(head)} differ from {files[0].name}: {','.join(header)}")
-        for i, row in enumerate(rows[1:], start=2):
-            try:
-                vals = [float(c) for c in row]
-            except ValueError:
-                raise LogError(f"{path}: row {i}: a non-numeric cell") from None
-            if len(vals) != len(header):
-                raise LogError(f"{path}: row {i}: {len(vals)} cells, header has {len(header)}")
-            for col, v in zip(columns, vals):
-                col.append(v)
-        if "time" in header and len(rows) > 2:
-            t = np.array([float(r[header.index("time")]) for r in rows[1:]])
-            periods.append(float(np.median(np.diff(t))))
-    assert header is not None
-    if "time" not in header:
-        raise LogError(f"{files[0]}: no 'time' column (milliseconds); envi logs start with it")
+    header = read_columns(sample[0])
+    logs = [_read_any(path, header) for path in sample]
+    columns = {name: np.concatenate([lg.signal(name) for lg in logs]) for name in header if name != "time"}
+    periods = [float(np.median(np.diff(lg.time))) for lg in logs if len(lg) > 1]
     roles = {}
     if sidecar is not None:
         meta = read_sidecar(sidecar)
@@ -107,7 +109,7 @@ def draft_system(folder: Path, pattern: str | None = None) -> str:
     if periods:
         lines.append(f"period_ms = {toml_value(round(float(np.median(periods)), 3))}")
     for k, name in enumerate(others):
-        col = np.array(columns[header.index(name)])
+        col = columns[name]
         role = roles.get(name) or ("state" if k == 0 else "action" if k == 1 else "logged")
         guessed = "" if name in roles else "  # CHECK: guessed (state, action, logged or ignore)"
         low, high = _round_out(float(col.min()), float(col.max()))

@@ -39,6 +39,8 @@ SOURCES = ("fot", "sim", "twin", "hil")
 #: Run ids become file names: letters, digits, '.', '_' and '-', not starting with a dot.
 RUN_ID = re.compile(r"^[A-Za-z0-9_-][A-Za-z0-9._-]{0,119}$")
 MAX_SIDECAR_BYTES = 1 << 20
+#: Sidecars and manifests are shallow; deeper JSON is refused before it can exhaust the stack.
+MAX_JSON_DEPTH = 32
 
 
 class LogError(ValueError):
@@ -86,14 +88,17 @@ class LogMeta:
         if not isinstance(d, dict):
             raise LogError(f"{where}: a sidecar must be a JSON object, not {type(d).__name__}")
         version = d.get("schema_version")
-        if version != SCHEMA_VERSION:
-            raise LogError(f"{where}: sidecar schema_version {version!r:.40} is not supported (expected {SCHEMA_VERSION})")
+        if isinstance(version, bool) or not isinstance(version, int) or version != SCHEMA_VERSION:
+            raise LogError(f"{where}: sidecar schema_version {version!r:.40} is not supported "
+                           f"(expected {SCHEMA_VERSION})")
         source = d.get("source", "fot")
         if source not in SOURCES:
             raise LogError(f"{where}: sidecar source {source!r:.40} is not one of {', '.join(SOURCES)}")
         try:
             schema = LogSchema.from_json(d)
             controller = None if d.get("controller") is None else ControllerSpec.from_json(d["controller"]).to_json()
+            if controller is not None:
+                _finite_numbers(controller["params"], "controller params")
         except ValueError as exc:
             raise LogError(f"{where}: sidecar {exc}") from None
         period = d.get("period_ms")
@@ -101,7 +106,7 @@ class LogMeta:
                                    or not (math.isfinite(period) and period > 0)):
             raise LogError(f"{where}: sidecar period_ms {period!r:.40} is not a positive number")
         run_id = None if d.get("run_id") is None else safe_run_id(d["run_id"], where)
-        provenance = d.get("provenance") or {}
+        provenance = {} if d.get("provenance") is None else d["provenance"]
         if not isinstance(provenance, dict):
             raise LogError(f"{where}: sidecar provenance must be an object")
         return LogMeta(schema=schema, controller=controller, period_ms=None if period is None else float(period),
@@ -166,6 +171,55 @@ class Log:
         return h.hexdigest()
 
 
+def _finite_numbers(node: Any, what: str) -> None:
+    """Every number in a JSON tree finite: a NaN or infinite controller gain is never a version."""
+    stack = [node]
+    while stack:
+        item = stack.pop()
+        if isinstance(item, float) and not math.isfinite(item):
+            raise ValueError(f"{what} hold a non-finite number ({item})")
+        if isinstance(item, dict):
+            stack.extend(item.values())
+        elif isinstance(item, list):
+            stack.extend(item)
+
+
+def _json_depth(node: Any) -> int:
+    """Nesting depth of a JSON tree, counted without recursion."""
+    deepest, stack = 0, [(node, 1)]
+    while stack:
+        item, depth = stack.pop()
+        if isinstance(item, (dict, list)):
+            deepest = max(deepest, depth)
+            stack.extend((v, depth + 1) for v in (item.values() if isinstance(item, dict) else item))
+    return deepest
+
+
+def _refuse_nan(name: str) -> float:
+    if name == "NaN":
+        raise ValueError("NaN is not a value")
+    return float(name)  # Infinity: an open channel range, as write_log records one
+
+
+def read_json(path: Path, what: str) -> Any:
+    """A sidecar or manifest's JSON: a regular file of at most 1 MiB, UTF-8 (BOM allowed), no NaN,
+    at most MAX_JSON_DEPTH deep; anything else is a LogError naming the file."""
+    _regular_file(path)
+    if path.stat().st_size > MAX_SIDECAR_BYTES:
+        raise LogError(f"{path}: {what} larger than {MAX_SIDECAR_BYTES >> 20} MiB")
+    try:
+        d = json.loads(path.read_text(encoding="utf-8-sig"), parse_constant=_refuse_nan)
+    except RecursionError:
+        raise LogError(f"{path}: {what} is not valid JSON (nested too deeply)") from None
+    except OSError as exc:
+        raise LogError(f"{path}: cannot read {what} ({exc.strerror})") from None
+    except ValueError as exc:  # JSON syntax, UTF-8 and NaN errors
+        raise LogError(f"{path}: {what} is not valid JSON ({exc})") from None
+    if _json_depth(d) > MAX_JSON_DEPTH:
+        raise LogError(f"{path}: {what} nested deeper than {MAX_JSON_DEPTH} levels")
+    return d
+
+
 def sidecar_path(csv_path: Path) -> Path:
     return csv_path.with_name(csv_path.stem + ".meta.json")
 
@@ -181,18 +235,7 @@ def _regular_file(path: Path) -> None:
 
 
 def read_sidecar(side: Path) -> LogMeta:
-    _regular_file(side)
-    if side.stat().st_size > MAX_SIDECAR_BYTES:
-        raise LogError(f"{side}: sidecar larger than {MAX_SIDECAR_BYTES >> 20} MiB")
-    try:
-        d = json.loads(side.read_text(encoding="utf-8-sig"))
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise LogError(f"{side}: not valid JSON ({exc})") from None
-    except RecursionError:
-        raise LogError(f"{side}: not valid JSON (nested too deeply)") from None
-    except OSError as exc:
-        raise LogError(f"{side}: cannot read ({exc.strerror})") from None
-    return LogMeta.from_json(d, str(side))
+    return LogMeta.from_json(read_json(side, "sidecar"), str(side))
 
 
 _NUMBER = re.compile(r"^[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?$")  # ASCII digits only
@@ -210,14 +253,47 @@ def _parse_cell(text: str, path: Path, row: int, col: str) -> float:
     return value
 
 
-def _header(path: Path, text: str, expected: list[str], ignore: Sequence[str]) -> tuple[list[str], list[int]]:
-    first = text.split("\n", 1)[0].rstrip("\r")
-    header = [h.strip() for h in next(csv.reader([first]))] if first else []
+def _read_text(path: Path) -> str:
+    """A CSV file's text with line ends made ``\\n``: a regular UTF-8 file (BOM allowed), no NUL."""
+    _regular_file(path)
+    try:
+        with open(path, encoding="utf-8-sig", newline="") as fh:
+            text = fh.read().replace("\r\n", "\n").replace("\r", "\n")
+    except OSError as exc:
+        raise LogError(f"{path}: cannot read ({exc.strerror})") from None
+    except UnicodeDecodeError as exc:
+        raise LogError(f"{path}: not a UTF-8 text CSV file ({exc.reason} at byte {exc.start})") from None
+    if "\x00" in text:
+        raise LogError(f"{path}: not a text CSV file (it holds NUL bytes)")
+    return text
+
+
+def _header_names(path: Path, text: str) -> list[str]:
+    """The header row's names; empty, repeated or blank names are errors on row 1."""
+    first = text.split("\n", 1)[0]
+    try:
+        header = [h.strip() for h in next(csv.reader([first]))] if first.strip() else []
+    except csv.Error as exc:
+        raise LogError(f"{path}: row 1: not a valid CSV header ({exc})") from None
     if not header:
-        raise LogError(f"{path}: empty file (expected header {','.join(expected)})")
+        raise LogError(f"{path}: empty file (no header row)")
+    blank = [i + 1 for i, h in enumerate(header) if not h]
+    if blank:
+        raise LogError(f"{path}: row 1: column {blank[0]} of the header has no name")
     dup = sorted({h for h in header if header.count(h) > 1})
     if dup:
         raise LogError(f"{path}: row 1: column(s) {', '.join(dup)} appear twice in the header")
+    return header
+
+
+def read_columns(path: str | os.PathLike) -> list[str]:
+    """The column names a CSV log's header declares (checked as :func:`read_log` checks them)."""
+    path = Path(path)
+    return _header_names(path, _read_text(path))
+
+
+def _header(path: Path, text: str, expected: list[str], ignore: Sequence[str]) -> tuple[list[str], list[int]]:
+    header = _header_names(path, text)
     missing = [c for c in expected if c not in header]
     extra = [c for c in header if c not in expected and c not in ignore]
     if missing or extra:
@@ -231,22 +307,26 @@ def _header(path: Path, text: str, expected: list[str], ignore: Sequence[str]) -
     return header, [header.index(c) for c in expected]
 
 
-def _parse_rows(path: Path, text: str, header: list[str], order: list[int], expected: list[str]) -> np.ndarray:
-    """The data rows as floats in ``expected`` order. A fast vectorised parse for well-formed files;
-    any failure re-reads row by row so the error names the row and column."""
+def _parse_rows(path: Path, text: str, header: list[str], order: list[int],
+                expected: list[str]) -> tuple[np.ndarray, np.ndarray]:
+    """The data rows as floats in ``expected`` order, and each one's row number in the file (blank
+    lines count, as a spreadsheet shows them). A fast vectorised parse for well-formed files without
+    blank lines; anything else is read row by row so an error names the row and column."""
     body = text.split("\n", 1)[1] if "\n" in text else ""
-    if text.isascii():
+    if text.isascii() and "\n\n" not in body and not body.startswith("\n"):
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("error")  # an empty file body warns; treat it as the slow path
                 data = np.loadtxt(io.StringIO(body), delimiter=",", dtype=np.float64, comments=None, ndmin=2,
                                   quotechar='"')
             if data.shape[1] == len(header) and np.isfinite(data).all():
-                return data[:, order]
+                return data[:, order], np.arange(2, 2 + len(data))
         except (ValueError, UserWarning):
             pass
-    data_rows = []
-    for i, row in enumerate(csv.reader(io.StringIO(body)), start=2):
+    data_rows, numbers = [], []
+    reader = csv.reader(io.StringIO(body))
+    for row in reader:
+        i = reader.line_num + 1  # the line a row ends on; the header is line 1
         if not row:
             continue  # a blank line is not a reading
         if all(not c.strip() for c in row):
@@ -254,10 +334,11 @@ def _parse_rows(path: Path, text: str, header: list[str], order: list[int], expe
         if len(row) != len(header):
             raise LogError(f"{path}: row {i}: {len(row)} cells, header has {len(header)}")
         data_rows.append([_parse_cell(row[j].strip(), path, i, expected[k]) for k, j in enumerate(order)])
-    return np.array(data_rows, dtype=np.float64).reshape(len(data_rows), len(order))
+        numbers.append(i)
+    return np.array(data_rows, dtype=np.float64).reshape(len(data_rows), len(order)), np.array(numbers, dtype=int)
 
 
-def _check_ranges(path: Path, data: np.ndarray, schema: LogSchema) -> np.ndarray:
+def _check_ranges(path: Path, data: np.ndarray, rows: np.ndarray, schema: LogSchema) -> np.ndarray:
     """Declared valid ranges, enforced: a sensor that saturates is clipped at its range, any other
     value outside it is an error naming row, column and range (one 1e308 poisons a model)."""
     for k, ch in enumerate(schema.channels + schema.logged, start=1):
@@ -269,7 +350,7 @@ def _check_ranges(path: Path, data: np.ndarray, schema: LogSchema) -> np.ndarray
             data[:, k] = np.clip(col, ch.low, ch.high)
             continue
         r = int(bad[0])
-        raise LogError(f"{path}: row {r + 2}: column '{ch.name}' is {col[r]:g}, outside its valid range "
+        raise LogError(f"{path}: row {rows[r]}: column '{ch.name}' is {col[r]:g}, outside its valid range "
                        f"[{ch.low:g}, {ch.high:g}]")
     return data
 
@@ -290,19 +371,10 @@ def read_log(path: str | os.PathLike, meta: LogMeta | None = None, min_length: i
         meta = read_sidecar(side)
     meta = meta or LogMeta()
     expected = meta.schema.columns
-    _regular_file(path)
-    try:
-        with open(path, encoding="utf-8-sig", newline="") as fh:
-            text = fh.read().replace("\r\n", "\n").replace("\r", "\n")
-    except OSError as exc:
-        raise LogError(f"{path}: cannot read ({exc.strerror})") from None
-    except UnicodeDecodeError as exc:
-        raise LogError(f"{path}: not a UTF-8 text CSV file ({exc.reason} at byte {exc.start})") from None
-    if "\x00" in text:
-        raise LogError(f"{path}: not a text CSV file (it holds NUL bytes)")
+    text = _read_text(path)
     header, order = _header(path, text, expected, ignore)
     try:
-        data = _parse_rows(path, text, header, order, expected)
+        data, rows = _parse_rows(path, text, header, order, expected)
     except csv.Error as exc:
         raise LogError(f"{path}: not a valid CSV file ({exc})") from None
     n = data.shape[0]
@@ -311,9 +383,9 @@ def read_log(path: str | os.PathLike, meta: LogMeta | None = None, min_length: i
     dt = np.diff(data[:, 0])
     bad = np.nonzero(dt <= 0)[0]
     if bad.size:
-        r = int(bad[0]) + 3
-        raise LogError(f"{path}: row {r}: time {data[r - 2, 0]:g} does not increase (previous {data[r - 3, 0]:g})")
-    data = _check_ranges(path, data, meta.schema)
+        r = int(bad[0]) + 1
+        raise LogError(f"{path}: row {rows[r]}: time {data[r, 0]:g} does not increase (previous {data[r - 1, 0]:g})")
+    data = _check_ranges(path, data, rows, meta.schema)
     ns, nc = len(meta.schema.states), len(meta.schema.channels)
     return Log(path, data[:, 0].copy(), data[:, 1:1 + ns].copy(), data[:, 1 + ns:1 + nc].copy(), meta,
                data[:, 1 + nc:].copy())
@@ -356,12 +428,16 @@ def write_log(log: Log, path: str | os.PathLike) -> Path:
 
 # ---------------------------------------------------------------- datasets of many logs
 
+_NON_FINITE = re.compile(r"^[+-]?(?:nan|inf|infinity)$", re.IGNORECASE)
+
+
 def _number(text: str) -> float | int | str:
-    for cast in (int, float):
-        try:
-            return cast(text)
-        except ValueError:
-            pass
+    """A file-name field as a number when it is one written in ASCII digits (``30``, ``0.5``),
+    else the word itself; ``1_0`` and ``\u0661`` stay words, as a human reads them."""
+    if _NUMBER.match(text):
+        value = float(text)
+        if math.isfinite(value):
+            return int(text) if re.fullmatch(r"[+-]?[0-9]+", text) else value
     return text
 
 
@@ -379,6 +455,10 @@ def _meta_for(path: Path, system: SystemDescription, rx: re.Pattern[str] | None)
         if m is None:
             return None
         fields = {k: _number(v) for k, v in m.groupdict().items()}
+        odd = [f"{k}={v}" for k, v in fields.items() if k != "run" and isinstance(v, str) and (
+            _NON_FINITE.match(v) or _NUMBER.match(v))]
+        if odd:
+            raise LogError(f"{path}: the file name's field {odd[0]} is not a finite number")
         run = fields.pop("run", path.stem)
     spec = system.controller_for(fields)
     return LogMeta(schema=system.schema, controller=None if spec is None else spec.to_json(),
@@ -421,13 +501,7 @@ def _manifest_error(path: Path, why: str) -> LogError:
 def load_manifest(path: Path) -> tuple[SystemDescription | None, list[Path]]:
     """A manifest is JSON ``{"system": {...}, "logs": [files]}`` as :func:`write_manifest` writes it
     (older ones: ``{"pattern": ..., "schema": ..., "logs": ...}``). Paths are relative to it."""
-    _regular_file(path)
-    try:
-        d = json.loads(path.read_text(encoding="utf-8-sig"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise _manifest_error(path, str(exc)) from None
-    except RecursionError:
-        raise _manifest_error(path, "nested too deeply") from None
+    d = read_json(path, "manifest")
     if not isinstance(d, dict):
         raise _manifest_error(path, f"a JSON object is needed, not {type(d).__name__}")
     system = None
@@ -494,9 +568,10 @@ def load_logs(sources: Sequence[str | os.PathLike] | str | os.PathLike, system: 
             log = read_log(f, meta, min_length=min_length, ignore=fsys.ignore if fsys else ())
             _agree(log, meta, fsys if sidecar_path(f).exists() and fsys is not None and fsys is system else None)
         except (LogError, ValueError) as exc:
+            msg = str(exc) if str(f) in str(exc) or str(sidecar_path(f)) in str(exc) else f"{f}: {exc}"
             if not skip_bad:
-                raise LogError(str(exc)) from None
-            warnings.warn(f"skipping bad log: {exc}", stacklevel=2)
+                raise LogError(msg) from None
+            warnings.warn(f"skipping bad log: {msg}", stacklevel=2)
             continue
         logs.append(log)
     if where:

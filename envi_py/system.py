@@ -39,6 +39,8 @@ else:  # pragma: no cover - Python 3.10
     import tomli as tomllib
 
 ROLES = ("state", "action", "logged", "ignore")
+#: A column name a CSV header can hold as is: no separator, quote or line break, no surrounding spaces.
+COLUMN_NAME = re.compile(r'^[^,"\r\n\x00\s](?:[^,"\r\n\x00]*[^,"\r\n\x00\s])?$')
 SHIPPED_DIR = Path(__file__).resolve().parent / "systems"
 
 
@@ -66,23 +68,33 @@ class Channel:
 
     @staticmethod
     def from_json(d: Any) -> "Channel":
+        """Every field checked for its type: a string range, a list unit or ``saturates = "no"``
+        would otherwise be read as something the user did not write."""
         if not isinstance(d, dict) or not isinstance(d.get("name"), str) or not d["name"]:
             raise ValueError(f"a channel must be an object with a 'name', not {d!r:.60}")
+        name = d["name"]
+        if not COLUMN_NAME.match(name):
+            raise ValueError(f"channel name {name!r:.60} cannot be a CSV column (no separators, quotes, line "
+                             "breaks or surrounding spaces)")
         rng = d.get("range", [-math.inf, math.inf])
         if not isinstance(rng, (list, tuple)) or len(rng) != 2:
-            raise ValueError(f"channel {d['name']!r}: 'range' must be [low, high]")
-        try:
-            low, high = (float(v) for v in rng)
-        except (TypeError, ValueError):
-            raise ValueError(f"channel {d['name']!r}: 'range' must hold two numbers") from None
+            raise ValueError(f"channel {name!r}: 'range' must be [low, high]")
+        if not all(_is_number(v) for v in rng):
+            raise ValueError(f"channel {name!r}: 'range' must hold two numbers")
+        low, high = float(rng[0]), float(rng[1])
         if math.isnan(low) or math.isnan(high) or not low < high:
-            raise ValueError(f"channel {d['name']!r}: range [{low:g}, {high:g}] is empty")
+            raise ValueError(f"channel {name!r}: range [{low:g}, {high:g}] is empty")
         res = d.get("resolution")
         if res is not None:
-            if isinstance(res, bool) or not isinstance(res, (int, float)) or not (res > 0 and math.isfinite(res)):
-                raise ValueError(f"channel {d['name']!r}: resolution must be a positive number")
+            if not _is_number(res) or not (res > 0 and math.isfinite(res)):
+                raise ValueError(f"channel {name!r}: resolution must be a positive number")
             res = float(res)
-        return Channel(d["name"], str(d.get("unit", "")), low, high, res, bool(d.get("saturates", False)))
+        unit, saturates = d.get("unit", ""), d.get("saturates", False)
+        if not isinstance(unit, str):
+            raise ValueError(f"channel {name!r}: 'unit' must be a string")
+        if not isinstance(saturates, bool):
+            raise ValueError(f"channel {name!r}: 'saturates' must be true or false")
+        return Channel(name, unit, low, high, res, saturates)
 
 
 @dataclass(frozen=True)
@@ -221,6 +233,7 @@ class SystemDescription:
         ``--pattern``); a different pattern declared in the file is a conflict, not overridden."""
         if pattern is None or pattern == self.versions.pattern:
             return self
+        pattern_regex(pattern)  # a bad pattern (or not a string) is an error here, not a traceback later
         if self.versions.pattern is not None:
             raise ValueError(f"--pattern {pattern!r} contradicts the system description's pattern "
                              f"{self.versions.pattern!r} ({self.source or self.name})")
@@ -243,18 +256,22 @@ class SystemDescription:
         if not isinstance(d, dict):
             raise ValueError(f"{where}: not an object")
         try:
-            v = d.get("versions") or {}
-            return _validated(SystemDescription(
-                name=str(d.get("name", "system")), schema=LogSchema.from_json(d.get("schema")),
+            v = {} if d.get("versions") is None else d["versions"]
+            if not isinstance(v, dict):
+                raise ValueError("'versions' must be an object")
+            desc = SystemDescription(
+                name=_text(d.get("name", "system"), "name"), schema=LogSchema.from_json(d.get("schema")),
                 period_ms=_opt_float(d.get("period_ms"), "period_ms"),
-                versions=Versions(v.get("pattern"), tuple(v.get("params") or ()), dict(v.get("map") or {})),
+                versions=_versions(v.get("pattern"), v.get("params"), v.get("map")),
                 controller=None if d.get("controller") is None else ControllerSpec.from_json(d["controller"]),
-                ignore=tuple(d.get("ignore") or ()), preset=d.get("preset"),
-                goals=tuple(_goal(g) for g in d.get("goals") or ()),
-                requirements=tuple(_requirement(r, i) for i, r in enumerate(d.get("requirements") or ())),
-                source=where), where)
+                ignore=tuple(_strings(d.get("ignore"), "ignore")), preset=_opt_text(d.get("preset"), "preset"),
+                goals=tuple(_goal(g) for g in _list(d.get("goals"), "goals")),
+                requirements=tuple(_requirement(r, i) for i, r in enumerate(_list(d.get("requirements"),
+                                                                                   "requirements"))),
+                source=where)
         except (AttributeError, TypeError, ValueError) as exc:
             raise ValueError(f"{where}: {exc}") from None
+        return _validated(desc, where)
 
     @staticmethod
     def from_toml_text(text: str, where: str) -> "SystemDescription":
@@ -263,9 +280,10 @@ class SystemDescription:
         except tomllib.TOMLDecodeError as exc:
             raise ValueError(f"{where}: not valid TOML ({exc})") from None
         try:
-            return _from_toml(doc, where)
+            desc = _from_toml(doc, where)
         except (AttributeError, TypeError, ValueError) as exc:
             raise ValueError(f"{where}: {exc}") from None
+        return _validated(desc, where)
 
     @staticmethod
     def load(path: str | Path) -> "SystemDescription":
@@ -279,24 +297,74 @@ class SystemDescription:
         return SystemDescription.from_toml_text(text, str(path))
 
 
+def _is_number(v: Any) -> bool:
+    """An int or float as written (``true`` and ``"40"`` are not numbers)."""
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
 def _opt_float(v: Any, what: str) -> float | None:
     if v is None:
         return None
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v > 0):
+    if not _is_number(v) or not (math.isfinite(v) and v > 0):
         raise ValueError(f"'{what}' must be a positive number, not {v!r:.40}")
     return float(v)
 
 
+def _text(v: Any, what: str) -> str:
+    if not isinstance(v, str):
+        raise ValueError(f"'{what}' must be a string, not {v!r:.40}")
+    return v
+
+
+def _opt_text(v: Any, what: str) -> str | None:
+    return None if v is None else _text(v, what)
+
+
+def _list(v: Any, what: str) -> list[Any]:
+    """An optional list (absent: empty); a table or a number where a list belongs is an error."""
+    if v is None:
+        return []
+    if not isinstance(v, list):
+        raise ValueError(f"'{what}' must be a list, not {type(v).__name__}")
+    return v
+
+
+def _strings(v: Any, what: str) -> list[str]:
+    items = _list(v, what)
+    if not all(isinstance(s, str) and s for s in items):
+        raise ValueError(f"'{what}' must be a list of names")
+    return items
+
+
+def _versions(pattern: Any, params: Any, mapping: Any) -> Versions:
+    """``[versions]``: the pattern checked now (a bad one is this file's error), parameter names a
+    list of strings (a string ``"xy"`` is not two names), ``map`` a table of strings."""
+    if pattern is not None:
+        pattern_regex(pattern)
+    if params is None:
+        params = [f for f in pattern_fields(pattern) if f != "run"] if pattern else []
+    mapping = mapping or {}
+    if not isinstance(mapping, dict) or not all(isinstance(m, str) and m for m in mapping.values()):
+        raise ValueError("versions 'map' must be a table of parameter paths (strings)")
+    return Versions(pattern, tuple(_strings(params, "versions params")), dict(mapping))
+
+
 def _set_path(params: dict[str, Any], path: str, value: Any) -> None:
-    """Set ``loops.0.kp`` in nested params (dicts and lists)."""
+    """Set ``loops.0.kp`` in nested params (dicts and lists); a path through a number, a missing
+    list index or a word where an index belongs is a ValueError naming the path."""
     keys = path.split(".")
     node: Any = params
-    for k in keys[:-1]:
-        node = node[int(k)] if isinstance(node, list) else node.setdefault(k, {})
-    if isinstance(node, list):
-        node[int(keys[-1])] = value
-    else:
-        node[keys[-1]] = value
+    try:
+        for k in keys[:-1]:
+            node = node[int(k)] if isinstance(node, list) else node.setdefault(k, {})
+        if isinstance(node, list):
+            node[int(keys[-1])] = value
+        elif isinstance(node, dict):
+            node[keys[-1]] = value
+        else:
+            raise TypeError
+    except (AttributeError, IndexError, TypeError, ValueError):
+        raise ValueError(f"version parameter path {path!r} does not lead into the controller's parameters") from None
 
 
 def _goal(g: Any) -> GoalSpec:
@@ -346,28 +414,21 @@ def _from_toml(doc: dict[str, Any], where: str) -> SystemDescription:
     v = doc.get("versions", {})
     if not isinstance(v, dict):
         raise ValueError("[versions] must be a table")
-    pattern = v.get("pattern")
-    if pattern is not None:
-        pattern_regex(pattern)  # a bad pattern is this file's error, not a traceback later
-    params = v.get("params")
-    if params is None:
-        params = [f for f in pattern_fields(pattern) if f != "run"] if pattern else []
     c = doc.get("controller")
     controller = None
     if c is not None:
         if not isinstance(c, dict):
             raise ValueError("[controller] must be a table")
         controller = ControllerSpec.from_json({"name": c.get("name"), "params": c.get("params", {})})
-    desc = SystemDescription(
-        name=str(sysd.get("name", Path(where).stem)), schema=schema,
+    return SystemDescription(
+        name=_text(sysd.get("name", Path(where).stem), "name"), schema=schema,
         period_ms=_opt_float(sysd.get("period_ms"), "period_ms"),
-        versions=Versions(pattern, tuple(str(p) for p in params), {str(k): str(m) for k, m in (v.get("map") or {}).items()}),
+        versions=_versions(v.get("pattern"), v.get("params"), v.get("map")),
         controller=controller, ignore=tuple(s["name"] for s in signals if s.get("role") == "ignore"),
-        preset=doc.get("goals_preset") or sysd.get("goals_preset"),
-        goals=tuple(_goal(g) for g in doc.get("goals", [])),
-        requirements=tuple(_requirement(r, i) for i, r in enumerate(doc.get("requirements", []))),
+        preset=_opt_text(doc.get("goals_preset") or sysd.get("goals_preset"), "goals_preset"),
+        goals=tuple(_goal(g) for g in _list(doc.get("goals"), "goals")),
+        requirements=tuple(_requirement(r, i) for i, r in enumerate(_list(doc.get("requirements"), "requirements"))),
         source=where)
-    return _validated(desc, where)
 
 
 def _validated(desc: SystemDescription, where: str) -> SystemDescription:
@@ -395,6 +456,10 @@ def pattern_regex(pattern: str) -> re.Pattern[str]:
     if not isinstance(pattern, str) or not pattern:
         raise ValueError("a file-name pattern must be a non-empty string")
     fields = pattern_fields(pattern)
+    odd = [f for f in fields if not f.isidentifier()]
+    if odd:
+        raise ValueError(f"pattern {pattern!r}: field {{{odd[0]}}} is not a name (letters, digits, '_'; "
+                         "not starting with a digit)")
     dup = sorted({f for f in fields if fields.count(f) > 1})
     if dup:
         raise ValueError(f"pattern {pattern!r}: field {{{dup[0]}}} appears twice")
@@ -448,6 +513,8 @@ def toml_value(v: Any) -> str:
     if isinstance(v, bool):
         return "true" if v else "false"
     if isinstance(v, (int, float)):
+        if math.isnan(v):
+            return "nan"
         return repr(v) if math.isfinite(v) else ("inf" if v > 0 else "-inf")
     if isinstance(v, str):
         return json.dumps(v)

@@ -222,7 +222,8 @@ pattern = "run_{x}_{run}.csv"
     assert log.param == {"x": 30} and log.logged[:, 0].tolist() == [1.5, 2.5]
     assert log.signal("p_term").tolist() == [1.5, 2.5] and log.signal("color").tolist() == [71, 60]
     back = read_log(write_log(log, tmp_path / "out" / "copy.csv"))
-    assert back.meta.schema.columns == ["time", "color", "angle", "p_term"] and back.logged.tolist() == log.logged.tolist()
+    assert back.meta.schema.columns == ["time", "color", "angle", "p_term"]
+    assert back.logged.tolist() == log.logged.tolist()
     write(d, "run_30_1.csv", "time,angle,color,extra\n0,30,71,1\n40,30,60,1\n")
     with pytest.raises(LogError, match="unexpected column\\(s\\) extra \\(declare them"):
         load_logs(d, system)
@@ -259,3 +260,40 @@ def test_split_manifests_carry_the_system_and_read_back_alone(real_dir, tmp_path
     # blocks: each version's test logs are its last files, training its first
     assert max(int(lg.meta.run_id) for lg in train if lg.param["x"] == 10) < \
         min(int(lg.meta.run_id) for lg in test if lg.param["x"] == 10)
+
+
+def test_row_numbers_count_blank_lines_for_every_kind_of_error(tmp_path):
+    """Cell, time and range errors all name the file's own line (blank lines count)."""
+    for body, row in [("0,71,30\n\n40,x,30\n", 4), ("0,71,30\n\n0,60,30\n", 4), ("0,71,30\n\n\n40,101,30\n", 5)]:
+        p = write(tmp_path, "gap.csv", "time,color,angle\n" + body)
+        with pytest.raises(LogError, match=f": row {row}: "):
+            read_log(p)
+
+
+@pytest.mark.parametrize("field, value, why", [
+    ("schema_version", True, "schema_version"),  # True == 1 once passed
+    ("provenance", [], "provenance must be an object"),
+    ("controller", {"name": "lane-keeping", "params": {"x": 1e999}}, "non-finite"),
+])
+def test_sidecar_fields_are_typed(tmp_path, field, value, why):
+    p = write(tmp_path, "a.csv", GOOD)
+    sidecar_path(p).write_text(json.dumps({**LogMeta().to_json(), field: value}))
+    with pytest.raises(LogError, match=why):
+        read_log(p)
+
+
+def test_sidecars_refuse_nan_and_deep_nesting(tmp_path):
+    p = write(tmp_path, "a.csv", GOOD)
+    meta = LogMeta().to_json()
+    sidecar_path(p).write_text(json.dumps({**meta, "period_ms": float("nan")}))
+    with pytest.raises(LogError, match="NaN"):
+        read_log(p)
+    sidecar_path(p).write_text(json.dumps(meta)[:-1] + ', "provenance": {"a": ' + "[" * 40 + "]" * 40 + "}}")
+    with pytest.raises(LogError, match="nested deeper"):
+        read_log(p)
+
+
+def test_a_blank_header_name_is_named(tmp_path):
+    p = write(tmp_path, "a.csv", "time,color,angle,\n0,1,2,\n")
+    with pytest.raises(LogError, match="row 1: column 4 of the header has no name"):
+        read_log(p)
