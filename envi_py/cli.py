@@ -31,6 +31,17 @@ PLUGINS: tuple[str, ...] = (
 )
 
 
+def seed_type(text: str) -> int:
+    """A seed: a non-negative integer (numpy's generators refuse others)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a non-negative integer, not {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be a non-negative integer, not {value}")
+    return value
+
+
 def parse_where(items: Sequence[str] | None) -> dict[str, list[Any]] | None:
     """``["x=10,30,50"]`` -> ``{"x": [10, 30, 50]}``."""
     if not items:
@@ -158,13 +169,27 @@ def _positive(args: argparse.Namespace, *names: str) -> None:
             raise ValueError(f"--{name.replace('_', '-')} must be at least 1, got {v}")
 
 
+def _at_most(args: argparse.Namespace, **limits: int) -> None:
+    """Upper bounds where a typo would run for ever or exhaust memory."""
+    for name, limit in limits.items():
+        v = getattr(args, name)
+        if v is not None and v > limit:
+            raise ValueError(f"--{name.replace('_', '-')} must be at most {limit}, got {v}")
+
+
 def cmd_train(args: argparse.Namespace) -> int:
     from .train import train
 
     _positive(args, "epochs", "history", "eval_every")
-    hidden = [int(h) for h in args.hidden.split(",") if h.strip()]
-    if any(h < 1 for h in hidden):
-        raise ValueError(f"--hidden widths must be at least 1, got {args.hidden}")
+    _at_most(args, epochs=1_000_000, history=10_000, eval_every=1_000_000)
+    try:
+        hidden = [int(h) for h in args.hidden.split(",")]
+    except ValueError:
+        raise ValueError(f"--hidden must be comma-separated widths such as 256,256, got {args.hidden!r}") from None
+    if not hidden or any(not 1 <= h <= 100_000 for h in hidden):
+        raise ValueError(f"--hidden widths must lie in 1..100000, got {args.hidden!r}")
+    if not 0 <= args.play_width <= 1:
+        raise ValueError(f"--play-width is a fraction of the action range (0..1), got {args.play_width}")
     logs = read_logs(args, min_length=args.history + 1)
     val = read_logs(args, "val_logs", min_length=args.history + 1) if args.val_logs else []
     kwargs: dict[str, Any] = {"seed": args.seed, "history": args.history, "progress": not args.quiet}
@@ -202,8 +227,9 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     from .simulate import choose_engine, iter_simulate, versions_to_simulate
 
     _positive(args, "runs")
-    if args.steps is not None and not 0 <= args.steps <= 10_000_000:
-        raise ValueError(f"--steps must lie in 0..10000000, got {args.steps}")
+    _at_most(args, runs=100_000_000)
+    if args.steps is not None and not 0 <= args.steps <= 1_000_000:
+        raise ValueError(f"--steps must lie in 0..1000000, got {args.steps}")
     ckpt = Checkpoint.load(args.model)
     init = read_logs(args, "init_logs", min_length=ckpt.config.history)
     out = Path(args.out)
@@ -261,6 +287,7 @@ def cmd_check(args: argparse.Namespace) -> int:
     if not 0 < args.alpha < 0.5:
         raise ValueError(f"--alpha must lie in (0, 0.5), got {args.alpha}")
     _positive(args, "max_runs", "batch", "sims_per_start")
+    _at_most(args, max_runs=10_000_000, batch=1_000_000, sims_per_start=100_000)
     ckpt = Checkpoint.load(args.model)
     real = read_logs(args, "real", min_length=ckpt.config.history + 1)
     system = ckpt.system
@@ -356,7 +383,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--mode", choices=("random", "blocks"), default="random",
                    help="random: seeded draw; blocks: test logs are the last ones in file order (the real "
                         "logs are consecutive slices of one run, so blocks keeps neighbours apart)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=seed_type, default=0)
     p.add_argument("--out", required=True, help="folder for the three manifests")
     p.set_defaults(func=cmd_split)
 
@@ -378,7 +405,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the play channel's full width, a fraction of the action range")
     p.add_argument("--context", action="store_true", help="append the per-run context of the initial window")
     p.add_argument("--eval-every", type=int, default=10, help="epochs between closed-loop validations")
-    p.add_argument("--seed", type=int, default=0, help="seed of initialisation and sampling")
+    p.add_argument("--seed", type=seed_type, default=0, help="seed of initialisation and sampling")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--resume", action="store_true",
                    help="continue a killed training from <output>.state (written at every validation; bc)")
@@ -394,7 +421,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--runs", type=int, default=1, help="runs per initial window")
     p.add_argument("--steps", type=int, default=None,
                    help="steps after the window (default: each initial log's length minus the window)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=seed_type, default=0)
     p.add_argument("--engine", choices=("auto", "native", "torch"), default="auto",
                    help="auto (default): the C++ engine when it can run the model, else PyTorch")
     p.add_argument("--out", required=True, help="folder for simulated logs")
@@ -405,7 +432,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--sim", nargs="+", required=True, help="simulated logs (with sidecars)")
     p.add_argument("--skip", type=int, default=10, help="leading rows not scored (the initial window)")
     p.add_argument("--no-floor", action="store_true", help="skip the real-vs-real reference and its tests")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=seed_type, default=0)
     p.add_argument("--out", default=None, help="folder for report.md and report.json")
     p.set_defaults(func=cmd_verify)
 
@@ -427,7 +454,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--batch", type=int, default=100, help="simulated runs per look of the sequential test")
     p.add_argument("--sims-per-start", type=int, default=20,
                    help="simulated runs from each real run's own initial window (its paired prediction)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the simulations")
+    p.add_argument("--seed", type=seed_type, default=0, help="seed of the simulations")
     p.add_argument("--engine", choices=("auto", "native", "torch"), default="auto", help="simulation engine")
     p.add_argument("--out", default=None, help="folder for check.md and check.json")
     p.set_defaults(func=cmd_check)
@@ -437,7 +464,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="which twin system plays the field")
     p.add_argument("--fast", action="store_true", help="a small demo (fewer logs, 40 epochs): a minute, not ten")
     p.add_argument("--out", default="demo_out", help="output folder")
-    p.add_argument("--seed", type=int, default=0, help="seed of the twin, training and simulation")
+    p.add_argument("--seed", type=seed_type, default=0, help="seed of the twin, training and simulation")
     p.add_argument("--epochs", type=int, default=None, help="training epochs (default: 300, --fast 40)")
     p.set_defaults(func=cmd_demo)
 

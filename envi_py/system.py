@@ -228,6 +228,27 @@ class SystemDescription:
             out[name] = node
         return out
 
+    def version_params(self, spec: ControllerSpec) -> dict[str, Any]:
+        """The version parameters of a controller in the description's order ({} when it names none).
+        A controller lacking one of them is an error: its logs could not be told apart from others'."""
+        if not self.versions.params:
+            return {}
+        found = self.version_of(spec)
+        missing = [p for p in self.versions.params if p not in found]
+        if missing:
+            raise ValueError(f"controller {spec.label()} has no version parameter {', '.join(missing)} "
+                             f"(system {self.name!r} names {', '.join(self.versions.params)})")
+        return {p: found[p] for p in self.versions.params}
+
+    def version_label(self, spec: ControllerSpec) -> str:
+        """``x=30`` or ``kp_steer=0.8,kp_speed=18`` (numbers with ``:g``): how every table, report and
+        command-line choice names a version; the controller's label when no version parameters are named."""
+        params = self.version_params(spec)
+        if not params:
+            return spec.label()
+        return ",".join(f"{k}={v:g}" if isinstance(v, (int, float)) and not isinstance(v, bool) else f"{k}={v}"
+                        for k, v in params.items())
+
     def with_pattern(self, pattern: str | None) -> "SystemDescription":
         """The same description reading version parameters from ``pattern`` (a command-line
         ``--pattern``); a different pattern declared in the file is a conflict, not overridden."""

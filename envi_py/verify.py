@@ -232,12 +232,8 @@ def traces(logs: Sequence[Log], channel: int = 0) -> np.ndarray:
 
 
 def version_label(spec: ControllerSpec, system: SystemDescription) -> str:
-    """``x=30`` or ``kp_steer=0.8, kp_speed=18``: the version parameters the system names, else the
-    controller's own label."""
-    params = system.version_of(spec) if system.versions.params else {}
-    if not params:
-        return spec.label()
-    return ", ".join(f"{k}={v:g}" if isinstance(v, (int, float)) else f"{k}={v}" for k, v in params.items())
+    """The version's label (:meth:`SystemDescription.version_label`, the one definition)."""
+    return system.version_label(spec)
 
 
 def _fmt(v: float | None, spec: str) -> str:

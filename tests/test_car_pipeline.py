@@ -50,7 +50,7 @@ def test_car_end_to_end_through_the_cli(car_dir, tmp_path, capsys):
     assert len(groups) == 5 and groups[0]["goals"] == ["lane deviation", "closest approach", "gap error"]
     assert groups[0]["version"].startswith("kp_steer=") and all(np.isfinite(g["sim_vs_real"]["acc"]) for g in groups)
     out = capsys.readouterr().out
-    assert "kp_steer=0.8, kp_speed=18" in out
+    assert "kp_steer=0.8,kp_speed=18" in out
 
 
 def test_a_one_loop_controller_for_the_two_action_car_is_refused(car_dir, tmp_path, capsys):

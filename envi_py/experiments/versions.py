@@ -34,23 +34,9 @@ def _text(value: Any) -> str:
     return f"{value:g}"
 
 
-def version_params(spec: ControllerSpec, system: SystemDescription) -> dict[str, Any]:
-    """The version parameters of a controller in the description's order ({} when it names none).
-    A controller lacking one of them is an error: its logs could not be told apart from others'."""
-    if not system.versions.params:
-        return {}
-    found = system.version_of(spec)
-    missing = [p for p in system.versions.params if p not in found]
-    if missing:
-        raise ValueError(f"controller {spec.label()} has no version parameter {', '.join(missing)} "
-                         f"(system {system.name!r} names {', '.join(system.versions.params)})")
-    return {p: found[p] for p in system.versions.params}
-
-
 def version_label(spec: ControllerSpec, system: SystemDescription) -> str:
-    """``x=30`` or ``kp_steer=0.8,kp_speed=18``; the controller's label when no version parameters are named."""
-    params = version_params(spec, system)
-    return ",".join(f"{k}={_text(v)}" for k, v in params.items()) if params else spec.label()
+    """The version's label (:meth:`SystemDescription.version_label`, the one definition)."""
+    return system.version_label(spec)
 
 
 def parse_label(text: str) -> dict[str, str]:
@@ -112,11 +98,11 @@ def versions_of(logs: Sequence[Log], system: SystemDescription) -> dict[str, Ver
         grouped.setdefault(label, []).append(lg)
 
     def order(label: str) -> tuple:
-        params = version_params(specs[label], system)
+        params = system.version_params(specs[label])
         return tuple((0, float(v), "") if isinstance(v, (int, float)) and not isinstance(v, bool) else (1, 0.0, str(v))
                      for v in params.values()) + ((1, 0.0, label),)
 
-    return {label: Version(label, version_params(specs[label], system), tuple(grouped[label]))
+    return {label: Version(label, system.version_params(specs[label]), tuple(grouped[label]))
             for label in sorted(grouped, key=order)}
 
 
