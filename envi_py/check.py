@@ -29,6 +29,7 @@ import numpy as np
 from .controllers import ControllerSpec
 from .goals.evaluate import Runs, signals_of
 from .goals.requirements import Requirement, parse, satisfied
+from .goals.selection import diverged_fraction
 from .logs import Log, group_by_controller
 from .model import Checkpoint
 from .simulate import simulate_logs
@@ -74,16 +75,17 @@ class Checker:
 
     def runs(self, spec: ControllerSpec, starts: Sequence[Log], per_start: int) -> tuple[Runs, int]:
         """``per_start`` simulated runs from each start, as goal-ready signals, and how many of them
-        left the training data's range (beyond the normaliser's fitted limits) at any step."""
+        left the training data: some state outside its training range (widened by 5 %) or at a range
+        limit for a tenth of the run (:func:`envi_py.goals.selection.diverged_fraction`)."""
         self._calls += 1
         sims = simulate_logs(self.ckpt, spec, starts, runs=per_start, seed=self.seed + 9973 * self._calls,
                              engine=self.engine)
-        hist = self.ckpt.config.history
-        states = np.stack([lg.states[hist:] for lg in sims])
-        ns = self.ckpt.config.n_state
-        low, high = self.ckpt.norm.low[:ns], self.ckpt.norm.high[:ns]
-        outside = int(np.any((states < low) | (states > high), axis=(1, 2)).sum())
-        return signals_of(sims, sims[0].meta.schema, hist, self.ckpt.period_ms), outside
+        runs = signals_of(sims, sims[0].meta.schema, self.ckpt.config.history, self.ckpt.period_ms)
+        schema = self.ckpt.schema
+        observed = {c.name: (float(self.ckpt.norm.low[i]), float(self.ckpt.norm.high[i]))
+                    for i, c in enumerate(schema.states)}
+        outside = round(diverged_fraction([runs], schema.states, observed, None, 0.05) * runs.count)
+        return runs, int(outside)
 
 
 def _outcomes(req: Requirement, runs: Runs) -> np.ndarray:

@@ -4,6 +4,7 @@ report files, resuming, the Dask path, and the car twin (a second system) end to
 from __future__ import annotations
 
 import json
+from typing import Any
 
 import pytest
 
@@ -55,7 +56,10 @@ def test_car_versions_are_chosen_by_label_with_numbers_compared_as_numbers(car_l
                            versions=VersionChoice(train=written, unseen=CAR_NEW))
     assert plan.train["tmvk"] == CAR_TRAIN and plan.eval["tmvk"] == CAR_TRAIN and plan.eval["tmvu"] == CAR_NEW
     (job,) = jobs
-    label = lambda lg: version_label(lg.controller, CAR)
+
+    def label(lg: Any) -> str:
+        return version_label(lg.controller, CAR)
+
     assert {label(lg) for lg in job.train} == set(CAR_TRAIN) and len(job.train) == 3 * 3
     assert {label(lg) for lg in job.evals["tmvu"]} == set(CAR_NEW) and len(job.evals["tmvu"]) == 2 * 9
     assert not _names(job.evals["tmvk"]) & _names(job.train + job.val)

@@ -24,8 +24,8 @@ def small_ckpt(head: str = "deterministic", **cfg) -> Checkpoint:
 
 def test_paper_structure():
     m = EnvModel(ModelConfig(n_state=1, n_action=1))
-    linears = [l for l in m.modules() if isinstance(l, torch.nn.Linear)]
-    assert [(l.in_features, l.out_features) for l in linears] == [(20, 256), (256, 256), (256, 1)]
+    linears = [lin for lin in m.modules() if isinstance(lin, torch.nn.Linear)]
+    assert [(lin.in_features, lin.out_features) for lin in linears] == [(20, 256), (256, 256), (256, 1)]
     out, log_std = m(torch.zeros(4, 20))
     assert out.shape == (4, 1) and log_std is None and torch.all(out.abs() <= 1)
 

@@ -279,7 +279,7 @@ def test_envi_sim_controller_from_the_model_by_name_and_default_steps(tmp_path, 
     ck = paper_ckpt()  # trained with one controller: lane-keeping x=30
     model = export(ck, tmp_path / "m.onnx")
     files = [real_dir / "log_30_0.csv", real_dir / "log_50_1.csv"]
-    real = load_logs(files, DatasetSpec(pattern="log_{x}_{run}.csv"))
+    real = load_logs(files, lane_keeping().with_pattern("log_{x}_{run}.csv"))
     init = initial_windows(real, 10)
 
     def sim(*args: str) -> subprocess.CompletedProcess:
@@ -292,7 +292,9 @@ def test_envi_sim_controller_from_the_model_by_name_and_default_steps(tmp_path, 
     out = json.loads(done.stdout)
     assert out["controller"] == LANE.to_json() and out["steps"] == len(real[0]) - 10
     traces = native.rollout(ck, LANE, init, len(real[0]) - 10)
-    np.testing.assert_array_equal(out["per_run"], driving_metrics(traces[..., 0]))
+    # envi_sim is the portable build, the module the best variant for this CPU (AVX-512 here): the
+    # float32 network differs in the last bits between instruction sets, so amplitudes agree to 1e-5
+    np.testing.assert_allclose(out["per_run"], driving_metrics(traces[..., 0]), rtol=0, atol=1e-5)
     # logs of other lengths run for their own number of steps; metrics stay in the order given
     short = tmp_path / "log_30_9.csv"
     short.write_text("".join(files[0].read_text().splitlines(keepends=True)[:61]))

@@ -112,8 +112,8 @@ def selection_score(real: Mapping[Hashable, Runs], sim: Mapping[Hashable, Runs],
     means = {name: float(np.mean(v)) for name, v in per_goal.items()}
     distance = float(np.mean(list(means.values())))
     states = [channels[n] for n in state_names]
-    sim_frac = _diverged_fraction(list(sim.values()), states, observed, sustain, margin)
-    real_frac = _diverged_fraction(list(real.values()), states, observed, sustain, margin)
+    sim_frac = diverged_fraction(list(sim.values()), states, observed, sustain, margin)
+    real_frac = diverged_fraction(list(real.values()), states, observed, sustain, margin)
     diverged = sim_frac > real_frac + tolerance
     return SelectionScore(math.inf if diverged else distance, distance, means, sim_frac, real_frac, diverged,
                           sum(r.count for r in real.values()), sum(r.count for r in sim.values()))
@@ -143,7 +143,7 @@ def _longest_stretch(mask: np.ndarray) -> np.ndarray:
     return (counts - reset).max(axis=1)
 
 
-def _diverged_fraction(runs: Sequence[Runs], states: Sequence[Channel], observed: Mapping[str, tuple[float, float]],
+def diverged_fraction(runs: Sequence[Runs], states: Sequence[Channel], observed: Mapping[str, tuple[float, float]],
                        sustain: int | None, margin: float) -> float:
     """Fraction of runs in which some state sits at a range limit or outside the observed range
     (widened by ``margin`` of its width) for ``sustain`` consecutive scored samples."""

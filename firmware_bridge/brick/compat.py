@@ -6,9 +6,9 @@ same wrapping millisecond/microsecond ticks (period 2**30, as MicroPython's) on 
 """
 
 try:
-    import ustruct as struct
+    import ustruct as struct  # noqa: F401 - re-exported for the brick modules
 except ImportError:
-    import struct
+    import struct  # noqa: F401
 
 try:
     from utime import ticks_ms, ticks_us, ticks_diff, ticks_add, sleep_ms
