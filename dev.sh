@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # One entry point for a fresh Debian/Ubuntu machine:
 #   ./dev.sh demo   set up, then run the main job (twin data -> train -> simulate -> verify)
-#   ./dev.sh test   set up, then run every test (Python and C++)
+#   ./dev.sh test   set up, then run every test (C++, then ruff on the whole tree, then Python)
 #   ./dev.sh setup  only set up
 # Set-up is idempotent: system packages via apt-get, Python packages into ./.venv.
 set -euo pipefail
@@ -53,6 +53,7 @@ case "${1:-}" in
       cmake --build build/ctest -j"$(nproc)"
       (cd build/ctest && ctest --output-on-failure)
     fi
+    "$VENV/bin/ruff" check . && "$VENV/bin/ruff" format --check .  # lint and format: the whole tree
     "$PY" -m pytest "$@" ;;
   *) echo "usage: $0 demo|test|setup [args]"; exit 2 ;;
 esac

@@ -4,7 +4,8 @@ Engines: the native engine on 1 and 2 threads, onnxruntime and PyTorch batched (
 step for all runs), onnxruntime and PyTorch batch-1 loops (one call per run per step), against the
 machine's ceiling: a large float32 GEMM measured in the same run, converted to steps/s at the
 model's ~141,800 FLOP per step. Next to it the arithmetic peak (register-only multiply-adds on the
-engine's widest vectors): a library GEMM that does not use them can sit below what the engine reaches. Every engine does the whole loop (model, decode, controller,
+engine's widest vectors): a library GEMM that does not use them can sit below what the engine reaches. Every
+engine does the whole loop (model, decode, controller,
 encode, slide the window). Long cases are measured on fewer steps or runs and the rate reported
 (``measured`` says how many run-steps were timed), so the whole run takes a few minutes.
 
@@ -39,8 +40,12 @@ SPEC = ControllerSpec("lane-keeping", {"x": 30})
 
 def paper_model(seed: int = 0) -> Checkpoint:
     torch.manual_seed(seed)
-    return Checkpoint(EnvModel(ModelConfig(1, 1)).eval(), Normaliser.from_schema(LANE_KEEPING_SCHEMA),
-                      LANE_KEEPING_SCHEMA, TrainingRecord("bc", seed))
+    return Checkpoint(
+        EnvModel(ModelConfig(1, 1)).eval(),
+        Normaliser.from_schema(LANE_KEEPING_SCHEMA),
+        LANE_KEEPING_SCHEMA,
+        TrainingRecord("bc", seed),
+    )
 
 
 def init_windows(n: int, seed: int = 0) -> np.ndarray:
@@ -98,8 +103,12 @@ def gemm_ceiling(n: int = 4096) -> dict[str, float]:
     torch.mm(t, t)
     th_wall, th_cpu = timed_cpu(lambda: torch.mm(t, t), 3)
     flop = 2 * n**3
-    return {"numpy_flops": flop / np_wall, "torch_flops": flop / th_wall, "flops": flop / min(np_wall, th_wall),
-            "flops_per_cpu_s": flop / min(np_cpu, th_cpu)}
+    return {
+        "numpy_flops": flop / np_wall,
+        "torch_flops": flop / th_wall,
+        "flops": flop / min(np_wall, th_wall),
+        "flops_per_cpu_s": flop / min(np_cpu, th_cpu),
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -139,8 +148,10 @@ def main(argv: list[str] | None = None) -> int:
         "onnxruntime batch-1 loop": None,
         "pytorch batch-1 loop": None,
     }
-    loops = {"onnxruntime batch-1 loop": Loop(ck, lambda x: sess1.run(None, {INPUT: x})[0]),
-             "pytorch batch-1 loop": Loop(ck, torch_predict)}
+    loops = {
+        "onnxruntime batch-1 loop": Loop(ck, lambda x: sess1.run(None, {INPUT: x})[0]),
+        "pytorch batch-1 loop": Loop(ck, torch_predict),
+    }
 
     peak = native.peak_flops(THREADS)
     ceilings = [gemm_ceiling()]
@@ -155,7 +166,7 @@ def main(argv: list[str] | None = None) -> int:
                     runs = max(1, min(n, int(loop_budget // steps)))
                     t = max(1, min(steps, int(loop_budget)))
                     loops[name].run(init[:1], 2)  # warm up
-                    sec, cpu = timed_cpu(lambda: [loops[name].run(init[i:i + 1], t) for i in range(runs)], repeat)
+                    sec, cpu = timed_cpu(lambda: [loops[name].run(init[i : i + 1], t) for i in range(runs)], repeat)
                     measured = runs * t
                 else:
                     cap = budget if name.startswith("native") else slow_budget
@@ -167,10 +178,21 @@ def main(argv: list[str] | None = None) -> int:
                     sec, cpu = timed_cpu(lambda: [engines[name](init, t) for _ in range(calls)], repeat)
                     measured = calls * n * t
                 rate = measured / sec
-                rows.append({"engine": name, "N": n, "T": steps, "steps_per_s": rate, "measured_run_steps": measured,
-                             "steps_per_cpu_s": measured / max(cpu, 1e-9)})
-                print(f"  N={n:>5} T={steps:>4} {name:<26} {rate:>14,.0f} steps/s "
-                      f"{measured / max(cpu, 1e-9):>14,.0f} per CPU-s", flush=True)
+                rows.append(
+                    {
+                        "engine": name,
+                        "N": n,
+                        "T": steps,
+                        "steps_per_s": rate,
+                        "measured_run_steps": measured,
+                        "steps_per_cpu_s": measured / max(cpu, 1e-9),
+                    }
+                )
+                print(
+                    f"  N={n:>5} T={steps:>4} {name:<26} {rate:>14,.0f} steps/s "
+                    f"{measured / max(cpu, 1e-9):>14,.0f} per CPU-s",
+                    flush=True,
+                )
 
     ceilings.append(gemm_ceiling())
     ceiling = max(ceilings, key=lambda c: c["flops"])  # the highest: ratios to it are conservative
@@ -189,23 +211,34 @@ def main(argv: list[str] | None = None) -> int:
     }
 
     ratios = {
-        "native2/ort_batched@N=10000,T=1000": rate("native 2 threads", 10_000, 1000) / rate("onnxruntime batched", 10_000, 1000),
+        "native2/ort_batched@N=10000,T=1000": rate("native 2 threads", 10_000, 1000)
+        / rate("onnxruntime batched", 10_000, 1000),
         "native2/ceiling@N=10000,T=1000": rate("native 2 threads", 10_000, 1000) / ceiling_steps,
         "native2/ceiling@N=10000,T=25": rate("native 2 threads", 10_000, 25) / ceiling_steps,
         "native2/peak@N=10000,T=1000": rate("native 2 threads", 10_000, 1000) / (peak / FLOP_PER_STEP),
-        "native1_batch1/ort_batch1_loop@N=1,T=1000": rate("native 1 thread", 1, 1000) / rate("onnxruntime batch-1 loop", 1, 1000),
+        "native1_batch1/ort_batch1_loop@N=1,T=1000": rate("native 1 thread", 1, 1000)
+        / rate("onnxruntime batch-1 loop", 1, 1000),
     }
-    targets = {"native2/ort_batched@N=10000,T=1000": 1.2, "native2/ceiling@N=10000,T=1000": 0.75,
-               "native2/ceiling@N=10000,T=25": 0.75, "native2/peak@N=10000,T=1000": None,
-               "native1_batch1/ort_batch1_loop@N=1,T=1000": 4.0}
+    targets = {
+        "native2/ort_batched@N=10000,T=1000": 1.2,
+        "native2/ceiling@N=10000,T=1000": 0.75,
+        "native2/ceiling@N=10000,T=25": 0.75,
+        "native2/peak@N=10000,T=1000": None,
+        "native1_batch1/ort_batch1_loop@N=1,T=1000": 4.0,
+    }
 
     engines_order = list(engines)
     print(f"\nclosed-loop steps/s, paper model 20-256-256-1 + lane-keeping ({native.variant()})")
-    print(f"GEMM ceiling: {ceiling['flops'] / 1e9:.1f} GFLOP/s = {ceiling_steps:,.0f} steps/s "
-          f"at {FLOP_PER_STEP:,} FLOP/step (best of {len(ceilings)} measurements: "
-          + ", ".join(f"{c['flops'] / 1e9:.0f}" for c in ceilings) + " GFLOP/s)")
-    print(f"arithmetic peak ({THREADS} threads, register-only multiply-adds): {peak / 1e9:.1f} GFLOP/s "
-          f"= {peak / FLOP_PER_STEP:,.0f} steps/s")
+    print(
+        f"GEMM ceiling: {ceiling['flops'] / 1e9:.1f} GFLOP/s = {ceiling_steps:,.0f} steps/s "
+        f"at {FLOP_PER_STEP:,} FLOP/step (best of {len(ceilings)} measurements: "
+        + ", ".join(f"{c['flops'] / 1e9:.0f}" for c in ceilings)
+        + " GFLOP/s)"
+    )
+    print(
+        f"arithmetic peak ({THREADS} threads, register-only multiply-adds): {peak / 1e9:.1f} GFLOP/s "
+        f"= {peak / FLOP_PER_STEP:,.0f} steps/s"
+    )
     head = f"{'N':>6} {'T':>5} " + " ".join(f"{e:>16.16}" for e in engines_order)
     print(head)
     for n in (1, 100, 10_000):
@@ -213,25 +246,51 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{n:>6} {steps:>5} " + " ".join(f"{rate(e, n, steps):>16,.0f}" for e in engines_order))
     print()
     for k, v in ratios.items():
-        print(f"{k:<45} {v:6.2f}  " + ("(no target: the hard ceiling)" if targets[k] is None else
-                                         f"(target >= {targets[k]:g}: {'met' if v >= targets[k] else 'NOT met'})"))
+        print(
+            f"{k:<45} {v:6.2f}  "
+            + (
+                "(no target: the hard ceiling)"
+                if targets[k] is None
+                else f"(target >= {targets[k]:g}: {'met' if v >= targets[k] else 'NOT met'})"
+            )
+        )
     print(f"\nper CPU-second (ceiling {cpu_ceiling_steps:,.0f} steps per CPU-s):")
     print(f"{'N':>6} {'T':>5} " + " ".join(f"{e:>16.16}" for e in engines_order))
     for n in (1, 100, 10_000):
         for steps in (25, 1000):
-            print(f"{n:>6} {steps:>5} " + " ".join(f"{rate(e, n, steps, 'steps_per_cpu_s'):>16,.0f}" for e in engines_order))
+            print(
+                f"{n:>6} {steps:>5} "
+                + " ".join(f"{rate(e, n, steps, 'steps_per_cpu_s'):>16,.0f}" for e in engines_order)
+            )
     for k, v in cpu_ratios.items():
         print(f"{k:<45} {v:6.2f}  (target >= {targets[k]:g}: {'met' if v >= targets[k] else 'NOT met'})")
 
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps({
-        "model": "20-256-256-1 tanh, lane-keeping x=30", "flop_per_step": FLOP_PER_STEP,
-        "native_variant": native.variant(), "threads": THREADS, "cpu": platform.processor() or platform.machine(),
-        "cores": os.cpu_count(), "ceiling": {**ceiling, "steps_per_s": ceiling_steps}, "ceilings": ceilings,
-        "peak_flops": peak, "peak_steps_per_s": peak / FLOP_PER_STEP,
-        "results": rows, "ratios": ratios, "ratios_per_cpu_s": cpu_ratios,
-        "ceiling_steps_per_cpu_s": cpu_ceiling_steps, "targets": targets, "quick": args.quick}, indent=1) + "\n")
+    out.write_text(
+        json.dumps(
+            {
+                "model": "20-256-256-1 tanh, lane-keeping x=30",
+                "flop_per_step": FLOP_PER_STEP,
+                "native_variant": native.variant(),
+                "threads": THREADS,
+                "cpu": platform.processor() or platform.machine(),
+                "cores": os.cpu_count(),
+                "ceiling": {**ceiling, "steps_per_s": ceiling_steps},
+                "ceilings": ceilings,
+                "peak_flops": peak,
+                "peak_steps_per_s": peak / FLOP_PER_STEP,
+                "results": rows,
+                "ratios": ratios,
+                "ratios_per_cpu_s": cpu_ratios,
+                "ceiling_steps_per_cpu_s": cpu_ceiling_steps,
+                "targets": targets,
+                "quick": args.quick,
+            },
+            indent=1,
+        )
+        + "\n"
+    )
     print(f"wrote {out}")
     return 0
 

@@ -71,15 +71,24 @@ def main() -> int:
     torch.set_num_threads(1)
     pool = load_logs(args.data, lane_keeping().with_pattern("log_{x}_{run}.csv"), where={"x": [30]}, min_length=11)
     logs, val = pool[:30], pool[30:33]
-    rows = {"bc": time_bc(logs, args.epochs), "gail": time_gail(logs, args.epochs, 0.0),
-            "bcxgail": time_gail(logs, args.epochs, 1.0)}
+    rows = {
+        "bc": time_bc(logs, args.epochs),
+        "gail": time_gail(logs, args.epochs, 0.0),
+        "bcxgail": time_gail(logs, args.epochs, 1.0),
+    }
     ckpt = new_checkpoint("bc", logs, val, model_config(logs), 0, {})
     t0 = time.perf_counter()
     closed_loop_score(ckpt, val)
     eval_s = time.perf_counter() - t0
-    result = {"n_logs": len(logs), "seconds_per_epoch": rows, "validation_seconds": eval_s,
-              "authors_seconds_per_epoch": {"bc": 0.2, "gail": 2.5}, "cpu_count": os.cpu_count(),
-              "torch": torch.__version__, "python": platform.python_version()}
+    result = {
+        "n_logs": len(logs),
+        "seconds_per_epoch": rows,
+        "validation_seconds": eval_s,
+        "authors_seconds_per_epoch": {"bc": 0.2, "gail": 2.5},
+        "cpu_count": os.cpu_count(),
+        "torch": torch.__version__,
+        "python": platform.python_version(),
+    }
     print(f"{'algorithm':<10} {'s/epoch':>9} {'authors':>9}")
     for k, v in rows.items():
         a = result["authors_seconds_per_epoch"].get(k)
@@ -89,19 +98,34 @@ def main() -> int:
         from envi_py.experiments.run import run_experiment
 
         t0 = time.perf_counter()
-        run_experiment(pool, ["tovk"], Path(args.out).with_suffix("") / "grid", reps=args.grid_reps,
-                       epochs=args.grid_epochs, progress=False)
+        run_experiment(
+            pool,
+            ["tovk"],
+            Path(args.out).with_suffix("") / "grid",
+            reps=args.grid_reps,
+            epochs=args.grid_epochs,
+            progress=False,
+        )
         measured = time.perf_counter() - t0
-        result["tovk_grid"] = {"measured_reps": args.grid_reps, "measured_seconds": measured,
-                               "extrapolated_5_reps_seconds": measured * 5 / args.grid_reps,
-                               "workers": os.cpu_count(), "epochs": args.grid_epochs}
-        print(f"TOVK grid, {args.grid_reps} repetition(s) measured: {measured:.0f} s -> 5 repetitions "
-              f"(extrapolated): {measured * 5 / args.grid_reps:.0f} s")
+        result["tovk_grid"] = {
+            "measured_reps": args.grid_reps,
+            "measured_seconds": measured,
+            "extrapolated_5_reps_seconds": measured * 5 / args.grid_reps,
+            "workers": os.cpu_count(),
+            "epochs": args.grid_epochs,
+        }
+        print(
+            f"TOVK grid, {args.grid_reps} repetition(s) measured: {measured:.0f} s -> 5 repetitions "
+            f"(extrapolated): {measured * 5 / args.grid_reps:.0f} s"
+        )
     else:
         per_rep = sum(args.grid_epochs * (rows[a] * n / 30 + eval_s / 10) for a in rows for n in (3, 15, 30))
         workers = os.cpu_count() or 1
-        result["tovk_grid"] = {"estimated_5_reps_seconds": 5 * per_rep / workers, "workers": workers,
-                               "method": "per-epoch time scaled linearly in n, plus validation; not measured"}
+        result["tovk_grid"] = {
+            "estimated_5_reps_seconds": 5 * per_rep / workers,
+            "workers": workers,
+            "method": "per-epoch time scaled linearly in n, plus validation; not measured",
+        }
         print(f"TOVK grid, 5 repetitions, estimated (not measured): {5 * per_rep / workers:.0f} s on {workers} workers")
     Path(args.out).write_text(json.dumps(result, indent=1))
     print(f"written {args.out}")

@@ -17,7 +17,8 @@ matched-size permutation rule say "within the floor", for sims from the real dis
 narrow sims; with ``--logs``, the same on the lane-keeping field logs (runs of one controller against the
 others of that controller, and against the next controller).
 
-    python benchmarks/bench_verdicts.py [--reps 300] [--slopes 4 6 8] [--real 10 30] [--out bench_out/bench_verdicts.json]
+    python benchmarks/bench_verdicts.py [--reps 300] [--slopes 4 6 8] [--real 10 30]
+        [--out bench_out/bench_verdicts.json]
         [--logs /work/shared/data/lane-keeping-fot]
 """
 
@@ -74,13 +75,25 @@ def real_system(reps: int, slope: float, n_real: int, seed: int) -> list[dict]:
                 if not v.withdrawn:
                     claimed.append(v.low <= truth <= v.high)
                     ratio.append((v.high - v.low) / (hi - lo))
-            rows.append({"slope": slope, "model": name, "logit_shift": shift, "estimator": estimator, "reps": reps, "n_real": n_real,
-                         "n_sim_starts": STARTS, "sims_per_start": SIMS_PER_START, "true_p": truth,
-                         "coverage_when_claimed": float(np.mean(claimed)) if claimed else None,
-                         "claims": len(claimed), "coverage_final": float(np.mean(final)),
-                         "coverage_real_only": float(np.mean(real_cover)),
-                         "median_width_ratio": float(np.median(ratio)) if ratio else None,
-                         "withdrawn_rate": float(np.mean(withdrawn))})
+            rows.append(
+                {
+                    "slope": slope,
+                    "model": name,
+                    "logit_shift": shift,
+                    "estimator": estimator,
+                    "reps": reps,
+                    "n_real": n_real,
+                    "n_sim_starts": STARTS,
+                    "sims_per_start": SIMS_PER_START,
+                    "true_p": truth,
+                    "coverage_when_claimed": float(np.mean(claimed)) if claimed else None,
+                    "claims": len(claimed),
+                    "coverage_final": float(np.mean(final)),
+                    "coverage_real_only": float(np.mean(real_cover)),
+                    "median_width_ratio": float(np.median(ratio)) if ratio else None,
+                    "withdrawn_rate": float(np.mean(withdrawn)),
+                }
+            )
     return rows
 
 
@@ -91,18 +104,28 @@ def sequential(reps: int, seed: int) -> list[dict]:
     for p in (0.8, 0.85, 0.9, 0.95, 0.99):
         rng = np.random.default_rng(seed)
         s = [sprt(lambda n, p=p, rng=rng: rng.random(n) < p, p_req, delta, batch=batch) for _ in range(reps)]
-        cs = [confidence_sequence(lambda n, p=p, rng=rng: rng.random(n) < p, p_req, batch=batch, max_runs=5000)
-              for _ in range(reps)]
+        cs = [
+            confidence_sequence(lambda n, p=p, rng=rng: rng.random(n) < p, p_req, batch=batch, max_runs=5000)
+            for _ in range(reps)
+        ]
         wrong = Verdict.PASS if p < p_req else Verdict.FAIL if p > p_req else None
-        rows.append({"p": p, "reps": reps, "batch": batch, "fixed_n": n_fixed, "fixed_critical": c_fixed,
-                     "sprt_median_runs": float(np.median([r.runs for r in s])),
-                     "sprt_mean_runs": float(np.mean([r.runs for r in s])),
-                     "sprt_error_rate": None if wrong is None else float(np.mean([r.verdict is wrong for r in s])),
-                     "sprt_interval_coverage": float(np.mean([r.low <= p <= r.high for r in s])),
-                     "cs_median_runs": float(np.median([r.runs for r in cs])),
-                     "cs_undecided_rate": float(np.mean([r.verdict is Verdict.UNDECIDED for r in cs])),
-                     "cs_error_rate": None if wrong is None else float(np.mean([r.verdict is wrong for r in cs])),
-                     "cs_interval_coverage": float(np.mean([r.low <= p <= r.high for r in cs]))})
+        rows.append(
+            {
+                "p": p,
+                "reps": reps,
+                "batch": batch,
+                "fixed_n": n_fixed,
+                "fixed_critical": c_fixed,
+                "sprt_median_runs": float(np.median([r.runs for r in s])),
+                "sprt_mean_runs": float(np.mean([r.runs for r in s])),
+                "sprt_error_rate": None if wrong is None else float(np.mean([r.verdict is wrong for r in s])),
+                "sprt_interval_coverage": float(np.mean([r.low <= p <= r.high for r in s])),
+                "cs_median_runs": float(np.median([r.runs for r in cs])),
+                "cs_undecided_rate": float(np.mean([r.verdict is Verdict.UNDECIDED for r in cs])),
+                "cs_error_rate": None if wrong is None else float(np.mean([r.verdict is wrong for r in cs])),
+                "cs_interval_coverage": float(np.mean([r.low <= p <= r.high for r in cs])),
+            }
+        )
     return rows
 
 
@@ -125,10 +148,22 @@ def floors(reps: int, seed: int) -> list[dict]:
             res = fair_floor(real, sim, kld_gaussian, repetitions=5, permutations=49, seed=i)
             fair_pass.append(res.within_floor)
             ratios.append(res.ratio)
-        rows.append({"sims": name, "spread": spread, "reps": reps, "n_real": 10, "n_sim": 100, "per_side": 5,
-                     "old_within_floor_rate": float(np.mean(old_pass)),
-                     "fair_within_floor_rate": float(np.mean(fair_pass)), "fair_median_ratio": float(np.median(ratios)),
-                     "fair_level": 0.05, "repetitions": 5, "permutations": 49})
+        rows.append(
+            {
+                "sims": name,
+                "spread": spread,
+                "reps": reps,
+                "n_real": 10,
+                "n_sim": 100,
+                "per_side": 5,
+                "old_within_floor_rate": float(np.mean(old_pass)),
+                "fair_within_floor_rate": float(np.mean(fair_pass)),
+                "fair_median_ratio": float(np.median(ratios)),
+                "fair_level": 0.05,
+                "repetitions": 5,
+                "permutations": 49,
+            }
+        )
     return rows
 
 
@@ -145,19 +180,27 @@ def real_log_floors(folder: Path, seed: int) -> list[dict]:
         color = np.loadtxt(path, delimiter=",", skiprows=1, usecols=1, ndmin=1)
         figures.setdefault(x, []).append(color)
     keys = sorted(figures)
-    sc = {x: safety_comfort(np.stack([c[:min(map(len, figures[x]))] for c in figures[x]])) for x in keys}
+    sc = {x: safety_comfort(np.stack([c[: min(map(len, figures[x]))] for c in figures[x]])) for x in keys}
     rng, rows = np.random.default_rng(seed), []
     for j, x in enumerate(keys):
         runs = sc[x]
-        kld = {size: [kld_gaussian(*np.split(runs[rng.permutation(len(runs))[:2 * size]], 2)) for _ in range(20)]
-               for size in (5, 10)}
+        kld = {
+            size: [kld_gaussian(*np.split(runs[rng.permutation(len(runs))[: 2 * size]], 2)) for _ in range(20)]
+            for size in (5, 10)
+        }
         order = rng.permutation(len(runs))
         same = fair_floor(runs[order[:10]], runs[order[10:]], kld_gaussian, repetitions=10, permutations=199, seed=seed)
-        row = {"x": x, "runs": len(runs), "kld_5_vs_5_mean": float(np.mean(kld[5])),
-               "kld_10_vs_10_mean": float(np.mean(kld[10])), "same_controller": same.to_json()}
+        row = {
+            "x": x,
+            "runs": len(runs),
+            "kld_5_vs_5_mean": float(np.mean(kld[5])),
+            "kld_10_vs_10_mean": float(np.mean(kld[10])),
+            "same_controller": same.to_json(),
+        }
         if j + 1 < len(keys):
-            row["next_controller"] = fair_floor(runs[order[:10]], sc[keys[j + 1]], kld_gaussian, repetitions=10,
-                                                permutations=199, seed=seed).to_json()
+            row["next_controller"] = fair_floor(
+                runs[order[:10]], sc[keys[j + 1]], kld_gaussian, repetitions=10, permutations=199, seed=seed
+            ).to_json()
         rows.append(row)
     return rows
 
@@ -169,8 +212,9 @@ def _f(x: float | None, fmt: str = ".3f") -> str:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--reps", type=int, default=300)
-    ap.add_argument("--slopes", type=float, nargs="+", default=[4.0, 6.0, 8.0],
-                    help="how strongly the start decides the outcome")
+    ap.add_argument(
+        "--slopes", type=float, nargs="+", default=[4.0, 6.0, 8.0], help="how strongly the start decides the outcome"
+    )
     ap.add_argument("--real", type=int, nargs="+", default=[10, 30], help="real runs per repetition")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", type=Path, default=Path("bench_out/bench_verdicts.json"))
@@ -178,47 +222,82 @@ def main() -> None:
     args = ap.parse_args()
     t0 = time.time()
     rs = [r for n in args.real for slope in args.slopes for r in real_system(args.reps, slope, n, args.seed)]
-    print(f"Real system: {STARTS} simulated starts x {SIMS_PER_START} sims, {args.reps} repetitions per row, "
-          f"nominal 95 %; 'cover|claim': coverage of the true P(goal) when the claim is kept, 'cover final': of "
-          f"the interval reported (real-only after a withdrawal), 'cover CP': real-only Clopper-Pearson")
-    print(f"{'real':>4} {'slope':>5} {'true p':>6} {'model':<15} {'estimator':<16} {'cover|claim':>11} "
-          f"{'cover final':>11} {'cover CP':>8} {'width/CP':>8} {'withdrawn':>9}")
+    print(
+        f"Real system: {STARTS} simulated starts x {SIMS_PER_START} sims, {args.reps} repetitions per row, "
+        f"nominal 95 %; 'cover|claim': coverage of the true P(goal) when the claim is kept, 'cover final': of "
+        f"the interval reported (real-only after a withdrawal), 'cover CP': real-only Clopper-Pearson"
+    )
+    print(
+        f"{'real':>4} {'slope':>5} {'true p':>6} {'model':<15} {'estimator':<16} {'cover|claim':>11} "
+        f"{'cover final':>11} {'cover CP':>8} {'width/CP':>8} {'withdrawn':>9}"
+    )
     for r in rs:
-        print(f"{r['n_real']:>4} {r['slope']:>5g} {r['true_p']:>6.3f} {r['model']:<15} {r['estimator']:<16} "
-              f"{_f(r['coverage_when_claimed']):>11} {_f(r['coverage_final']):>11} {_f(r['coverage_real_only']):>8} "
-              f"{_f(r['median_width_ratio']):>8} {_f(r['withdrawn_rate']):>9}")
+        print(
+            f"{r['n_real']:>4} {r['slope']:>5g} {r['true_p']:>6.3f} {r['model']:<15} {r['estimator']:<16} "
+            f"{_f(r['coverage_when_claimed']):>11} {_f(r['coverage_final']):>11} {_f(r['coverage_real_only']):>8} "
+            f"{_f(r['median_width_ratio']):>8} {_f(r['withdrawn_rate']):>9}"
+        )
     sq = sequential(args.reps, args.seed)
-    print(f"\nSequential, p_required 0.9 +- 0.05, alpha = beta = 0.05, batches of 10, {args.reps} repetitions; "
-          f"fixed-size exact test: n = {sq[0]['fixed_n']}")
-    print(f"{'p':>5} {'SPRT med':>8} {'SPRT mean':>9} {'SPRT/fixed':>10} {'SPRT err':>8} {'CS med':>7} "
-          f"{'CS undec':>8} {'CS err':>6} {'CS cover':>8}")
+    print(
+        f"\nSequential, p_required 0.9 +- 0.05, alpha = beta = 0.05, batches of 10, {args.reps} repetitions; "
+        f"fixed-size exact test: n = {sq[0]['fixed_n']}"
+    )
+    print(
+        f"{'p':>5} {'SPRT med':>8} {'SPRT mean':>9} {'SPRT/fixed':>10} {'SPRT err':>8} {'CS med':>7} "
+        f"{'CS undec':>8} {'CS err':>6} {'CS cover':>8}"
+    )
     for r in sq:
-        print(f"{r['p']:>5.2f} {r['sprt_median_runs']:>8.0f} {r['sprt_mean_runs']:>9.1f} "
-              f"{r['sprt_median_runs'] / r['fixed_n']:>10.2f} {_f(r['sprt_error_rate']):>8} {r['cs_median_runs']:>7.0f} "
-              f"{r['cs_undecided_rate']:>8.3f} {_f(r['cs_error_rate']):>6} {r['cs_interval_coverage']:>8.3f}")
+        print(
+            f"{r['p']:>5.2f} {r['sprt_median_runs']:>8.0f} {r['sprt_mean_runs']:>9.1f} "
+            f"{r['sprt_median_runs'] / r['fixed_n']:>10.2f} {_f(r['sprt_error_rate']):>8} {r['cs_median_runs']:>7.0f} "
+            f"{r['cs_undecided_rate']:>8.3f} {_f(r['cs_error_rate']):>6} {r['cs_interval_coverage']:>8.3f}"
+        )
     fl = floors(min(args.reps, 100), args.seed)
-    print(f"\nFloor, KLD of 2-D Gaussian fits, 10 real runs, 100 sims, {fl[0]['reps']} repetitions: how often each rule "
-          f"says 'within the floor' (fair: permutation p > 0.05, test at 10 vs 10 runs, ratio at 5 vs 5)")
+    print(
+        f"\nFloor, KLD of 2-D Gaussian fits, 10 real runs, 100 sims, {fl[0]['reps']} repetitions: how often each rule "
+        f"says 'within the floor' (fair: permutation p > 0.05, test at 10 vs 10 runs, ratio at 5 vs 5)"
+    )
     print(f"{'sims':<11} {'old rule':>8} {'fair rule':>9} {'fair ratio':>10}")
     for r in fl:
-        print(f"{r['sims']:<11} {r['old_within_floor_rate']:>8.3f} {r['fair_within_floor_rate']:>9.3f} "
-              f"{r['fair_median_ratio']:>10.2f}")
+        print(
+            f"{r['sims']:<11} {r['old_within_floor_rate']:>8.3f} {r['fair_within_floor_rate']:>9.3f} "
+            f"{r['fair_median_ratio']:>10.2f}"
+        )
     logs = []
     if args.logs is not None:
         logs = real_log_floors(args.logs, args.seed)
-        print(f"\nFloor on the field logs in {args.logs}, KLD of (safety, comfort) Gaussian fits; fair test: 10 runs "
-              f"of x against the other runs of x (same) and against the runs of the next x (next)")
-        print(f"{'x':>3} {'runs':>4} {'KLD 5v5':>8} {'KLD 10v10':>9} {'same p':>7} {'same ratio':>10} "
-              f"{'next p':>7} {'next ratio':>10}")
+        print(
+            f"\nFloor on the field logs in {args.logs}, KLD of (safety, comfort) Gaussian fits; fair test: 10 runs "
+            f"of x against the other runs of x (same) and against the runs of the next x (next)"
+        )
+        print(
+            f"{'x':>3} {'runs':>4} {'KLD 5v5':>8} {'KLD 10v10':>9} {'same p':>7} {'same ratio':>10} "
+            f"{'next p':>7} {'next ratio':>10}"
+        )
         for r in logs:
             nxt = r.get("next_controller")
-            print(f"{r['x']:>3} {r['runs']:>4} {r['kld_5_vs_5_mean']:>8.2f} {r['kld_10_vs_10_mean']:>9.2f} "
-                  f"{r['same_controller']['p_value']:>7.3f} {_f(r['same_controller']['ratio'], '.2f'):>10} "
-                  f"{(_f(nxt['p_value']) if nxt else '-'):>7} {(_f(nxt['ratio'], '.2f') if nxt else '-'):>10}")
+            print(
+                f"{r['x']:>3} {r['runs']:>4} {r['kld_5_vs_5_mean']:>8.2f} {r['kld_10_vs_10_mean']:>9.2f} "
+                f"{r['same_controller']['p_value']:>7.3f} {_f(r['same_controller']['ratio'], '.2f'):>10} "
+                f"{(_f(nxt['p_value']) if nxt else '-'):>7} {(_f(nxt['ratio'], '.2f') if nxt else '-'):>10}"
+            )
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({"reps": args.reps, "slopes": args.slopes, "n_real": args.real, "seed": args.seed,
-                                    "seconds": time.time() - t0, "real_system": rs, "sequential": sq,
-                                    "floor": fl, "field_log_floor": logs}, indent=1))
+    args.out.write_text(
+        json.dumps(
+            {
+                "reps": args.reps,
+                "slopes": args.slopes,
+                "n_real": args.real,
+                "seed": args.seed,
+                "seconds": time.time() - t0,
+                "real_system": rs,
+                "sequential": sq,
+                "floor": fl,
+                "field_log_floor": logs,
+            },
+            indent=1,
+        )
+    )
     print(f"\nwrote {args.out} ({time.time() - t0:.0f} s)")
 
 

@@ -58,10 +58,19 @@ class CheckRow:
         return str(self.real_system["verdict"])
 
     def to_json(self) -> dict[str, Any]:
-        return {"version": self.version, "requirement": self.requirement, "expr": self.expr,
-                "p_required": self.p_required, "verdict": self.verdict, "n_real": self.n_real,
-                "simulation": self.simulation, "real_system": self.real_system,
-                "outside_training": self.outside_training, "sim_runs": self.sim_runs, "notes": self.notes}
+        return {
+            "version": self.version,
+            "requirement": self.requirement,
+            "expr": self.expr,
+            "p_required": self.p_required,
+            "verdict": self.verdict,
+            "n_real": self.n_real,
+            "simulation": self.simulation,
+            "real_system": self.real_system,
+            "outside_training": self.outside_training,
+            "sim_runs": self.sim_runs,
+            "notes": self.notes,
+        }
 
 
 @dataclass
@@ -78,12 +87,14 @@ class Checker:
         left the training data: some state outside its training range (widened by 5 %) or at a range
         limit for a tenth of the run (:func:`envi_py.goals.selection.diverged_fraction`)."""
         self._calls += 1
-        sims = simulate_logs(self.ckpt, spec, starts, runs=per_start, seed=self.seed + 9973 * self._calls,
-                             engine=self.engine)
+        sims = simulate_logs(
+            self.ckpt, spec, starts, runs=per_start, seed=self.seed + 9973 * self._calls, engine=self.engine
+        )
         runs = signals_of(sims, sims[0].meta.schema, self.ckpt.config.history, self.ckpt.period_ms)
         schema = self.ckpt.schema
-        observed = {c.name: (float(self.ckpt.norm.low[i]), float(self.ckpt.norm.high[i]))
-                    for i, c in enumerate(schema.states)}
+        observed = {
+            c.name: (float(self.ckpt.norm.low[i]), float(self.ckpt.norm.high[i])) for i, c in enumerate(schema.states)
+        }
         outside = round(diverged_fraction([runs], schema.states, observed, None, 0.05) * runs.count)
         return runs, int(outside)
 
@@ -92,10 +103,20 @@ def _outcomes(req: Requirement, runs: Runs) -> np.ndarray:
     return satisfied(req, runs).astype(float)
 
 
-def check(ckpt: Checkpoint, real: Sequence[Log], requirements: Sequence[RequirementSpec],
-          unseen: Sequence[ControllerSpec] = (), extra_starts: Sequence[Log] = (), alpha: float = 0.05,
-          delta: float = 0.05, max_runs: int = 4000, batch: int = 100, sims_per_start: int = 20,
-          seed: int = 0, engine: str = "auto") -> list[CheckRow]:
+def check(
+    ckpt: Checkpoint,
+    real: Sequence[Log],
+    requirements: Sequence[RequirementSpec],
+    unseen: Sequence[ControllerSpec] = (),
+    extra_starts: Sequence[Log] = (),
+    alpha: float = 0.05,
+    delta: float = 0.05,
+    max_runs: int = 4000,
+    batch: int = 100,
+    sims_per_start: int = 20,
+    seed: int = 0,
+    engine: str = "auto",
+) -> list[CheckRow]:
     """Every version of ``real`` and every ``unseen`` one against every requirement (module docstring).
 
     ``extra_starts``: further logs whose initial windows the model may start from (their outcomes
@@ -119,26 +140,47 @@ def check(ckpt: Checkpoint, real: Sequence[Log], requirements: Sequence[Requirem
         real_runs = signals_of(logs, logs[0].meta.schema, hist, ckpt.period_ms)
         starts = list(logs) + [lg for lg in extra.get(spec, []) if lg not in logs]
         paired_runs, outside = checker.runs(spec, logs, sims_per_start)
-        extra_runs = checker.runs(spec, starts[len(logs):], sims_per_start)[0] if len(starts) > len(logs) else None
+        extra_runs = checker.runs(spec, starts[len(logs) :], sims_per_start)[0] if len(starts) > len(logs) else None
         for spec_req, req in zip(requirements, reqs):
             y = _outcomes(req, real_runs)
             paired = _outcomes(req, paired_runs).reshape(len(logs), sims_per_start).mean(axis=1)
-            preds = paired if extra_runs is None else np.concatenate(
-                [paired, _outcomes(req, extra_runs).reshape(-1, sims_per_start).mean(axis=1)])
+            preds = (
+                paired
+                if extra_runs is None
+                else np.concatenate([paired, _outcomes(req, extra_runs).reshape(-1, sims_per_start).mean(axis=1)])
+            )
             sim = _sequential(checker, spec, starts, req, spec_req.probability, alpha, delta, max_runs, batch)
             notes = []
             if extra_runs is None:
-                notes.append("no further starts of this version than its real runs: the model-based estimate "
-                             "cannot narrow the real-only interval much")
+                notes.append(
+                    "no further starts of this version than its real runs: the model-based estimate "
+                    "cannot narrow the real-only interval much"
+                )
             if len(y) >= 2:
                 verdict = ppi_verdict(preds, y, paired, spec_req.probability, alpha, sims_per_start=sims_per_start)
                 measured[spec_req.name][label] = verdict.check
                 real_json = verdict.to_json()
             else:
-                real_json = {"verdict": "UNDECIDED", "basis": "too few real runs", "interval": [0.0, 1.0],
-                             "reason": f"{len(y)} real run(s): at least 2 are needed to pair with the model"}
-            rows.append(CheckRow(label, spec_req.name, spec_req.expr, spec_req.probability, len(y), sim.to_json(),
-                                 real_json, outside, sim.runs + len(logs) * sims_per_start, notes))
+                real_json = {
+                    "verdict": "UNDECIDED",
+                    "basis": "too few real runs",
+                    "interval": [0.0, 1.0],
+                    "reason": f"{len(y)} real run(s): at least 2 are needed to pair with the model",
+                }
+            rows.append(
+                CheckRow(
+                    label,
+                    spec_req.name,
+                    spec_req.expr,
+                    spec_req.probability,
+                    len(y),
+                    sim.to_json(),
+                    real_json,
+                    outside,
+                    sim.runs + len(logs) * sims_per_start,
+                    notes,
+                )
+            )
     for spec in unseen:
         label = version_label(spec, system)
         starts = list(real)
@@ -146,24 +188,51 @@ def check(ckpt: Checkpoint, real: Sequence[Log], requirements: Sequence[Requirem
         for spec_req, req in zip(requirements, reqs):
             sim = _sequential(checker, spec, starts, req, spec_req.probability, alpha, delta, max_runs, batch)
             verdict = model_only(_outcomes(req, runs), spec_req.probability, measured[spec_req.name], alpha)
-            rows.append(CheckRow(label, spec_req.name, spec_req.expr, spec_req.probability, 0, sim.to_json(),
-                                 verdict.to_json(), outside, sim.runs + runs.count,
-                                 ["never field-tested: started from the initial windows of the other versions' "
-                                  "real logs"]))
+            rows.append(
+                CheckRow(
+                    label,
+                    spec_req.name,
+                    spec_req.expr,
+                    spec_req.probability,
+                    0,
+                    sim.to_json(),
+                    verdict.to_json(),
+                    outside,
+                    sim.runs + runs.count,
+                    ["never field-tested: started from the initial windows of the other versions' real logs"],
+                )
+            )
     return rows
 
 
-def _sequential(checker: Checker, spec: ControllerSpec, starts: Sequence[Log], req: Requirement, p: float,
-                alpha: float, delta: float, max_runs: int, batch: int) -> Any:
+def _sequential(
+    checker: Checker,
+    spec: ControllerSpec,
+    starts: Sequence[Log],
+    req: Requirement,
+    p: float,
+    alpha: float,
+    delta: float,
+    max_runs: int,
+    batch: int,
+) -> Any:
     """Wald's SPRT on simulated runs drawn batch by batch from the starts, in turn."""
+
     def sample(n: int) -> np.ndarray:
         per_start = -(-n // len(starts))
         runs, _ = checker.runs(spec, starts, per_start)
         return _outcomes(req, runs)[:n].astype(bool)
 
     lo, hi = max(p - delta, 1e-6), min(p + delta, 1 - 1e-6)
-    return sprt(sample, p, delta=min(delta, p - lo + 1e-12, hi - p + 1e-12) if 0 < p < 1 else delta,
-                alpha=alpha, beta=alpha, max_runs=max_runs, batch=batch)
+    return sprt(
+        sample,
+        p,
+        delta=min(delta, p - lo + 1e-12, hi - p + 1e-12) if 0 < p < 1 else delta,
+        alpha=alpha,
+        beta=alpha,
+        max_runs=max_runs,
+        batch=batch,
+    )
 
 
 def parse_requirement(text: str, probability: float, index: int) -> RequirementSpec:
@@ -180,7 +249,9 @@ def parse_requirement(text: str, probability: float, index: int) -> RequirementS
     return RequirementSpec(f"R{index + 1}", expr, kind, prob)
 
 
-def requirements_of(system: SystemDescription | None, given: Sequence[str], probability: float) -> list[RequirementSpec]:
+def requirements_of(
+    system: SystemDescription | None, given: Sequence[str], probability: float
+) -> list[RequirementSpec]:
     """The command line's requirements when given, else the system description's."""
     if given:
         return [parse_requirement(t, probability, i) for i, t in enumerate(given)]
@@ -189,25 +260,39 @@ def requirements_of(system: SystemDescription | None, given: Sequence[str], prob
 
 def to_markdown(rows: Sequence[CheckRow], meta: dict[str, Any]) -> str:
     """The verdict table first, then the evidence."""
-    lines = ["# Requirement check", "",
-             "| version | requirement | P required | real runs | P (simulation) [interval], runs | "
-             "P (real system) [interval] | basis | verdict |", "|---|---|---:|---:|---|---|---|---|"]
+    lines = [
+        "# Requirement check",
+        "",
+        "| version | requirement | P required | real runs | P (simulation) [interval], runs | "
+        "P (real system) [interval] | basis | verdict |",
+        "|---|---|---:|---:|---|---|---|---|",
+    ]
     for r in rows:
         s, q = r.simulation, r.real_system
         p_sim = s["successes"] / s["runs"] if s["runs"] else float("nan")
-        lines.append(f"| {r.version} | {r.requirement}: `{r.expr}` | {r.p_required:g} | {r.n_real} | "
-                     f"{p_sim:.3f} [{s['interval'][0]:.3f}, {s['interval'][1]:.3f}], {s['runs']} ({s['verdict']}) | "
-                     f"[{q['interval'][0]:.3f}, {q['interval'][1]:.3f}] | {q['basis']} | **{q['verdict']}** |")
-    lines += ["", f"Confidence {1 - meta['alpha']:.0%} (each wrong PASS or FAIL at most {meta['alpha']:.0%}). "
-              "Simulation: Wald's SPRT with an indifference region of "
-              f"+-{meta['delta']:g} around the required probability, stopped at {meta['max_runs']} runs at most; "
-              "its interval is valid at the stopping time. Real system: prediction-powered inference from the "
-              "model's predictions and the paired real runs, withdrawn to the real runs alone when a calibration "
-              "test rejects the model; a version without real runs rests on the model only.", "", "## Evidence", ""]
+        lines.append(
+            f"| {r.version} | {r.requirement}: `{r.expr}` | {r.p_required:g} | {r.n_real} | "
+            f"{p_sim:.3f} [{s['interval'][0]:.3f}, {s['interval'][1]:.3f}], {s['runs']} ({s['verdict']}) | "
+            f"[{q['interval'][0]:.3f}, {q['interval'][1]:.3f}] | {q['basis']} | **{q['verdict']}** |"
+        )
+    lines += [
+        "",
+        f"Confidence {1 - meta['alpha']:.0%} (each wrong PASS or FAIL at most {meta['alpha']:.0%}). "
+        "Simulation: Wald's SPRT with an indifference region of "
+        f"+-{meta['delta']:g} around the required probability, stopped at {meta['max_runs']} runs at most; "
+        "its interval is valid at the stopping time. Real system: prediction-powered inference from the "
+        "model's predictions and the paired real runs, withdrawn to the real runs alone when a calibration "
+        "test rejects the model; a version without real runs rests on the model only.",
+        "",
+        "## Evidence",
+        "",
+    ]
     for r in rows:
         q = r.real_system
-        lines.append(f"- {r.version}, {r.requirement}: {q.get('reason', '')}. Simulated runs outside the "
-                     f"training data: {r.outside_training} of {r.sim_runs}." + "".join(f" {n}." for n in r.notes))
+        lines.append(
+            f"- {r.version}, {r.requirement}: {q.get('reason', '')}. Simulated runs outside the "
+            f"training data: {r.outside_training} of {r.sim_runs}." + "".join(f" {n}." for n in r.notes)
+        )
     lines += ["", "## Provenance", "", *(f"- {k}: {v}" for k, v in meta.items())]
     return "\n".join(lines) + "\n"
 

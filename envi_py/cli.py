@@ -57,14 +57,26 @@ def parse_where(items: Sequence[str] | None) -> dict[str, list[Any]] | None:
 
 def add_log_args(p: argparse.ArgumentParser, flag: str = "--logs", required: bool = True, help: str = "") -> None:
     dest = flag.lstrip("-").replace("-", "_")
-    p.add_argument(flag, dest=dest, nargs="+", required=required,
-                   help=help or "log files, folders or manifest .json files (sorted, validated)")
-    p.add_argument("--system", default=None, metavar="NAME|FILE",
-                   help="system description (TOML, or a shipped one: lane-keeping, car) for logs without "
-                        "sidecar; 'envi init --logs DIR' drafts one (default: sidecars, else lane-keeping)")
-    p.add_argument("--pattern", default=None,
-                   help="file name pattern for logs without sidecar, e.g. 'log_{x}_{run}.csv' "
-                        "(fields become controller parameters; 'run' the run id)")
+    p.add_argument(
+        flag,
+        dest=dest,
+        nargs="+",
+        required=required,
+        help=help or "log files, folders or manifest .json files (sorted, validated)",
+    )
+    p.add_argument(
+        "--system",
+        default=None,
+        metavar="NAME|FILE",
+        help="system description (TOML, or a shipped one: lane-keeping, car) for logs without "
+        "sidecar; 'envi init --logs DIR' drafts one (default: sidecars, else lane-keeping)",
+    )
+    p.add_argument(
+        "--pattern",
+        default=None,
+        help="file name pattern for logs without sidecar, e.g. 'log_{x}_{run}.csv' "
+        "(fields become controller parameters; 'run' the run id)",
+    )
     p.add_argument("--where", nargs="*", default=None, help="keep logs whose parameters match, e.g. x=10,30,50")
     p.add_argument("--skip-bad", action="store_true", help="skip (with a warning) logs that fail validation")
 
@@ -78,8 +90,13 @@ def system_of(args: argparse.Namespace) -> SystemDescription | None:
 
 
 def read_logs(args: argparse.Namespace, attr: str = "logs", min_length: int = 1) -> list[Log]:
-    return load_logs(getattr(args, attr), system_of(args), min_length=min_length, skip_bad=args.skip_bad,
-                     where=parse_where(args.where))
+    return load_logs(
+        getattr(args, attr),
+        system_of(args),
+        min_length=min_length,
+        skip_bad=args.skip_bad,
+        where=parse_where(args.where),
+    )
 
 
 def add_metric_args(p: argparse.ArgumentParser) -> None:
@@ -94,6 +111,7 @@ def metric_config(args: argparse.Namespace, skip: int) -> MetricConfig:
 
 
 # ------------------------------------------------------------------------------------ init
+
 
 def cmd_init(args: argparse.Namespace) -> int:
     """Draft a system description from a folder of logs for the user to edit."""
@@ -112,16 +130,18 @@ def cmd_init(args: argparse.Namespace) -> int:
 
 # ------------------------------------------------------------------------------------ split
 
-def _take(group: list[Log], n_train: int | None, n_val: int, n_test: int, mode: str,
-          rng: Any) -> tuple[list[Log], list[Log], list[Log]]:
+
+def _take(
+    group: list[Log], n_train: int | None, n_val: int, n_test: int, mode: str, rng: Any
+) -> tuple[list[Log], list[Log], list[Log]]:
     """train / val / test of one set of logs: ``blocks`` keeps file order (test from the end,
     validation before it, training from the start), ``random`` draws them."""
     order = list(range(len(group))) if mode == "blocks" else [int(i) for i in rng.permutation(len(group))]
     if mode == "blocks":
-        test, rest = order[len(order) - n_test:] if n_test else [], order[:len(order) - n_test]
+        test, rest = order[len(order) - n_test :] if n_test else [], order[: len(order) - n_test]
     else:
         test, rest = order[:n_test], order[n_test:]
-    val, rest = (rest[len(rest) - n_val:], rest[:len(rest) - n_val]) if n_val else ([], rest)
+    val, rest = (rest[len(rest) - n_val :], rest[: len(rest) - n_val]) if n_val else ([], rest)
     train = rest if n_train is None else rest[:n_train]
     return ([group[i] for i in sorted(train)], [group[i] for i in sorted(val)], [group[i] for i in sorted(test)])
 
@@ -162,6 +182,7 @@ def cmd_split(args: argparse.Namespace) -> int:
 
 # ------------------------------------------------------------------------------------ train
 
+
 def _positive(args: argparse.Namespace, *names: str) -> None:
     for name in names:
         v = getattr(args, name)
@@ -194,8 +215,14 @@ def cmd_train(args: argparse.Namespace) -> int:
     val = read_logs(args, "val_logs", min_length=args.history + 1) if args.val_logs else []
     kwargs: dict[str, Any] = {"seed": args.seed, "history": args.history, "progress": not args.quiet}
     if args.algorithm != "random":
-        kwargs.update(epochs=args.epochs, hidden=hidden, eval_every=args.eval_every, extras=tuple(args.extras),
-                      play_width=args.play_width, context=args.context)
+        kwargs.update(
+            epochs=args.epochs,
+            hidden=hidden,
+            eval_every=args.eval_every,
+            extras=tuple(args.extras),
+            play_width=args.play_width,
+            context=args.context,
+        )
         if args.algorithm == "bc":
             kwargs["head"] = args.head
         elif args.head == "deterministic":
@@ -214,12 +241,15 @@ def cmd_train(args: argparse.Namespace) -> int:
     sel = ckpt.record.selection
     if sel.get("warning"):
         print(f"envi train: warning: {sel['warning']}", file=sys.stderr)
-    print(f"trained {args.algorithm} on {len(logs)} logs ({len(val)} validation) in "
-          f"{time.perf_counter() - t0:.1f} s; selected epoch {sel.get('best_epoch', '-')}; saved {path}")
+    print(
+        f"trained {args.algorithm} on {len(logs)} logs ({len(val)} validation) in "
+        f"{time.perf_counter() - t0:.1f} s; selected epoch {sel.get('best_epoch', '-')}; saved {path}"
+    )
     return 0
 
 
 # ------------------------------------------------------------------------------------ simulate
+
 
 def cmd_simulate(args: argparse.Namespace) -> int:
     from .logs import group_by_controller
@@ -238,8 +268,10 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     stems = [Path(lg.path).stem if lg.path else lg.meta.run_id for lg in init]
     dup = sorted({st for st in stems if stems.count(st) > 1})
     if dup:
-        raise ValueError(f"initial logs from different folders share the name {dup[0]!r}: their simulated runs would "
-                         "overwrite each other; simulate them into separate --out folders")
+        raise ValueError(
+            f"initial logs from different folders share the name {dup[0]!r}: their simulated runs would "
+            "overwrite each other; simulate them into separate --out folders"
+        )
     engines = {choose_engine(ckpt, spec, args.engine) for spec in specs}
     if args.engine == "auto" and "torch" in engines:
         from .native import unsupported
@@ -247,8 +279,10 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         for spec in specs:
             why = unsupported(ckpt, spec)
             if why:
-                print(f"envi simulate: the native engine cannot run {spec.label()} ({why}); using PyTorch",
-                      file=sys.stderr)
+                print(
+                    f"envi simulate: the native engine cannot run {spec.label()} ({why}); using PyTorch",
+                    file=sys.stderr,
+                )
     t0 = time.perf_counter()
     n = 0
     for spec, group in versions_to_simulate(init, given):
@@ -260,6 +294,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 
 # ------------------------------------------------------------------------------------ verify
+
 
 def cmd_verify(args: argparse.Namespace) -> int:
     from .verify import to_text, verify, write_report
@@ -275,6 +310,7 @@ def cmd_verify(args: argparse.Namespace) -> int:
 
 
 # ------------------------------------------------------------------------------------ check
+
 
 def cmd_check(args: argparse.Namespace) -> int:
     """A verdict per controller version and requirement, for the real system, with as few runs as needed."""
@@ -292,26 +328,50 @@ def cmd_check(args: argparse.Namespace) -> int:
     real = read_logs(args, "real", min_length=ckpt.config.history + 1)
     system = ckpt.system
     reqs = requirements_of(system, args.require or [], args.probability)
-    unseen = [system.controller_for(parse_where_one(v)) if system and system.controller else None
-              for v in args.unseen or []]
+    unseen = [
+        system.controller_for(parse_where_one(v)) if system and system.controller else None for v in args.unseen or []
+    ]
     if any(u is None for u in unseen):
         raise ValueError("--unseen needs a system description with a [controller] to build the version from")
     extra = ckpt.recorded_logs("data", missing_ok=True) + ckpt.recorded_logs("validation", missing_ok=True)
-    rows = check(ckpt, real, reqs, [u for u in unseen if u is not None], extra, alpha=args.alpha, delta=args.delta,
-                 max_runs=args.max_runs, batch=args.batch, sims_per_start=args.sims_per_start, seed=args.seed,
-                 engine=args.engine)
-    meta = {"model": str(args.model), "envi": __version__, "command": " ".join(sys.argv),
-            "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-            "alpha": args.alpha, "delta": args.delta, "max_runs": args.max_runs, "batch": args.batch,
-            "sims_per_start": args.sims_per_start, "seed": args.seed}
+    rows = check(
+        ckpt,
+        real,
+        reqs,
+        [u for u in unseen if u is not None],
+        extra,
+        alpha=args.alpha,
+        delta=args.delta,
+        max_runs=args.max_runs,
+        batch=args.batch,
+        sims_per_start=args.sims_per_start,
+        seed=args.seed,
+        engine=args.engine,
+    )
+    meta = {
+        "model": str(args.model),
+        "envi": __version__,
+        "command": " ".join(sys.argv),
+        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "alpha": args.alpha,
+        "delta": args.delta,
+        "max_runs": args.max_runs,
+        "batch": args.batch,
+        "sims_per_start": args.sims_per_start,
+        "seed": args.seed,
+    }
     width = max(len(r.version) for r in rows)
-    print(f"{'version':<{width}} {'requirement':<14} {'P req':>6} {'real':>4} {'sim runs':>8} "
-          f"{'P real system':>16} {'basis':<11} verdict")
+    print(
+        f"{'version':<{width}} {'requirement':<14} {'P req':>6} {'real':>4} {'sim runs':>8} "
+        f"{'P real system':>16} {'basis':<11} verdict"
+    )
     for r in rows:
         q = r.real_system
-        print(f"{r.version:<{width}} {r.requirement[:14]:<14} {r.p_required:>6g} {r.n_real:>4} "
-              f"{r.simulation['runs']:>8} [{q['interval'][0]:.3f}, {q['interval'][1]:.3f}] {q['basis'][:11]:<11} "
-              f"{r.verdict}")
+        print(
+            f"{r.version:<{width}} {r.requirement[:14]:<14} {r.p_required:>6g} {r.n_real:>4} "
+            f"{r.simulation['runs']:>8} [{q['interval'][0]:.3f}, {q['interval'][1]:.3f}] {q['basis'][:11]:<11} "
+            f"{r.verdict}"
+        )
     if args.out:
         md, js = write_check(rows, Path(args.out), meta)
         print(f"report: {md} {js}")
@@ -334,6 +394,7 @@ def parse_where_one(text: str) -> dict[str, Any]:
 
 # ------------------------------------------------------------------------------------ demo
 
+
 def cmd_demo(args: argparse.Namespace) -> int:
     """The main job on the project's own data: twin logs -> split -> BC -> simulate -> verify."""
     from .demo import FAST, FULL, run_demo
@@ -347,8 +408,13 @@ class _Help(argparse.HelpFormatter):
 
     def _get_help_string(self, action: argparse.Action) -> str:
         text = action.help or ""
-        if (not action.option_strings or action.default is None or action.default is False
-                or action.default == argparse.SUPPRESS or "default" in text.lower()):
+        if (
+            not action.option_strings
+            or action.default is None
+            or action.default is False
+            or action.default == argparse.SUPPRESS
+            or "default" in text.lower()
+        ):
             return text
         return f"{text} (default: %(default)s)".strip()
 
@@ -362,8 +428,9 @@ class _Parser(argparse.ArgumentParser):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = _Parser(prog="envi", description="Learn an environment model from field logs "
-                                     "and verify a controller against it.")
+    parser = _Parser(
+        prog="envi", description="Learn an environment model from field logs and verify a controller against it."
+    )
     parser.add_argument("--debug", action="store_true", help="show tracebacks")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
 
@@ -380,9 +447,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--val", type=int, default=0, help="validation logs per version (model selection)")
     p.add_argument("--test", type=int, default=0, help="test logs per version (verification)")
     p.add_argument("--total", action="store_true", help="the counts are totals over all versions, not per version")
-    p.add_argument("--mode", choices=("random", "blocks"), default="random",
-                   help="random: seeded draw; blocks: test logs are the last ones in file order (the real "
-                        "logs are consecutive slices of one run, so blocks keeps neighbours apart)")
+    p.add_argument(
+        "--mode",
+        choices=("random", "blocks"),
+        default="random",
+        help="random: seeded draw; blocks: test logs are the last ones in file order (the real "
+        "logs are consecutive slices of one run, so blocks keeps neighbours apart)",
+    )
     p.add_argument("--seed", type=seed_type, default=0)
     p.add_argument("--out", required=True, help="folder for the three manifests")
     p.set_defaults(func=cmd_split)
@@ -390,40 +461,68 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("train", help="train an environment model")
     add_log_args(p, help="training logs")
     p.add_argument("--val-logs", nargs="*", default=None, help="validation logs for closed-loop model selection")
-    p.add_argument("--algorithm", choices=("bc", "gail", "bcxgail", "random"), default="bc",
-                   help="bc: behaviour cloning; gail, bcxgail: adversarial (PPO); random: the paper's baseline")
+    p.add_argument(
+        "--algorithm",
+        choices=("bc", "gail", "bcxgail", "random"),
+        default="bc",
+        help="bc: behaviour cloning; gail, bcxgail: adversarial (PPO); random: the paper's baseline",
+    )
     p.add_argument("--epochs", type=int, default=300, help="training epochs")
     p.add_argument("--lr", type=float, default=None, help="learning rate (default: the algorithm's, BC 5e-5)")
     p.add_argument("--history", type=int, default=10, help="window length l")
     p.add_argument("--hidden", default="256,256", help="hidden widths")
-    p.add_argument("--head", choices=("deterministic", "gaussian"), default="gaussian",
-                   help="gaussian: mean and spread of the next state, simulated by sampling (reproduces the "
-                        "real runs' spread); deterministic: the mean only (bc only)")
-    p.add_argument("--extras", nargs="*", choices=EXTRA_CHANNELS, default=[],
-                   help="derived input channels (what a diagnosis' fix may add): dt, phase, play")
-    p.add_argument("--play-width", type=float, default=0.0,
-                   help="the play channel's full width, a fraction of the action range")
+    p.add_argument(
+        "--head",
+        choices=("deterministic", "gaussian"),
+        default="gaussian",
+        help="gaussian: mean and spread of the next state, simulated by sampling (reproduces the "
+        "real runs' spread); deterministic: the mean only (bc only)",
+    )
+    p.add_argument(
+        "--extras",
+        nargs="*",
+        choices=EXTRA_CHANNELS,
+        default=[],
+        help="derived input channels (what a diagnosis' fix may add): dt, phase, play",
+    )
+    p.add_argument(
+        "--play-width", type=float, default=0.0, help="the play channel's full width, a fraction of the action range"
+    )
     p.add_argument("--context", action="store_true", help="append the per-run context of the initial window")
     p.add_argument("--eval-every", type=int, default=10, help="epochs between closed-loop validations")
     p.add_argument("--seed", type=seed_type, default=0, help="seed of initialisation and sampling")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
-    p.add_argument("--resume", action="store_true",
-                   help="continue a killed training from <output>.state (written at every validation; bc)")
+    p.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue a killed training from <output>.state (written at every validation; bc)",
+    )
     p.add_argument("-o", "--output", required=True, help="checkpoint file to write")
     p.set_defaults(func=cmd_train)
 
     p = sub.add_parser("simulate", help="simulate a controller against a model from real initial windows")
     p.add_argument("--model", required=True)
     add_log_args(p, "--init-logs", help="logs whose first l rows start the simulations")
-    p.add_argument("--controller", default=None,
-                   help="controller name or package.module:function (default: each log's own controller)")
+    p.add_argument(
+        "--controller",
+        default=None,
+        help="controller name or package.module:function (default: each log's own controller)",
+    )
     p.add_argument("--param", nargs="*", default=None, help="controller parameters, e.g. x=30")
     p.add_argument("--runs", type=int, default=1, help="runs per initial window")
-    p.add_argument("--steps", type=int, default=None,
-                   help="steps after the window (default: each initial log's length minus the window)")
+    p.add_argument(
+        "--steps",
+        type=int,
+        default=None,
+        help="steps after the window (default: each initial log's length minus the window)",
+    )
     p.add_argument("--seed", type=seed_type, default=0)
-    p.add_argument("--engine", choices=("auto", "native", "torch"), default="auto",
-                   help="auto (default): the C++ engine when it can run the model, else PyTorch")
+    p.add_argument(
+        "--engine",
+        choices=("auto", "native", "torch"),
+        default="auto",
+        help="auto (default): the C++ engine when it can run the model, else PyTorch",
+    )
     p.add_argument("--out", required=True, help="folder for simulated logs")
     p.set_defaults(func=cmd_simulate)
 
@@ -436,32 +535,58 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default=None, help="folder for report.md and report.json")
     p.set_defaults(func=cmd_verify)
 
-    p = sub.add_parser("check", help="verdict per version and requirement: P(goal) with an interval, for the real "
-                                     "system, deciding with as few simulated runs as needed")
+    p = sub.add_parser(
+        "check",
+        help="verdict per version and requirement: P(goal) with an interval, for the real "
+        "system, deciding with as few simulated runs as needed",
+    )
     p.add_argument("--model", required=True, help="checkpoint (.pt)")
-    add_log_args(p, "--real", help="real logs: their initial windows start the simulations, their outcomes "
-                                   "make the verdict about the real system")
-    p.add_argument("--require", nargs="*", default=None, metavar="EXPR[@P]",
-                   help="requirements, e.g. 'max_abs_dev(color, 40) <= 35@0.9' or 'always (distance >= 10)' "
-                        "(default: the system description's)")
+    add_log_args(
+        p,
+        "--real",
+        help="real logs: their initial windows start the simulations, their outcomes "
+        "make the verdict about the real system",
+    )
+    p.add_argument(
+        "--require",
+        nargs="*",
+        default=None,
+        metavar="EXPR[@P]",
+        help="requirements, e.g. 'max_abs_dev(color, 40) <= 35@0.9' or 'always (distance >= 10)' "
+        "(default: the system description's)",
+    )
     p.add_argument("--probability", type=float, default=0.9, help="required probability of --require without '@P'")
-    p.add_argument("--unseen", nargs="*", default=None, metavar="NAME=VALUE[,...]",
-                   help="versions never field-tested (TMVU), e.g. x=20; their verdict rests on the model")
+    p.add_argument(
+        "--unseen",
+        nargs="*",
+        default=None,
+        metavar="NAME=VALUE[,...]",
+        help="versions never field-tested (TMVU), e.g. x=20; their verdict rests on the model",
+    )
     p.add_argument("--alpha", type=float, default=0.05, help="each wrong PASS or FAIL has probability at most alpha")
-    p.add_argument("--delta", type=float, default=0.05,
-                   help="indifference region of the sequential test around the required probability")
+    p.add_argument(
+        "--delta",
+        type=float,
+        default=0.05,
+        help="indifference region of the sequential test around the required probability",
+    )
     p.add_argument("--max-runs", type=int, default=4000, help="simulated runs at most per version and requirement")
     p.add_argument("--batch", type=int, default=100, help="simulated runs per look of the sequential test")
-    p.add_argument("--sims-per-start", type=int, default=20,
-                   help="simulated runs from each real run's own initial window (its paired prediction)")
+    p.add_argument(
+        "--sims-per-start",
+        type=int,
+        default=20,
+        help="simulated runs from each real run's own initial window (its paired prediction)",
+    )
     p.add_argument("--seed", type=seed_type, default=0, help="seed of the simulations")
     p.add_argument("--engine", choices=("auto", "native", "torch"), default="auto", help="simulation engine")
     p.add_argument("--out", default=None, help="folder for check.md and check.json")
     p.set_defaults(func=cmd_check)
 
     p = sub.add_parser("demo", help="the main job on the built-in twin data")
-    p.add_argument("--system", choices=("lane-keeping", "car"), default="lane-keeping",
-                   help="which twin system plays the field")
+    p.add_argument(
+        "--system", choices=("lane-keeping", "car"), default="lane-keeping", help="which twin system plays the field"
+    )
     p.add_argument("--fast", action="store_true", help="a small demo (fewer logs, 40 epochs): a minute, not ten")
     p.add_argument("--out", default="demo_out", help="output folder")
     p.add_argument("--seed", type=seed_type, default=0, help="seed of the twin, training and simulation")

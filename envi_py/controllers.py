@@ -70,8 +70,9 @@ class ControllerSpec:
         """``name(k=v, ...)`` for tables; nested loops shown by their own labels."""
         return _label(self.name, self.params)
 
-    def build(self, n_state: int | None = None, n_action: int | None = None,
-              period_ms: float | None = None) -> Controller:
+    def build(
+        self, n_state: int | None = None, n_action: int | None = None, period_ms: float | None = None
+    ) -> Controller:
         """A fresh controller. With ``n_state``/``n_action`` its widths are checked against the
         model's; ``period_ms`` is the control period a PID integrates over unless it sets ``dt``."""
         return make_controller(self, n_state, n_action, period_ms)
@@ -141,7 +142,7 @@ class BangBang(Loop):
         self.x, self.threshold = float(x), float(threshold)
 
     def __call__(self, states: np.ndarray) -> np.ndarray:
-        return np.sign(states[:, self.input:self.input + 1] - self.threshold) * self.x
+        return np.sign(states[:, self.input : self.input + 1] - self.threshold) * self.x
 
 
 class PID(Loop):
@@ -156,12 +157,31 @@ class PID(Loop):
     """
 
     name = "pid"
-    defaults: dict[str, float | None] = {"kp": 1.0, "ki": 0.0, "kd": 0.0, "setpoint": 40.0, "dt": None,
-                                         "out_min": -90.0, "out_max": 90.0, "offset": 0.0, "input": 0}
+    defaults: dict[str, float | None] = {
+        "kp": 1.0,
+        "ki": 0.0,
+        "kd": 0.0,
+        "setpoint": 40.0,
+        "dt": None,
+        "out_min": -90.0,
+        "out_max": 90.0,
+        "offset": 0.0,
+        "input": 0,
+    }
 
-    def __init__(self, kp: float = 1.0, ki: float = 0.0, kd: float = 0.0, setpoint: float = 40.0,
-                 dt: float | None = None, out_min: float = -90.0, out_max: float = 90.0, offset: float = 0.0,
-                 input: int = 0, period_ms: float | None = None) -> None:
+    def __init__(
+        self,
+        kp: float = 1.0,
+        ki: float = 0.0,
+        kd: float = 0.0,
+        setpoint: float = 40.0,
+        dt: float | None = None,
+        out_min: float = -90.0,
+        out_max: float = 90.0,
+        offset: float = 0.0,
+        input: int = 0,
+        period_ms: float | None = None,
+    ) -> None:
         super().__init__(input)
         if dt is None:
             dt = (period_ms or 40.0) / 1000.0
@@ -180,7 +200,7 @@ class PID(Loop):
         self.terms = np.zeros((n, 3))
 
     def __call__(self, states: np.ndarray) -> np.ndarray:
-        err = states[:, self.input:self.input + 1] - self.setpoint
+        err = states[:, self.input : self.input + 1] - self.setpoint
         if self._integral.shape[0] != err.shape[0]:
             self.reset(err.shape[0])
         deriv = np.zeros_like(err) if self._prev is None else (err - self._prev) / self.dt
@@ -232,11 +252,16 @@ class Checked:
         out = np.asarray(self.inner(states), dtype=np.float64)
         if out.ndim == 1 and out.shape[0] == states.shape[0]:
             out = out[:, None]
-        if out.ndim != 2 or out.shape[0] != states.shape[0] or (
-                self.n_action is not None and out.shape[1] != self.n_action):
+        if (
+            out.ndim != 2
+            or out.shape[0] != states.shape[0]
+            or (self.n_action is not None and out.shape[1] != self.n_action)
+        ):
             want = f"({states.shape[0]}, {self.n_action})" if self.n_action is not None else f"({states.shape[0]}, k)"
-            raise WidthError(f"controller {self.name!r} answered shape {tuple(out.shape)} for {states.shape[0]} "
-                             f"run(s); the model needs {want}")
+            raise WidthError(
+                f"controller {self.name!r} answered shape {tuple(out.shape)} for {states.shape[0]} "
+                f"run(s); the model needs {want}"
+            )
         return out
 
 
@@ -286,8 +311,10 @@ def _loop(spec: ControllerSpec, n_state: int | None, period_ms: float | None) ->
         raise ValueError(f"combine: loop {spec.name!r} is not one of {', '.join(LOOPS)}")
     unknown = set(spec.params) - set(cls.defaults)
     if unknown:
-        raise ValueError(f"controller {spec.name!r}: unknown parameter(s) {', '.join(sorted(unknown))}; "
-                         f"known: {', '.join(cls.defaults)}")
+        raise ValueError(
+            f"controller {spec.name!r}: unknown parameter(s) {', '.join(sorted(unknown))}; "
+            f"known: {', '.join(cls.defaults)}"
+        )
     kwargs: dict[str, Any] = {k: _number(spec.name, k, v) for k, v in spec.params.items() if k != "input"}
     kwargs["input"] = _channel(spec.name, spec.params.get("input", 0), n_state)
     if cls is PID:
@@ -295,8 +322,9 @@ def _loop(spec: ControllerSpec, n_state: int | None, period_ms: float | None) ->
     return cls(**kwargs)
 
 
-def make_controller(spec: ControllerSpec, n_state: int | None = None, n_action: int | None = None,
-                    period_ms: float | None = None) -> Controller:
+def make_controller(
+    spec: ControllerSpec, n_state: int | None = None, n_action: int | None = None, period_ms: float | None = None
+) -> Controller:
     """Instantiate a registered controller, or a user's by import path ``package.module:name``."""
     if spec.name in LOOPS:
         inner: Any = _loop(spec, n_state, period_ms)
@@ -319,11 +347,14 @@ def make_controller(spec: ControllerSpec, n_state: int | None = None, n_action: 
             raise ValueError(f"controller {spec.name!r}: has no reset(n) method (see envi_py.controllers)")
         outputs = None
     else:
-        raise ValueError(f"unknown controller {spec.name!r}; registered: {', '.join(REGISTRY)}, "
-                         "or give 'package.module:function'")
+        raise ValueError(
+            f"unknown controller {spec.name!r}; registered: {', '.join(REGISTRY)}, or give 'package.module:function'"
+        )
     if outputs is not None and n_action is not None and outputs != n_action:
-        raise WidthError(f"controller {spec.label()!r} drives {outputs} action channel(s), the model has "
-                         f"{n_action}; use 'combine' with one loop per action")
+        raise WidthError(
+            f"controller {spec.label()!r} drives {outputs} action channel(s), the model has "
+            f"{n_action}; use 'combine' with one loop per action"
+        )
     return Checked(inner, spec.name, n_action)
 
 

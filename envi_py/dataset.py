@@ -93,8 +93,15 @@ def play_offsets(a: np.ndarray, width: float, start: np.ndarray | float | None =
     return out
 
 
-def extra_channels(time_ms: np.ndarray, names: Sequence[str], period_ms: float, phase_rows: int,
-                   first_row: int = 0, action: np.ndarray | None = None, play_width: float = 0.0) -> np.ndarray:
+def extra_channels(
+    time_ms: np.ndarray,
+    names: Sequence[str],
+    period_ms: float,
+    phase_rows: int,
+    first_row: int = 0,
+    action: np.ndarray | None = None,
+    play_width: float = 0.0,
+) -> np.ndarray:
     """The derived channels of rows ``first_row...`` of a log, (T, len(names)), on a [-1, 1]-like scale.
 
     ``play`` needs the log's first action, normalised (``action``, (T,)), and the play's full width
@@ -141,8 +148,9 @@ def context_of(window_z: np.ndarray, n_state: int) -> np.ndarray:
     return np.concatenate([s.mean(axis=-2), s.std(axis=-2)], axis=-1)
 
 
-def log_pairs(z: np.ndarray, history: int, n_state: int,
-              context: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def log_pairs(
+    z: np.ndarray, history: int, n_state: int, context: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Training pairs of one normalised log: X (T-l, l*C [+ context]) and Y (T-l, |s|)."""
     w = windows(z[:-1], history)
     x = w.reshape(w.shape[0], -1)
@@ -163,9 +171,16 @@ class Dataset:
     z: list[np.ndarray]  # each whole normalised log (T, C [+ extras]); GAIL rolls out from these
 
     @staticmethod
-    def build(logs: Sequence[Log], history: int, norm: Normaliser | None = None, extras: Sequence[str] = (),
-              period_ms: float = 40.0, phase_rows: int = 100, context: bool = False,
-              play_width: float = 0.0) -> "Dataset":
+    def build(
+        logs: Sequence[Log],
+        history: int,
+        norm: Normaliser | None = None,
+        extras: Sequence[str] = (),
+        period_ms: float = 40.0,
+        phase_rows: int = 100,
+        context: bool = False,
+        play_width: float = 0.0,
+    ) -> "Dataset":
         """Pairs of every log; ``extras`` and ``context`` as declared by the model's config."""
         norm = norm or Normaliser.fit(logs)
         n_state = logs[0].states.shape[1]
@@ -201,6 +216,6 @@ def split_logs(logs: Sequence[Log], fractions: Sequence[float], seed: int) -> li
         raise ValueError(f"cannot split {len(logs)} logs into {fractions}")
     out, pos = [], 0
     for c in counts:
-        out.append([logs[i] for i in sorted(order[pos:pos + c])])
+        out.append([logs[i] for i in sorted(order[pos : pos + c])])
         pos += c
     return out

@@ -51,8 +51,9 @@ def _car_logs(data: Path, runs: int, seed: int) -> tuple[list[Log], set[Controll
     return load_logs(data, load_system("car"), min_length=11), {specs[i] for i in CAR_TRAINED}
 
 
-def run_demo(out: Path, seed: int = 0, system: str = "lane-keeping", size: DemoSize = FULL,
-             epochs: int | None = None) -> Path:
+def run_demo(
+    out: Path, seed: int = 0, system: str = "lane-keeping", size: DemoSize = FULL, epochs: int | None = None
+) -> Path:
     """Generate, train, simulate, verify; returns the report's Markdown path."""
     data = out / "data"
     if system == "lane-keeping":
@@ -64,13 +65,15 @@ def run_demo(out: Path, seed: int = 0, system: str = "lane-keeping", size: DemoS
     train_logs, val_logs, test_logs = [], [], []
     for spec, group in group_by_controller(logs).items():
         if spec in trained:
-            train_logs += group[:size.n_train]
-            val_logs += group[size.n_train:size.n_train + size.n_val]
-        test_logs += group[size.n_train + size.n_val:]
+            train_logs += group[: size.n_train]
+            val_logs += group[size.n_train : size.n_train + size.n_val]
+        test_logs += group[size.n_train + size.n_val :]
     desc = load_system(system)
-    print(f"twin data ({system}): {len(logs)} logs in {data}; training on {len(train_logs)} logs of "
-          f"{len(trained)} versions, validating on {len(val_logs)}, verifying on {len(test_logs)} "
-          f"(all {len(group_by_controller(logs))} versions, the untrained ones are TMVU)")
+    print(
+        f"twin data ({system}): {len(logs)} logs in {data}; training on {len(train_logs)} logs of "
+        f"{len(trained)} versions, validating on {len(val_logs)}, verifying on {len(test_logs)} "
+        f"(all {len(group_by_controller(logs))} versions, the untrained ones are TMVU)"
+    )
     ckpt = train("bc", train_logs, val_logs, system=desc, seed=seed, epochs=epochs or size.epochs, progress=True)
     ckpt.save(out / "model.pt")
     engine = choose_engine(ckpt, next(iter(group_by_controller(test_logs))), "auto")
@@ -80,7 +83,10 @@ def run_demo(out: Path, seed: int = 0, system: str = "lane-keeping", size: DemoS
     print(f"simulated {len(sims)} runs on the {engine} engine")
     results = verify(test_logs, sims, desc, skip=ckpt.config.history, seed=seed)
     print(to_text(results))
-    md, _ = write_report(results, out / "report", f"Demo ({system}): BC model of the twin, trained on "
-                         f"{len(trained)} versions, verified on all (TMVK and TMVU)")
+    md, _ = write_report(
+        results,
+        out / "report",
+        f"Demo ({system}): BC model of the twin, trained on {len(trained)} versions, verified on all (TMVK and TMVU)",
+    )
     print(f"report: {md}")
     return md

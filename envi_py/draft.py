@@ -76,8 +76,10 @@ def _with_sidecar(path: Path, schema: LogSchema) -> Log:
     its roles) after checking it names the same columns as the header."""
     log = read_log(path)
     if sorted(log.meta.schema.columns) != sorted(schema.columns):
-        raise LogError(f"{sidecar_path(path)}: sidecar declares columns {','.join(log.meta.schema.columns)}, the "
-                       f"file holds {','.join(schema.columns)}")
+        raise LogError(
+            f"{sidecar_path(path)}: sidecar declares columns {','.join(log.meta.schema.columns)}, the "
+            f"file holds {','.join(schema.columns)}"
+        )
     return log
 
 
@@ -92,7 +94,7 @@ def draft_system(folder: Path, pattern: str | None = None) -> str:
     if pattern:
         pattern_regex(pattern)
     sidecar = next((sidecar_path(p) for p in files if sidecar_path(p).is_file()), None)
-    sample = files[::max(1, len(files) // MAX_FILES)][:MAX_FILES]  # spread over every version
+    sample = files[:: max(1, len(files) // MAX_FILES)][:MAX_FILES]  # spread over every version
     header = read_columns(sample[0])
     logs = [_read_any(path, header) for path in sample]
     columns = {name: np.concatenate([lg.signal(name) for lg in logs]) for name in header if name != "time"}
@@ -100,12 +102,19 @@ def draft_system(folder: Path, pattern: str | None = None) -> str:
     roles = {}
     if sidecar is not None:
         meta = read_sidecar(sidecar)
-        roles = {**{c.name: "state" for c in meta.schema.states}, **{c.name: "action" for c in meta.schema.actions},
-                 **{c.name: "logged" for c in meta.schema.logged}}
+        roles = {
+            **{c.name: "state" for c in meta.schema.states},
+            **{c.name: "action" for c in meta.schema.actions},
+            **{c.name: "logged" for c in meta.schema.logged},
+        }
     others = [h for h in header if h != "time"]
-    lines = [f"# Drafted by 'envi init' from {len(sample)} log(s) of {len(files)} in {folder}.",
-             "# Check every line marked CHECK: roles, ranges (physical limits, not the data's extent) and goals.", "",
-             "[system]", f"name = {toml_value(folder.name)}"]
+    lines = [
+        f"# Drafted by 'envi init' from {len(sample)} log(s) of {len(files)} in {folder}.",
+        "# Check every line marked CHECK: roles, ranges (physical limits, not the data's extent) and goals.",
+        "",
+        "[system]",
+        f"name = {toml_value(folder.name)}",
+    ]
     if periods:
         lines.append(f"period_ms = {toml_value(round(float(np.median(periods)), 3))}")
     for k, name in enumerate(others):
@@ -113,9 +122,14 @@ def draft_system(folder: Path, pattern: str | None = None) -> str:
         role = roles.get(name) or ("state" if k == 0 else "action" if k == 1 else "logged")
         guessed = "" if name in roles else "  # CHECK: guessed (state, action, logged or ignore)"
         low, high = _round_out(float(col.min()), float(col.max()))
-        lines += ["", "[[signals]]", f"name = {toml_value(name)}", f"role = {toml_value(role)}{guessed}",
-                  'unit = ""  # CHECK', f"range = {toml_value([low, high])}  # CHECK: observed "
-                  f"{col.min():g}..{col.max():g}"]
+        lines += [
+            "",
+            "[[signals]]",
+            f"name = {toml_value(name)}",
+            f"role = {toml_value(role)}{guessed}",
+            'unit = ""  # CHECK',
+            f"range = {toml_value([low, high])}  # CHECK: observed {col.min():g}..{col.max():g}",
+        ]
         res = _resolution(col)
         if res is not None and role == "state":
             lines.append(f"resolution = {toml_value(res)}")
@@ -124,8 +138,15 @@ def draft_system(folder: Path, pattern: str | None = None) -> str:
         lines.append(f"pattern = {toml_value(pattern)}  # fields become controller parameters, 'run' the run id")
     else:
         lines.append("# no common file-name shape: versions come from sidecars")
-    lines += ["", "[controller]", 'name = "lane-keeping"  # CHECK: a registered controller (bang-bang, pid, combine) '
-              "or 'package.module:function'", "params = {}", "",
-              "# [[goals]]  # e.g. metric = \"max_abs_dev\", signal = \"...\", setpoint = ...",
-              "# [[requirements]]  # e.g. expr = \"max_abs_dev(signal, setpoint) <= limit\", probability = 0.9", ""]
+    lines += [
+        "",
+        "[controller]",
+        'name = "lane-keeping"  # CHECK: a registered controller (bang-bang, pid, combine) '
+        "or 'package.module:function'",
+        "params = {}",
+        "",
+        '# [[goals]]  # e.g. metric = "max_abs_dev", signal = "...", setpoint = ...',
+        '# [[requirements]]  # e.g. expr = "max_abs_dev(signal, setpoint) <= limit", probability = 0.9',
+        "",
+    ]
     return "\n".join(lines)

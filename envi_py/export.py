@@ -35,8 +35,11 @@ def post_processing(ckpt: Checkpoint) -> dict[str, Any]:
     """The simulator's output post-processing with the limits resolved, as ``Checkpoint.post_process`` does."""
     cfg = ckpt.config
     low, high = ckpt.limits()
-    return {"clamp": bool(cfg.clamp), "limits": [[float(lo), float(hi)] for lo, hi in zip(low, high)],
-            "round_to": None if cfg.round_to is None else list(cfg.round_to)}
+    return {
+        "clamp": bool(cfg.clamp),
+        "limits": [[float(lo), float(hi)] for lo, hi in zip(low, high)],
+        "round_to": None if cfg.round_to is None else list(cfg.round_to),
+    }
 
 
 def metadata(ckpt: Checkpoint) -> dict[str, str]:
@@ -69,10 +72,13 @@ def metadata(ckpt: Checkpoint) -> dict[str, str]:
 
 def _dense(nodes: list, inits: list, x: str, weight: np.ndarray, bias: np.ndarray, name: str) -> str:
     """``Gemm(x, W, b, transB=1)``: torch's Linear layout, no transpose copy of the weights."""
-    inits += [numpy_helper.from_array(np.ascontiguousarray(weight, dtype=np.float32), f"{name}.weight"),
-              numpy_helper.from_array(np.ascontiguousarray(bias, dtype=np.float32), f"{name}.bias")]
-    nodes.append(helper.make_node("Gemm", [x, f"{name}.weight", f"{name}.bias"], [f"{name}.out"],
-                                  name=f"{name}.gemm", transB=1))
+    inits += [
+        numpy_helper.from_array(np.ascontiguousarray(weight, dtype=np.float32), f"{name}.weight"),
+        numpy_helper.from_array(np.ascontiguousarray(bias, dtype=np.float32), f"{name}.bias"),
+    ]
+    nodes.append(
+        helper.make_node("Gemm", [x, f"{name}.weight", f"{name}.bias"], [f"{name}.out"], name=f"{name}.gemm", transB=1)
+    )
     return f"{name}.out"
 
 
@@ -82,8 +88,9 @@ def to_onnx(ckpt: Checkpoint) -> onnx.ModelProto:
     if cfg.kind != "mlp":
         raise ValueError(f"only MLP models can be exported, this one is {cfg.kind!r}")
     if not cfg.plain:
-        raise ValueError("models with derived channels or a run context cannot be exported yet "
-                         "(the runtimes only feed the window)")
+        raise ValueError(
+            "models with derived channels or a run context cannot be exported yet (the runtimes only feed the window)"
+        )
     sd = {k: v.detach().cpu().numpy() for k, v in ckpt.model.state_dict().items()}
     nodes: list = []
     inits: list = []
@@ -97,15 +104,22 @@ def to_onnx(ckpt: Checkpoint) -> onnx.ModelProto:
     outputs = [helper.make_tensor_value_info("mean", TensorProto.FLOAT, ["N", cfg.n_state])]
     if cfg.head == "gaussian":
         s = _dense(nodes, inits, h, sd["log_std.weight"], sd["log_std.bias"], "log_std_head")
-        inits += [numpy_helper.from_array(np.array(LOG_STD_MIN, np.float32), "log_std_min"),
-                  numpy_helper.from_array(np.array(LOG_STD_MAX, np.float32), "log_std_max")]
+        inits += [
+            numpy_helper.from_array(np.array(LOG_STD_MIN, np.float32), "log_std_min"),
+            numpy_helper.from_array(np.array(LOG_STD_MAX, np.float32), "log_std_max"),
+        ]
         nodes.append(helper.make_node("Clip", [s, "log_std_min", "log_std_max"], ["log_std"], name="log_std_head.clip"))
         outputs.append(helper.make_tensor_value_info("log_std", TensorProto.FLOAT, ["N", cfg.n_state]))
-    graph = helper.make_graph(nodes, "envi_env_model",
-                              [helper.make_tensor_value_info(INPUT, TensorProto.FLOAT, ["N", cfg.in_features])],
-                              outputs, inits)
-    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", OPSET)],
-                              producer_name="envi", producer_version=__version__)
+    graph = helper.make_graph(
+        nodes,
+        "envi_env_model",
+        [helper.make_tensor_value_info(INPUT, TensorProto.FLOAT, ["N", cfg.in_features])],
+        outputs,
+        inits,
+    )
+    model = helper.make_model(
+        graph, opset_imports=[helper.make_opsetid("", OPSET)], producer_name="envi", producer_version=__version__
+    )
     model.ir_version = 8  # the newest IR that opset 17 runtimes of 2022 onwards all read
     helper.set_model_props(model, metadata(ckpt))
     onnx.checker.check_model(model, full_check=True)
@@ -115,8 +129,11 @@ def to_onnx(ckpt: Checkpoint) -> onnx.ModelProto:
 def parity_inputs(in_features: int, n: int = 4096, seed: int = 0) -> np.ndarray:
     """Seeded windows: in-range, slightly beyond, and large (saturating tanh) values."""
     rng = np.random.default_rng(seed)
-    parts = [rng.uniform(-1, 1, (n // 2, in_features)), rng.normal(0, 2, (n // 4, in_features)),
-             rng.normal(0, 50, (n - n // 2 - n // 4, in_features))]
+    parts = [
+        rng.uniform(-1, 1, (n // 2, in_features)),
+        rng.normal(0, 2, (n // 4, in_features)),
+        rng.normal(0, 50, (n - n // 2 - n // 4, in_features)),
+    ]
     return np.concatenate(parts).astype(np.float32)
 
 
@@ -167,8 +184,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"envi-export: error: {str(exc).splitlines()[0]}", file=sys.stderr)
         return 2
     size = path.stat().st_size
-    print(f"wrote {path} ({size / 1024:.1f} KiB, opset {OPSET}, {ckpt.config.head} head"
-          + ("" if args.no_check else f", onnxruntime parity <= {PARITY_TOL:g}") + ")")
+    print(
+        f"wrote {path} ({size / 1024:.1f} KiB, opset {OPSET}, {ckpt.config.head} head"
+        + ("" if args.no_check else f", onnxruntime parity <= {PARITY_TOL:g}")
+        + ")"
+    )
     return 0
 
 

@@ -89,8 +89,9 @@ class LogMeta:
             raise LogError(f"{where}: a sidecar must be a JSON object, not {type(d).__name__}")
         version = d.get("schema_version")
         if isinstance(version, bool) or not isinstance(version, int) or version != SCHEMA_VERSION:
-            raise LogError(f"{where}: sidecar schema_version {version!r:.40} is not supported "
-                           f"(expected {SCHEMA_VERSION})")
+            raise LogError(
+                f"{where}: sidecar schema_version {version!r:.40} is not supported (expected {SCHEMA_VERSION})"
+            )
         source = d.get("source", "fot")
         if source not in SOURCES:
             raise LogError(f"{where}: sidecar source {source!r:.40} is not one of {', '.join(SOURCES)}")
@@ -102,15 +103,24 @@ class LogMeta:
         except ValueError as exc:
             raise LogError(f"{where}: sidecar {exc}") from None
         period = d.get("period_ms")
-        if period is not None and (isinstance(period, bool) or not isinstance(period, (int, float))
-                                   or not (math.isfinite(period) and period > 0)):
+        if period is not None and (
+            isinstance(period, bool)
+            or not isinstance(period, (int, float))
+            or not (math.isfinite(period) and period > 0)
+        ):
             raise LogError(f"{where}: sidecar period_ms {period!r:.40} is not a positive number")
         run_id = None if d.get("run_id") is None else safe_run_id(d["run_id"], where)
         provenance = {} if d.get("provenance") is None else d["provenance"]
         if not isinstance(provenance, dict):
             raise LogError(f"{where}: sidecar provenance must be an object")
-        return LogMeta(schema=schema, controller=controller, period_ms=None if period is None else float(period),
-                       run_id=run_id, source=source, provenance=dict(provenance))
+        return LogMeta(
+            schema=schema,
+            controller=controller,
+            period_ms=None if period is None else float(period),
+            run_id=run_id,
+            source=source,
+            provenance=dict(provenance),
+        )
 
 
 @dataclass
@@ -150,8 +160,10 @@ class Log:
     def controller(self) -> ControllerSpec:
         """The controller version that produced this log; an error when the log does not say."""
         if not self.meta.controller:
-            raise LogError(f"{self.name}: the log does not say which controller produced it (give a "
-                           "system description with a [controller], or a file-name --pattern with its version)")
+            raise LogError(
+                f"{self.name}: the log does not say which controller produced it (give a "
+                "system description with a [controller], or a file-name --pattern with its version)"
+            )
         return ControllerSpec.from_json(self.meta.controller)
 
     def signal(self, name: str) -> np.ndarray:
@@ -301,14 +313,17 @@ def _header(path: Path, text: str, expected: list[str], ignore: Sequence[str]) -
         if missing:
             parts.append("missing column(s) " + ", ".join(missing))
         if extra:
-            parts.append("unexpected column(s) " + ", ".join(extra) + " (declare them in the system description "
-                         "with role 'logged' or 'ignore')")
+            parts.append(
+                "unexpected column(s) " + ", ".join(extra) + " (declare them in the system description "
+                "with role 'logged' or 'ignore')"
+            )
         raise LogError(f"{path}: row 1: {'; '.join(parts)} (expected {','.join(expected)})")
     return header, [header.index(c) for c in expected]
 
 
-def _parse_rows(path: Path, text: str, header: list[str], order: list[int],
-                expected: list[str]) -> tuple[np.ndarray, np.ndarray]:
+def _parse_rows(
+    path: Path, text: str, header: list[str], order: list[int], expected: list[str]
+) -> tuple[np.ndarray, np.ndarray]:
     """The data rows as floats in ``expected`` order, and each one's row number in the file (blank
     lines count, as a spreadsheet shows them). A fast vectorised parse for well-formed files without
     blank lines; anything else is read row by row so an error names the row and column."""
@@ -317,8 +332,9 @@ def _parse_rows(path: Path, text: str, header: list[str], order: list[int],
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("error")  # an empty file body warns; treat it as the slow path
-                data = np.loadtxt(io.StringIO(body), delimiter=",", dtype=np.float64, comments=None, ndmin=2,
-                                  quotechar='"')
+                data = np.loadtxt(
+                    io.StringIO(body), delimiter=",", dtype=np.float64, comments=None, ndmin=2, quotechar='"'
+                )
             if data.shape[1] == len(header) and np.isfinite(data).all():
                 return data[:, order], np.arange(2, 2 + len(data))
         except (ValueError, UserWarning):
@@ -350,13 +366,16 @@ def _check_ranges(path: Path, data: np.ndarray, rows: np.ndarray, schema: LogSch
             data[:, k] = np.clip(col, ch.low, ch.high)
             continue
         r = int(bad[0])
-        raise LogError(f"{path}: row {rows[r]}: column '{ch.name}' is {col[r]:g}, outside its valid range "
-                       f"[{ch.low:g}, {ch.high:g}]")
+        raise LogError(
+            f"{path}: row {rows[r]}: column '{ch.name}' is {col[r]:g}, outside its valid range "
+            f"[{ch.low:g}, {ch.high:g}]"
+        )
     return data
 
 
-def read_log(path: str | os.PathLike, meta: LogMeta | None = None, min_length: int = 1,
-             ignore: Sequence[str] = ()) -> Log:
+def read_log(
+    path: str | os.PathLike, meta: LogMeta | None = None, min_length: int = 1, ignore: Sequence[str] = ()
+) -> Log:
     """Read and validate one CSV log.
 
     ``meta`` describes a log that has no sidecar (e.g. the real lane-keeping logs); a sidecar, when
@@ -387,8 +406,14 @@ def read_log(path: str | os.PathLike, meta: LogMeta | None = None, min_length: i
         raise LogError(f"{path}: row {rows[r]}: time {data[r, 0]:g} does not increase (previous {data[r - 1, 0]:g})")
     data = _check_ranges(path, data, rows, meta.schema)
     ns, nc = len(meta.schema.states), len(meta.schema.channels)
-    return Log(path, data[:, 0].copy(), data[:, 1:1 + ns].copy(), data[:, 1 + ns:1 + nc].copy(), meta,
-               data[:, 1 + nc:].copy())
+    return Log(
+        path,
+        data[:, 0].copy(),
+        data[:, 1 : 1 + ns].copy(),
+        data[:, 1 + ns : 1 + nc].copy(),
+        meta,
+        data[:, 1 + nc :].copy(),
+    )
 
 
 def _umask() -> int:
@@ -425,8 +450,10 @@ def write_log(log: Log, path: str | os.PathLike) -> Path:
     lines = [",".join(log.meta.schema.columns)]
     n_logged = len(log.meta.schema.logged)
     if log.logged is None or log.logged.shape != (len(log), n_logged):
-        raise ValueError(f"{path}: the log holds {0 if log.logged is None else log.logged.shape[1]} logged "
-                         f"column(s), its schema declares {n_logged}")
+        raise ValueError(
+            f"{path}: the log holds {0 if log.logged is None else log.logged.shape[1]} logged "
+            f"column(s), its schema declares {n_logged}"
+        )
     for t, s, a, extra in zip(log.time, log.states, log.actions, log.logged):
         lines.append(",".join(_fmt(v) for v in (t, *s, *a, *extra)))
     _atomic_write(sidecar_path(path), json.dumps(log.meta.to_json(), indent=1) + "\n")
@@ -463,28 +490,39 @@ def _meta_for(path: Path, system: SystemDescription, rx: re.Pattern[str] | None)
         if m is None:
             return None
         fields = {k: _number(v) for k, v in m.groupdict().items()}
-        odd = [f"{k}={v}" for k, v in fields.items() if k != "run" and isinstance(v, str) and (
-            _NON_FINITE.match(v) or _NUMBER.match(v))]
+        odd = [
+            f"{k}={v}"
+            for k, v in fields.items()
+            if k != "run" and isinstance(v, str) and (_NON_FINITE.match(v) or _NUMBER.match(v))
+        ]
         if odd:
             raise LogError(f"{path}: the file name's field {odd[0]} is not a finite number")
         run = fields.pop("run", path.stem)
     spec = system.controller_for(fields)
-    return LogMeta(schema=system.schema, controller=None if spec is None else spec.to_json(),
-                   period_ms=system.period_ms, run_id=safe_run_id(run, str(path)), source="fot",
-                   provenance={"file": path.name})
+    return LogMeta(
+        schema=system.schema,
+        controller=None if spec is None else spec.to_json(),
+        period_ms=system.period_ms,
+        run_id=safe_run_id(run, str(path)),
+        source="fot",
+        provenance={"file": path.name},
+    )
 
 
 def _agree(log: Log, expected: LogMeta | None, system: SystemDescription | None) -> None:
     """A sidecar must agree with the system description and the file-name pattern: a conflict is an
     error naming both, never a silent override."""
     if system is not None and log.meta.schema.columns != system.schema.columns:
-        raise LogError(f"{sidecar_path(log.path) if log.path else log.name}: sidecar declares columns "
-                       f"{','.join(log.meta.schema.columns)}, the system description "
-                       f"{system.source or system.name} {','.join(system.schema.columns)}")
+        raise LogError(
+            f"{sidecar_path(log.path) if log.path else log.name}: sidecar declares columns "
+            f"{','.join(log.meta.schema.columns)}, the system description "
+            f"{system.source or system.name} {','.join(system.schema.columns)}"
+        )
     if expected is None or expected.controller is None or log.meta.controller is None:
         return
-    pattern_params = {k: v for k, v in expected.controller["params"].items()
-                      if system is not None and k in system.versions.params}
+    pattern_params = {
+        k: v for k, v in expected.controller["params"].items() if system is not None and k in system.versions.params
+    }
     side_params = log.meta.controller.get("params", {})
     for k, v in pattern_params.items():
         if k in side_params and str(side_params[k]) != str(v) and _number(str(side_params[k])) != v:
@@ -531,14 +569,20 @@ def load_manifest(path: Path) -> tuple[SystemDescription | None, list[Path]]:
 
 def write_manifest(path: Path, logs: Sequence[Log], system: SystemDescription | None) -> None:
     """The exact set of logs with the description that reads them, so a manifest reads back alone."""
-    manifest = {"system": None if system is None else system.to_json(),
-                "logs": [str(Path(lg.path).resolve()) for lg in logs if lg.path]}
+    manifest = {
+        "system": None if system is None else system.to_json(),
+        "logs": [str(Path(lg.path).resolve()) for lg in logs if lg.path],
+    }
     _atomic_write(path, json.dumps(manifest, indent=1) + "\n")
 
 
-def load_logs(sources: Sequence[str | os.PathLike] | str | os.PathLike, system: SystemDescription | None = None,
-              min_length: int = 1, skip_bad: bool = False,
-              where: dict[str, Any] | None = None) -> list[Log]:
+def load_logs(
+    sources: Sequence[str | os.PathLike] | str | os.PathLike,
+    system: SystemDescription | None = None,
+    min_length: int = 1,
+    skip_bad: bool = False,
+    where: dict[str, Any] | None = None,
+) -> list[Log]:
     """Load logs from files, folders or ``*.json`` manifests; sorted, validated, one schema.
 
     ``system`` describes logs without sidecar (columns, version parameters from the file name, the
@@ -555,8 +599,10 @@ def load_logs(sources: Sequence[str | os.PathLike] | str | os.PathLike, system: 
         if p.suffix == ".json" and p.is_file():
             msys, files = load_manifest(p)
             if system is not None and msys is not None and msys.schema.columns != system.schema.columns:
-                raise LogError(f"{p}: the manifest's system ({','.join(msys.schema.columns)}) differs from the "
-                               f"one given ({','.join(system.schema.columns)})")
+                raise LogError(
+                    f"{p}: the manifest's system ({','.join(msys.schema.columns)}) differs from the "
+                    f"one given ({','.join(system.schema.columns)})"
+                )
             entries += [(f, msys or system) for f in files]
         elif p.is_dir():
             entries += [(f, system) for f in list_log_files(p, system.versions.pattern if system else None)]
@@ -589,8 +635,10 @@ def load_logs(sources: Sequence[str | os.PathLike] | str | os.PathLike, system: 
     first = logs[0]
     for lg in logs[1:]:
         if lg.meta.schema.columns != first.meta.schema.columns:
-            raise LogError(f"{lg.path}: schema {lg.meta.schema.columns} differs from {first.path}: "
-                           f"{first.meta.schema.columns} (mixed schemas in one dataset)")
+            raise LogError(
+                f"{lg.path}: schema {lg.meta.schema.columns} differs from {first.path}: "
+                f"{first.meta.schema.columns} (mixed schemas in one dataset)"
+            )
     return logs
 
 

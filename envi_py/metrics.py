@@ -28,9 +28,14 @@ import numpy as np
 from scipy import stats
 
 METRIC_NAMES: tuple[str, ...] = (
-    "steady_count", "steady_duration",
-    "over_count", "over_amplitude", "over_duration",
-    "under_count", "under_amplitude", "under_duration",
+    "steady_count",
+    "steady_duration",
+    "over_count",
+    "over_amplitude",
+    "over_duration",
+    "under_count",
+    "under_amplitude",
+    "under_duration",
 )
 
 
@@ -73,7 +78,7 @@ def _episodes(mask: np.ndarray, excursion: np.ndarray) -> tuple[np.ndarray, np.n
 
 def driving_metrics(traces: np.ndarray, cfg: MetricConfig = MetricConfig()) -> np.ndarray:
     """The eight metrics of each run. ``traces`` is (R, T) of the scored channel -> (R, 8)."""
-    c = np.atleast_2d(np.asarray(traces, dtype=np.float64))[:, cfg.skip:]
+    c = np.atleast_2d(np.asarray(traces, dtype=np.float64))[:, cfg.skip :]
     if c.shape[1] == 0:
         raise ValueError(f"runs of {c.shape[1] + cfg.skip} rows leave nothing to score after skipping {cfg.skip}")
     over, under = c > cfg.upper, c < cfg.lower
@@ -92,8 +97,10 @@ def metric_bounds(scored: int, cfg: MetricConfig = MetricConfig()) -> tuple[np.n
     limit (100 - upper above, lower - 0 below). Minimum 0 for every metric.
     """
     half = math.ceil(scored / 2)
-    hi = np.array([half, scored, half, half * (cfg.high - cfg.upper), scored,
-                   half, half * (cfg.lower - cfg.low), scored], dtype=np.float64)
+    hi = np.array(
+        [half, scored, half, half * (cfg.high - cfg.upper), scored, half, half * (cfg.lower - cfg.low), scored],
+        dtype=np.float64,
+    )
     return np.zeros(len(METRIC_NAMES)), hi
 
 
@@ -106,7 +113,7 @@ def accuracy(real: np.ndarray, sim: np.ndarray, scored: int, cfg: MetricConfig =
 
 def safety_comfort(traces: np.ndarray, cfg: MetricConfig = MetricConfig()) -> np.ndarray:
     """The authors' later pair per run: safety = max |c - centre|, comfort = max |third difference of c|."""
-    c = np.atleast_2d(np.asarray(traces, dtype=np.float64))[:, cfg.skip:]
+    c = np.atleast_2d(np.asarray(traces, dtype=np.float64))[:, cfg.skip :]
     safety = np.abs(c - cfg.centre).max(axis=1)
     d3 = np.diff(c, n=3, axis=1)
     comfort = np.abs(d3).max(axis=1) if d3.shape[1] else np.zeros(c.shape[0])
@@ -151,12 +158,12 @@ def distances(real_traces: np.ndarray, sim_traces: np.ndarray, cfg: MetricConfig
         warnings.simplefilter("ignore", RuntimeWarning)
         ks = [stats.ks_2samp(mr[:, j], ms[:, j]) for j in range(mr.shape[1])]
     kld = gaussian_kld(safety_comfort(real_traces, cfg), safety_comfort(sim_traces, cfg))
-    return Distances(w1, np.array([k.statistic for k in ks]), np.array([k.pvalue for k in ks]),
-                     accuracy(mr, ms, scored, cfg), kld)
+    return Distances(
+        w1, np.array([k.statistic for k in ks]), np.array([k.pvalue for k in ks]), accuracy(mr, ms, scored, cfg), kld
+    )
 
 
-def floor(real_traces: np.ndarray, cfg: MetricConfig = MetricConfig(), splits: int = 20,
-          seed: int = 0) -> Distances:
+def floor(real_traces: np.ndarray, cfg: MetricConfig = MetricConfig(), splits: int = 20, seed: int = 0) -> Distances:
     """The FOT-vs-FOT floor: the same distances between two disjoint random halves of the real runs,
     averaged over ``splits`` halvings (KS p-value: the median). A simulation whose distances lie at
     or below these is as close to reality as reality is to itself at this sample size."""
@@ -167,7 +174,11 @@ def floor(real_traces: np.ndarray, cfg: MetricConfig = MetricConfig(), splits: i
     parts = []
     for _ in range(splits):
         perm = rng.permutation(n)
-        parts.append(distances(real_traces[perm[: n // 2]], real_traces[perm[n // 2:]], cfg))
-    return Distances(np.mean([d.w1 for d in parts], axis=0), np.mean([d.ks for d in parts], axis=0),
-                     np.median([d.ks_p for d in parts], axis=0), float(np.mean([d.acc for d in parts])),
-                     float(np.mean([d.kld for d in parts])))
+        parts.append(distances(real_traces[perm[: n // 2]], real_traces[perm[n // 2 :]], cfg))
+    return Distances(
+        np.mean([d.w1 for d in parts], axis=0),
+        np.mean([d.ks for d in parts], axis=0),
+        np.median([d.ks_p for d in parts], axis=0),
+        float(np.mean([d.acc for d in parts])),
+        float(np.mean([d.kld for d in parts])),
+    )

@@ -4,7 +4,8 @@ The paper's structure is an MLP l*(|s|+|a|) -> 256 -> tanh -> 256 -> tanh -> |s|
 normalised to [-1, 1]. Everything an unmodelled effect may need later is a field of
 :class:`ModelConfig` rather than a new class: a longer ``history``, a ``gaussian`` head (mean and
 log-std) for stochastic simulation, ``extras`` for derived input channels (``dt``, ``phase``, ``play``),
-``context`` for a per-run context vector appended to the input, and output post-processing (``round_to`` sensor resolution, clamping to the valid range)
+``context`` for a per-run context vector appended to the input, and output post-processing (``round_to``
+sensor resolution, clamping to the valid range)
 applied by the simulator. The diagnosis retrains by changing the config, not the code.
 
 Checkpoints are a ``torch.save`` of plain tensors, numbers and strings, loaded with
@@ -52,7 +53,9 @@ class ModelConfig:
     round_to: tuple[float, ...] | None = None  # per-state resolution in physical units (None: no rounding)
     clamp: bool = True  # keep simulated states inside the valid range: ``limits``, else the schema's
     limits: tuple[tuple[float, float], ...] | None = None  # per-state (low, high) observed physical limits
-    intervals: tuple[float, ...] | None = None  # quantiles of the training logs' 'dt' channel: simulation draws from them
+    intervals: tuple[float, ...] | None = (
+        None  # quantiles of the training logs' 'dt' channel: simulation draws from them
+    )
 
     def __post_init__(self) -> None:
         self.hidden = tuple(int(h) for h in self.hidden)
@@ -100,7 +103,9 @@ class ModelConfig:
         return self.kind == "random" or self.head == "gaussian"
 
 
-def mlp(in_features: int, hidden: Sequence[int], activation: type[nn.Module], out_features: int | None = None) -> nn.Sequential:
+def mlp(
+    in_features: int, hidden: Sequence[int], activation: type[nn.Module], out_features: int | None = None
+) -> nn.Sequential:
     """Linear + activation per hidden width, then an optional linear output layer: the one network
     shape the environment model, the GAIL discriminator and the PPO critic share."""
     layers: list[nn.Module] = []
@@ -153,9 +158,14 @@ class TrainingRecord:
     controllers: list[dict[str, Any]] = field(default_factory=list)
     period_ms: float | None = None
     selection: dict[str, Any] = field(default_factory=dict)  # which epoch won and why
-    versions: dict[str, str] = field(default_factory=lambda: {
-        "envi": __version__, "torch": str(torch.__version__), "numpy": str(np.__version__),
-        "python": platform.python_version()})
+    versions: dict[str, str] = field(
+        default_factory=lambda: {
+            "envi": __version__,
+            "torch": str(torch.__version__),
+            "numpy": str(np.__version__),
+            "python": platform.python_version(),
+        }
+    )
 
 
 def _content_hash(config: dict[str, Any], norm: dict[str, Any], state_dict: dict[str, torch.Tensor]) -> str:
@@ -195,8 +205,13 @@ class Checkpoint:
 
     # ------------------------------------------------------------------ what the model sees
 
-    def encode_rows(self, values: np.ndarray, first_row: int = 0, rng: np.random.Generator | None = None,
-                    previous: np.ndarray | None = None) -> np.ndarray:
+    def encode_rows(
+        self,
+        values: np.ndarray,
+        first_row: int = 0,
+        rng: np.random.Generator | None = None,
+        previous: np.ndarray | None = None,
+    ) -> np.ndarray:
         """Physical rows (B, n, C) -> the model's normalised rows (B, n, W), derived channels appended.
 
         ``phase`` follows the row index. ``dt`` is drawn per run and row from the training logs'
@@ -216,7 +231,8 @@ class Checkpoint:
         clock = [name for name in cfg.extras if name != "play"]
         ex = np.zeros((b, n, len(cfg.extras)))
         ex[..., [cfg.extras.index(name) for name in clock]] = extra_channels(
-            period * np.arange(n), clock, period, cfg.phase_rows, first_row)
+            period * np.arange(n), clock, period, cfg.phase_rows, first_row
+        )
         if "dt" in cfg.extras and cfg.intervals is not None and rng is not None:
             q = np.asarray(cfg.intervals)
             ex[..., cfg.extras.index("dt")] = np.interp(rng.random((b, n)), np.linspace(0, 1, len(q)), q)
@@ -237,8 +253,9 @@ class Checkpoint:
     def dataset(self, logs: Sequence[Log]) -> Dataset:
         """Training pairs of ``logs`` laid out as this model sees them (derived channels, context)."""
         cfg = self.config
-        return Dataset.build(logs, cfg.history, self.norm, cfg.extras, self.period_ms, cfg.phase_rows,
-                             cfg.context, cfg.play_width)
+        return Dataset.build(
+            logs, cfg.history, self.norm, cfg.extras, self.period_ms, cfg.phase_rows, cfg.context, cfg.play_width
+        )
 
     # ------------------------------------------------------------------ what the model says
 
@@ -312,8 +329,11 @@ class Checkpoint:
         for k, v in self.model.state_dict().items():
             if not torch.isfinite(v).all():
                 raise ValueError(f"{where}: damaged model: weight {k!r} holds NaN or inf")
-        if not (np.isfinite(self.norm.low).all() and np.isfinite(self.norm.high).all()
-                and (self.norm.high > self.norm.low).all()):
+        if not (
+            np.isfinite(self.norm.low).all()
+            and np.isfinite(self.norm.high).all()
+            and (self.norm.high > self.norm.low).all()
+        ):
             raise ValueError(f"{where}: damaged model: the normaliser has an empty or non-finite range")
 
     def save(self, path: str | Path) -> Path:
@@ -364,8 +384,13 @@ class Checkpoint:
             model.load_state_dict(blob["state_dict"])
             rec = TrainingRecord(**blob["record"])
             system = blob.get("system")
-            ckpt = Checkpoint(model.eval(), Normaliser.from_json(blob["norm"]), LogSchema.from_json(blob["schema"]),
-                              rec, None if system is None else SystemDescription.from_json(json.loads(system)))
+            ckpt = Checkpoint(
+                model.eval(),
+                Normaliser.from_json(blob["norm"]),
+                LogSchema.from_json(blob["schema"]),
+                rec,
+                None if system is None else SystemDescription.from_json(json.loads(system)),
+            )
         except (KeyError, TypeError, RuntimeError, ValueError, AttributeError) as exc:
             raise ValueError(f"{path}: damaged envi checkpoint ({exc})") from None
         ckpt.check_finite(str(path))

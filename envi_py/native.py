@@ -140,28 +140,52 @@ def _spec_json(controller: ControllerSpec) -> str:
     return json.dumps(controller.to_json())
 
 
-def rollout(model: str | os.PathLike | Checkpoint | bytes | Any, controller: ControllerSpec, init: np.ndarray,
-            steps: int, runs: int = 1, seed: int = 0, threads: int = 0) -> np.ndarray:
+def rollout(
+    model: str | os.PathLike | Checkpoint | bytes | Any,
+    controller: ControllerSpec,
+    init: np.ndarray,
+    steps: int,
+    runs: int = 1,
+    seed: int = 0,
+    threads: int = 0,
+) -> np.ndarray:
     """Same contract as :func:`envi_py.simulate.rollout`: ``init`` (K, l, C) physical ->
     (K*runs, l+steps, C), run ``k*runs + r`` from window k. The controller is reset and warmed up
     on each window's rows before the first step. Stochastic draws are keyed by (seed, run, step),
     so the result does not depend on ``threads`` (0 = one per core)."""
     init = np.ascontiguousarray(init, dtype=np.float64)
-    return _native().rollout(_compiled(model), _spec_json(controller), init, int(steps), int(runs), int(seed),
-                             int(threads))
+    return _native().rollout(
+        _compiled(model), _spec_json(controller), init, int(steps), int(runs), int(seed), int(threads)
+    )
 
 
-def rollout_metrics(model: str | os.PathLike | Checkpoint | bytes | Any, controller: ControllerSpec,
-                    init: np.ndarray, steps: int, runs: int = 1, seed: int = 0, threads: int = 0,
-                    metric: MetricConfig | None = None) -> np.ndarray:
+def rollout_metrics(
+    model: str | os.PathLike | Checkpoint | bytes | Any,
+    controller: ControllerSpec,
+    init: np.ndarray,
+    steps: int,
+    runs: int = 1,
+    seed: int = 0,
+    threads: int = 0,
+    metric: MetricConfig | None = None,
+) -> np.ndarray:
     """The eight driving metrics of every run, (K*runs, 8), scored while simulating: no traces kept."""
     metric = metric or MetricConfig()
     if metric.channel != 0:
         raise ValueError("the native engine scores the first state channel")
     init = np.ascontiguousarray(init, dtype=np.float64)
-    return _native().rollout_metrics(_compiled(model), _spec_json(controller), init, int(steps), int(runs),
-                                     int(seed), int(threads), centre=metric.centre, band=metric.band,
-                                     skip=metric.skip)
+    return _native().rollout_metrics(
+        _compiled(model),
+        _spec_json(controller),
+        init,
+        int(steps),
+        int(runs),
+        int(seed),
+        int(threads),
+        centre=metric.centre,
+        band=metric.band,
+        skip=metric.skip,
+    )
 
 
 def peak_flops(threads: int = 0, seconds: float = 0.5) -> float:

@@ -27,8 +27,9 @@ def initial_rows(init: np.ndarray, ckpt: Checkpoint) -> tuple[np.ndarray, np.nda
 
 
 @torch.no_grad()
-def rollout(ckpt: Checkpoint, controller: ControllerSpec, init: np.ndarray, steps: int,
-            runs: int = 1, seed: int = 0) -> np.ndarray:
+def rollout(
+    ckpt: Checkpoint, controller: ControllerSpec, init: np.ndarray, steps: int, runs: int = 1, seed: int = 0
+) -> np.ndarray:
     """Simulate ``runs`` runs from each initial window.
 
     ``init`` is (K, l, |s|+|a|) in physical units; the result is (K*runs, l+steps, |s|+|a|),
@@ -59,8 +60,9 @@ def rollout(ckpt: Checkpoint, controller: ControllerSpec, init: np.ndarray, step
         s = ckpt.next_state(ckpt.model_input(window, context), gen)
         out[:, hist + t, :ns] = s
         out[:, hist + t, ns:] = ctrl(s)
-        row = torch.from_numpy(ckpt.encode_rows(out[:, hist + t:hist + t + 1], hist + t, intervals,
-                                                window[:, -1:].numpy()))
+        row = torch.from_numpy(
+            ckpt.encode_rows(out[:, hist + t : hist + t + 1], hist + t, intervals, window[:, -1:].numpy())
+        )
         window = torch.cat([window[:, 1:], row], dim=1)
     return out
 
@@ -95,9 +97,15 @@ def choose_engine(ckpt: Checkpoint, controller: ControllerSpec, engine: str = "a
 CHUNK_RUNS = 20_000
 
 
-def iter_simulate(ckpt: Checkpoint, controller: ControllerSpec, init_logs: Sequence[Log],
-                  steps: int | None = None, runs: int = 1, seed: int = 0,
-                  engine: str = "torch") -> Iterator[tuple[int, int, Log]]:
+def iter_simulate(
+    ckpt: Checkpoint,
+    controller: ControllerSpec,
+    init_logs: Sequence[Log],
+    steps: int | None = None,
+    runs: int = 1,
+    seed: int = 0,
+    engine: str = "torch",
+) -> Iterator[tuple[int, int, Log]]:
     """Simulate from each log's sigma_0, yielding ``(initial log index, replicate, log)`` chunk by
     chunk (source ``sim``).
 
@@ -133,22 +141,41 @@ def iter_simulate(ckpt: Checkpoint, controller: ControllerSpec, init_logs: Seque
             traj = roll(init, n, count, seed + 7919 * n + 104729 * r0)
             for j, i in enumerate(idx):
                 src = init_logs[i]
-                period = float(np.median(np.diff(src.time[:hist]))) if hist > 1 else (src.meta.period_ms or ckpt.period_ms)
+                period = (
+                    float(np.median(np.diff(src.time[:hist]))) if hist > 1 else (src.meta.period_ms or ckpt.period_ms)
+                )
                 time = np.concatenate([src.time[:hist], src.time[hist - 1] + period * np.arange(1, n + 1)])
                 stem = Path(src.path).stem if src.path else src.meta.run_id
                 for k in range(count):
                     r = r0 + k
                     tr = traj[j * count + k]
-                    meta = LogMeta(schema=schema, controller=controller.to_json(), period_ms=period,
-                                   run_id=f"{stem}-sim{r}", source="sim",
-                                   provenance={"init_log": src.name, "model_algorithm": ckpt.record.algorithm,
-                                               "seed": seed, "replicate": r, "engine": engine})
+                    meta = LogMeta(
+                        schema=schema,
+                        controller=controller.to_json(),
+                        period_ms=period,
+                        run_id=f"{stem}-sim{r}",
+                        source="sim",
+                        provenance={
+                            "init_log": src.name,
+                            "model_algorithm": ckpt.record.algorithm,
+                            "seed": seed,
+                            "replicate": r,
+                            "engine": engine,
+                        },
+                    )
                     yield i, r, Log(None, time.copy(), tr[:, :ns].copy(), tr[:, ns:].copy(), meta)
             del traj
 
 
-def simulate_logs(ckpt: Checkpoint, controller: ControllerSpec, init_logs: Sequence[Log],
-                  steps: int | None = None, runs: int = 1, seed: int = 0, engine: str = "torch") -> list[Log]:
+def simulate_logs(
+    ckpt: Checkpoint,
+    controller: ControllerSpec,
+    init_logs: Sequence[Log],
+    steps: int | None = None,
+    runs: int = 1,
+    seed: int = 0,
+    engine: str = "torch",
+) -> list[Log]:
     """:func:`iter_simulate` collected in order (initial log, then replicate). The default engine
     stays PyTorch because training calls this on a few logs many times, where compiling the model
     for the native engine each time would cost more than it saves."""
@@ -158,17 +185,27 @@ def simulate_logs(ckpt: Checkpoint, controller: ControllerSpec, init_logs: Seque
     return [lg for lg in result if lg is not None]
 
 
-def simulate_versions(ckpt: Checkpoint, init_logs: Sequence[Log], runs: int = 1, seed: int = 0,
-                      engine: str = "torch", steps: int | None = None,
-                      controller: ControllerSpec | None = None) -> list[Log]:
+def simulate_versions(
+    ckpt: Checkpoint,
+    init_logs: Sequence[Log],
+    runs: int = 1,
+    seed: int = 0,
+    engine: str = "torch",
+    steps: int | None = None,
+    controller: ControllerSpec | None = None,
+) -> list[Log]:
     """Each log's own controller version simulated from its sigma_0 (or every log under
     ``controller`` when given): the one loop over versions every command uses."""
-    return [lg for group in versions_to_simulate(init_logs, controller)
-            for lg in simulate_logs(ckpt, group[0], group[1], steps, runs, seed, engine)]
+    return [
+        lg
+        for group in versions_to_simulate(init_logs, controller)
+        for lg in simulate_logs(ckpt, group[0], group[1], steps, runs, seed, engine)
+    ]
 
 
-def versions_to_simulate(init_logs: Sequence[Log],
-                         controller: ControllerSpec | None = None) -> list[tuple[ControllerSpec, list[Log]]]:
+def versions_to_simulate(
+    init_logs: Sequence[Log], controller: ControllerSpec | None = None
+) -> list[tuple[ControllerSpec, list[Log]]]:
     """(controller, initial logs) pairs: each log's own version, or all logs under ``controller``."""
     if controller is not None:
         return [(controller, list(init_logs))]

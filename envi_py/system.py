@@ -74,8 +74,10 @@ class Channel:
             raise ValueError(f"a channel must be an object with a 'name', not {d!r:.60}")
         name = d["name"]
         if not COLUMN_NAME.match(name):
-            raise ValueError(f"channel name {name!r:.60} cannot be a CSV column (no separators, quotes, line "
-                             "breaks or surrounding spaces)")
+            raise ValueError(
+                f"channel name {name!r:.60} cannot be a CSV column (no separators, quotes, line "
+                "breaks or surrounding spaces)"
+            )
         rng = d.get("range", [-math.inf, math.inf])
         if not isinstance(rng, (list, tuple)) or len(rng) != 2:
             raise ValueError(f"channel {name!r}: 'range' must be [low, high]")
@@ -122,8 +124,10 @@ class LogSchema:
         raise ValueError(f"no state signal {name!r}; states: {', '.join(c.name for c in self.states)}")
 
     def to_json(self) -> dict[str, Any]:
-        d: dict[str, Any] = {"states": [c.to_json() for c in self.states],
-                             "actions": [c.to_json() for c in self.actions]}
+        d: dict[str, Any] = {
+            "states": [c.to_json() for c in self.states],
+            "actions": [c.to_json() for c in self.actions],
+        }
         if self.logged:
             d["logged"] = [c.to_json() for c in self.logged]
         return d
@@ -236,8 +240,10 @@ class SystemDescription:
         found = self.version_of(spec)
         missing = [p for p in self.versions.params if p not in found]
         if missing:
-            raise ValueError(f"controller {spec.label()} has no version parameter {', '.join(missing)} "
-                             f"(system {self.name!r} names {', '.join(self.versions.params)})")
+            raise ValueError(
+                f"controller {spec.label()} has no version parameter {', '.join(missing)} "
+                f"(system {self.name!r} names {', '.join(self.versions.params)})"
+            )
         return {p: found[p] for p in self.versions.params}
 
     def version_label(self, spec: ControllerSpec) -> str:
@@ -246,8 +252,10 @@ class SystemDescription:
         params = self.version_params(spec)
         if not params:
             return spec.label()
-        return ",".join(f"{k}={v:g}" if isinstance(v, (int, float)) and not isinstance(v, bool) else f"{k}={v}"
-                        for k, v in params.items())
+        return ",".join(
+            f"{k}={v:g}" if isinstance(v, (int, float)) and not isinstance(v, bool) else f"{k}={v}"
+            for k, v in params.items()
+        )
 
     def with_pattern(self, pattern: str | None) -> "SystemDescription":
         """The same description reading version parameters from ``pattern`` (a command-line
@@ -256,20 +264,27 @@ class SystemDescription:
             return self
         pattern_regex(pattern)  # a bad pattern (or not a string) is an error here, not a traceback later
         if self.versions.pattern is not None:
-            raise ValueError(f"--pattern {pattern!r} contradicts the system description's pattern "
-                             f"{self.versions.pattern!r} ({self.source or self.name})")
+            raise ValueError(
+                f"--pattern {pattern!r} contradicts the system description's pattern "
+                f"{self.versions.pattern!r} ({self.source or self.name})"
+            )
         fields = tuple(f for f in pattern_fields(pattern) if f != "run")
-        return replace(self, versions=replace(self.versions, pattern=pattern,
-                                              params=self.versions.params or fields))
+        return replace(self, versions=replace(self.versions, pattern=pattern, params=self.versions.params or fields))
 
     # ------------------------------------------------------------------ (de)serialisation
 
     def to_json(self) -> dict[str, Any]:
-        return {"name": self.name, "period_ms": self.period_ms, "schema": self.schema.to_json(),
-                "ignore": list(self.ignore), "versions": self.versions.to_json(),
-                "controller": None if self.controller is None else self.controller.to_json(),
-                "preset": self.preset, "goals": [g.to_json() for g in self.goals],
-                "requirements": [r.to_json() for r in self.requirements]}
+        return {
+            "name": self.name,
+            "period_ms": self.period_ms,
+            "schema": self.schema.to_json(),
+            "ignore": list(self.ignore),
+            "versions": self.versions.to_json(),
+            "controller": None if self.controller is None else self.controller.to_json(),
+            "preset": self.preset,
+            "goals": [g.to_json() for g in self.goals],
+            "requirements": [r.to_json() for r in self.requirements],
+        }
 
     @staticmethod
     def from_json(d: Any, where: str = "system description") -> "SystemDescription":
@@ -281,15 +296,19 @@ class SystemDescription:
             if not isinstance(v, dict):
                 raise ValueError("'versions' must be an object")
             desc = SystemDescription(
-                name=_text(d.get("name", "system"), "name"), schema=LogSchema.from_json(d.get("schema")),
+                name=_text(d.get("name", "system"), "name"),
+                schema=LogSchema.from_json(d.get("schema")),
                 period_ms=_opt_float(d.get("period_ms"), "period_ms"),
                 versions=_versions(v.get("pattern"), v.get("params"), v.get("map")),
                 controller=None if d.get("controller") is None else ControllerSpec.from_json(d["controller"]),
-                ignore=tuple(_strings(d.get("ignore"), "ignore")), preset=_opt_text(d.get("preset"), "preset"),
+                ignore=tuple(_strings(d.get("ignore"), "ignore")),
+                preset=_opt_text(d.get("preset"), "preset"),
                 goals=tuple(_goal(g) for g in _list(d.get("goals"), "goals")),
-                requirements=tuple(_requirement(r, i) for i, r in enumerate(_list(d.get("requirements"),
-                                                                                   "requirements"))),
-                source=where)
+                requirements=tuple(
+                    _requirement(r, i) for i, r in enumerate(_list(d.get("requirements"), "requirements"))
+                ),
+                source=where,
+            )
         except (AttributeError, TypeError, ValueError) as exc:
             raise ValueError(f"{where}: {exc}") from None
         return _validated(desc, where)
@@ -442,14 +461,17 @@ def _from_toml(doc: dict[str, Any], where: str) -> SystemDescription:
             raise ValueError("[controller] must be a table")
         controller = ControllerSpec.from_json({"name": c.get("name"), "params": c.get("params", {})})
     return SystemDescription(
-        name=_text(sysd.get("name", Path(where).stem), "name"), schema=schema,
+        name=_text(sysd.get("name", Path(where).stem), "name"),
+        schema=schema,
         period_ms=_opt_float(sysd.get("period_ms"), "period_ms"),
         versions=_versions(v.get("pattern"), v.get("params"), v.get("map")),
-        controller=controller, ignore=tuple(s["name"] for s in signals if s.get("role") == "ignore"),
+        controller=controller,
+        ignore=tuple(s["name"] for s in signals if s.get("role") == "ignore"),
         preset=_opt_text(doc.get("goals_preset") or sysd.get("goals_preset"), "goals_preset"),
         goals=tuple(_goal(g) for g in _list(doc.get("goals"), "goals")),
         requirements=tuple(_requirement(r, i) for i, r in enumerate(_list(doc.get("requirements"), "requirements"))),
-        source=where)
+        source=where,
+    )
 
 
 def _validated(desc: SystemDescription, where: str) -> SystemDescription:
@@ -466,6 +488,7 @@ def _validated(desc: SystemDescription, where: str) -> SystemDescription:
 
 # ---------------------------------------------------------------------- file-name patterns
 
+
 def pattern_fields(pattern: str) -> list[str]:
     return re.findall(r"\{(\w+)\}", pattern)
 
@@ -479,8 +502,9 @@ def pattern_regex(pattern: str) -> re.Pattern[str]:
     fields = pattern_fields(pattern)
     odd = [f for f in fields if not f.isidentifier()]
     if odd:
-        raise ValueError(f"pattern {pattern!r}: field {{{odd[0]}}} is not a name (letters, digits, '_'; "
-                         "not starting with a digit)")
+        raise ValueError(
+            f"pattern {pattern!r}: field {{{odd[0]}}} is not a name (letters, digits, '_'; not starting with a digit)"
+        )
     dup = sorted({f for f in fields if fields.count(f) > 1})
     if dup:
         raise ValueError(f"pattern {pattern!r}: field {{{dup[0]}}} appears twice")
@@ -488,7 +512,7 @@ def pattern_regex(pattern: str) -> re.Pattern[str]:
         raise ValueError(f"pattern {pattern!r}: a brace that is not a {{field}}")
     out, pos = [], 0
     for m in re.finditer(r"\{(\w+)\}", pattern):
-        out.append(re.escape(pattern[pos:m.start()]))
+        out.append(re.escape(pattern[pos : m.start()]))
         out.append(f"(?P<{m.group(1)}>[-+\\w.]+?)")
         pos = m.end()
     out.append(re.escape(pattern[pos:]))
@@ -496,6 +520,7 @@ def pattern_regex(pattern: str) -> re.Pattern[str]:
 
 
 # ---------------------------------------------------------------------- shipped descriptions
+
 
 def shipped() -> dict[str, Path]:
     """Shipped descriptions by name (``lane-keeping``, ``car``)."""

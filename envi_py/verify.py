@@ -56,8 +56,13 @@ class Scoring:
     @staticmethod
     def of(system: SystemDescription | None, schema: LogSchema, skip: int, period_ms: float) -> "Scoring":
         system = system or describe_schema(schema)
-        return Scoring(goals_for(system, schema), LogSchema(schema.states, schema.actions), skip, period_ms,
-                       system.preset == "lane-keeping" and LANE_KEEPING_SIGNAL in schema.columns)
+        return Scoring(
+            goals_for(system, schema),
+            LogSchema(schema.states, schema.actions),
+            skip,
+            period_ms,
+            system.preset == "lane-keeping" and LANE_KEEPING_SIGNAL in schema.columns,
+        )
 
     @property
     def names(self) -> list[str]:
@@ -92,8 +97,9 @@ class Scoring:
         return np.stack([np.abs(c - centre).max(axis=1), comfort], axis=1)
 
 
-def table_distances(mr: np.ndarray, ms: np.ndarray, scale: np.ndarray, pr: np.ndarray | None,
-                    ps: np.ndarray | None) -> Distances:
+def table_distances(
+    mr: np.ndarray, ms: np.ndarray, scale: np.ndarray, pr: np.ndarray | None, ps: np.ndarray | None
+) -> Distances:
     """Distances between two samples of runs given their goal tables (R, G) and pairs."""
     w1 = np.array([stats.wasserstein_distance(mr[:, j], ms[:, j]) for j in range(mr.shape[1])]) / scale
     with warnings.catch_warnings():  # with ties scipy falls back from the exact to the asymptotic p-value
@@ -105,13 +111,25 @@ def table_distances(mr: np.ndarray, ms: np.ndarray, scale: np.ndarray, pr: np.nd
 
 
 def _mean_distances(parts: Sequence[Distances]) -> Distances:
-    return Distances(np.mean([d.w1 for d in parts], axis=0), np.mean([d.ks for d in parts], axis=0),
-                     np.median([d.ks_p for d in parts], axis=0), float(np.mean([d.acc for d in parts])),
-                     float(np.mean([d.kld for d in parts])))
+    return Distances(
+        np.mean([d.w1 for d in parts], axis=0),
+        np.mean([d.ks for d in parts], axis=0),
+        np.median([d.ks_p for d in parts], axis=0),
+        float(np.mean([d.acc for d in parts])),
+        float(np.mean([d.kld for d in parts])),
+    )
 
 
-def fair_reference(mr: np.ndarray, ms: np.ndarray, scale: np.ndarray, pr: np.ndarray | None, ps: np.ndarray | None,
-                   seed: int, repetitions: int = 10, permutations: int = 99) -> tuple[Distances, Distances, dict[str, Any]]:
+def fair_reference(
+    mr: np.ndarray,
+    ms: np.ndarray,
+    scale: np.ndarray,
+    pr: np.ndarray | None,
+    ps: np.ndarray | None,
+    seed: int,
+    repetitions: int = 10,
+    permutations: int = 99,
+) -> tuple[Distances, Distances, dict[str, Any]]:
     """The fair real-vs-real reference, at matched sizes (the design of :func:`envi_py.verdicts.fair_floor`,
     one definition everywhere): over ``repetitions`` random splits, every distance between two halves
     of the real runs (the floor) and between the first half and as many simulated runs (matched),
@@ -123,16 +141,21 @@ def fair_reference(mr: np.ndarray, ms: np.ndarray, scale: np.ndarray, pr: np.nda
     floors, matched = [], []
     for _ in range(repetitions):
         order, pick = rng.permutation(n), rng.choice(ms.shape[0], m, replace=False)
-        a, b = order[:m], order[m:2 * m]
-        floors.append(table_distances(mr[a], mr[b], scale, None if pr is None else pr[a], None if pr is None else pr[b]))
-        matched.append(table_distances(mr[a], ms[pick], scale, None if pr is None else pr[a],
-                                       None if ps is None else ps[pick]))
+        a, b = order[:m], order[m : 2 * m]
+        floors.append(
+            table_distances(mr[a], mr[b], scale, None if pr is None else pr[a], None if pr is None else pr[b])
+        )
+        matched.append(
+            table_distances(mr[a], ms[pick], scale, None if pr is None else pr[a], None if ps is None else ps[pick])
+        )
 
     def mean_w1(x: np.ndarray, y: np.ndarray) -> float:
         return float(np.mean([stats.wasserstein_distance(x[:, k], y[:, k]) / scale[k] for k in range(x.shape[1])]))
 
-    tests: dict[str, Any] = {"per_side": m,
-                             "goals_w1": fair_floor(mr, ms, mean_w1, repetitions, permutations, seed=seed).to_json()}
+    tests: dict[str, Any] = {
+        "per_side": m,
+        "goals_w1": fair_floor(mr, ms, mean_w1, repetitions, permutations, seed=seed).to_json(),
+    }
     if pr is not None and ps is not None:
         tests["kld"] = fair_floor(pr, ps, kld_gaussian, repetitions, permutations, seed=seed).to_json()
     return _mean_distances(floors), _mean_distances(matched), tests
@@ -144,10 +167,13 @@ def _num(v: float) -> float | None:
 
 
 def _dist_json(d: Distances, names: Sequence[str]) -> dict[str, Any]:
-    return {"acc": _num(d.acc), "kld": _num(d.kld),
-            "w1": {k: _num(v) for k, v in zip(names, d.w1.tolist())},
-            "ks": {k: _num(v) for k, v in zip(names, d.ks.tolist())},
-            "ks_p": {k: _num(v) for k, v in zip(names, d.ks_p.tolist())}}
+    return {
+        "acc": _num(d.acc),
+        "kld": _num(d.kld),
+        "w1": {k: _num(v) for k, v in zip(names, d.w1.tolist())},
+        "ks": {k: _num(v) for k, v in zip(names, d.ks.tolist())},
+        "ks_p": {k: _num(v) for k, v in zip(names, d.ks_p.tolist())},
+    }
 
 
 @dataclass
@@ -174,33 +200,53 @@ class GroupResult:
         return all(t["within_floor"] for t in tested) if tested else None
 
     def to_json(self) -> dict[str, Any]:
-        return {"controller": self.controller, "version": self.version, "goals": self.goals, "n_real": self.n_real, "n_sim": self.n_sim,
-                "real_mean": dict(zip(self.goals, self.real_mean.tolist())),
-                "sim_mean": dict(zip(self.goals, self.sim_mean.tolist())),
-                "sim_vs_real": _dist_json(self.sim, self.goals),
-                "floor": None if self.floor is None else _dist_json(self.floor, self.goals),
-                "matched": None if self.matched is None else _dist_json(self.matched, self.goals),
-                "tests": self.tests, "within_floor": self.within_floor, "real_logs": self.real_logs}
+        return {
+            "controller": self.controller,
+            "version": self.version,
+            "goals": self.goals,
+            "n_real": self.n_real,
+            "n_sim": self.n_sim,
+            "real_mean": dict(zip(self.goals, self.real_mean.tolist())),
+            "sim_mean": dict(zip(self.goals, self.sim_mean.tolist())),
+            "sim_vs_real": _dist_json(self.sim, self.goals),
+            "floor": None if self.floor is None else _dist_json(self.floor, self.goals),
+            "matched": None if self.matched is None else _dist_json(self.matched, self.goals),
+            "tests": self.tests,
+            "within_floor": self.within_floor,
+            "real_logs": self.real_logs,
+        }
 
 
-def verify(real: Sequence[Log], sim: Sequence[Log], system: SystemDescription | None = None, skip: int = 10,
-           floor: bool = True, seed: int = 0, period_ms: float | None = None) -> list[GroupResult]:
+def verify(
+    real: Sequence[Log],
+    sim: Sequence[Log],
+    system: SystemDescription | None = None,
+    skip: int = 10,
+    floor: bool = True,
+    seed: int = 0,
+    period_ms: float | None = None,
+) -> list[GroupResult]:
     """Compare real and simulated logs per controller version. A version with no simulated runs is
     an error. ``skip`` rows (sigma_0, copied from the real log) are not scored. With ``floor`` (and
     at least 4 real runs) the fair real-vs-real reference is computed (:func:`fair_reference`)."""
     if not real or not sim:
         raise ValueError("verification needs real and simulated logs")
     schema = real[0].meta.schema
-    period = period_ms or (system.period_ms if system and system.period_ms else None) or \
-        float(np.median(np.diff(real[0].time)))
+    period = (
+        period_ms
+        or (system.period_ms if system and system.period_ms else None)
+        or float(np.median(np.diff(real[0].time)))
+    )
     scoring = Scoring.of(system, schema, skip, period)
     centre = lane_keeping_centre(system or describe_schema(schema))
     real_g, sim_g = group_by_controller(real), group_by_controller(sim)
     results = []
     for spec, rl in real_g.items():
         if spec not in sim_g:
-            raise ValueError(f"no simulated runs for controller {spec.label()}; simulated: "
-                             f"{', '.join(s.label() for s in sim_g) or 'none'}")
+            raise ValueError(
+                f"no simulated runs for controller {spec.label()}; simulated: "
+                f"{', '.join(s.label() for s in sim_g) or 'none'}"
+            )
         sl = sim_g[spec]
         t = min(min(len(lg) for lg in rl), min(len(lg) for lg in sl))
         rr = scoring.runs([_cut(lg, t) for lg in rl])
@@ -211,10 +257,22 @@ def verify(real: Sequence[Log], sim: Sequence[Log], system: SystemDescription | 
         tests: dict[str, Any] = {}
         if floor and len(rl) >= 4 and len(sl) >= len(rl):
             fl, matched, tests = fair_reference(mr, ms, scale, pr, ps, seed)
-        results.append(GroupResult(spec.to_json(), version_label(spec, system or describe_schema(schema)),
-                                   scoring.names, len(rl), len(sl), mr.mean(axis=0), ms.mean(axis=0),
-                                   table_distances(mr, ms, scale, pr, ps), fl, matched, tests,
-                                   [lg.name for lg in rl]))
+        results.append(
+            GroupResult(
+                spec.to_json(),
+                version_label(spec, system or describe_schema(schema)),
+                scoring.names,
+                len(rl),
+                len(sl),
+                mr.mean(axis=0),
+                ms.mean(axis=0),
+                table_distances(mr, ms, scale, pr, ps),
+                fl,
+                matched,
+                tests,
+                [lg.name for lg in rl],
+            )
+        )
     return results
 
 
@@ -249,48 +307,68 @@ def _test_cell(t: dict[str, Any] | None) -> str:
 def to_markdown(results: Sequence[GroupResult], title: str = "Verification report") -> str:
     """Tables a person reads: per version the accuracy, the distances at matched sizes beside the
     real-vs-real floor and the permutation tests; then per goal."""
-    lines = [f"# {title}", "",
-             "acc: the paper's verification accuracy over the goal metrics (1 = identical means). W1: "
-             "Wasserstein-1 between real and simulated goal-metric distributions, divided by the metric's scale. "
-             "KLD: the authors' safety/comfort KL divergence (lane keeping only). Floor: the same between two "
-             "halves of the real runs; sim (matched): a real half against as many simulated runs, so the two "
-             "columns rest on equal numbers of runs. Test: permutation test of 'simulated runs are exchangeable "
-             "with real ones' with all real runs against as many simulated runs; 'within' means p > 0.05.", "",
-             "| version | real runs | sim runs | runs per side | acc | mean W1 sim (matched) | mean W1 floor | W1 test "
-             "| KLD sim (matched) | KLD floor | KLD test |", "|---|---:|---:|---:|---:|---:|---:|---|---:|---:|---|"]
+    lines = [
+        f"# {title}",
+        "",
+        "acc: the paper's verification accuracy over the goal metrics (1 = identical means). W1: "
+        "Wasserstein-1 between real and simulated goal-metric distributions, divided by the metric's scale. "
+        "KLD: the authors' safety/comfort KL divergence (lane keeping only). Floor: the same between two "
+        "halves of the real runs; sim (matched): a real half against as many simulated runs, so the two "
+        "columns rest on equal numbers of runs. Test: permutation test of 'simulated runs are exchangeable "
+        "with real ones' with all real runs against as many simulated runs; 'within' means p > 0.05.",
+        "",
+        "| version | real runs | sim runs | runs per side | acc | mean W1 sim (matched) | mean W1 floor | W1 test "
+        "| KLD sim (matched) | KLD floor | KLD test |",
+        "|---|---:|---:|---:|---:|---:|---:|---|---:|---:|---|",
+    ]
     for r in results:
         fl, mt = r.floor, r.matched
-        lines.append(f"| {r.version} | {r.n_real} | {r.n_sim} | {r.tests.get('per_side', '-')} | {r.sim.acc:.2%} | "
-                     f"{_fmt(mt.w1.mean() if mt else None, '.4f')} | {_fmt(fl.w1.mean() if fl else None, '.4f')} | "
-                     f"{_test_cell(r.tests.get('goals_w1'))} | {_fmt(mt.kld if mt else None, '.3f')} | "
-                     f"{_fmt(fl.kld if fl else None, '.3f')} | {_test_cell(r.tests.get('kld'))} |")
+        lines.append(
+            f"| {r.version} | {r.n_real} | {r.n_sim} | {r.tests.get('per_side', '-')} | {r.sim.acc:.2%} | "
+            f"{_fmt(mt.w1.mean() if mt else None, '.4f')} | {_fmt(fl.w1.mean() if fl else None, '.4f')} | "
+            f"{_test_cell(r.tests.get('goals_w1'))} | {_fmt(mt.kld if mt else None, '.3f')} | "
+            f"{_fmt(fl.kld if fl else None, '.3f')} | {_test_cell(r.tests.get('kld'))} |"
+        )
     for r in results:
-        lines += ["", f"## {r.version}", "", "Controller: `" + json.dumps(r.controller) + "`", "",
-                  "| goal | real mean | sim mean | W1 (all runs) | W1 sim (matched) | W1 floor | KS (p) |",
-                  "|---|---:|---:|---:|---:|---:|---:|"]
+        lines += [
+            "",
+            f"## {r.version}",
+            "",
+            "Controller: `" + json.dumps(r.controller) + "`",
+            "",
+            "| goal | real mean | sim mean | W1 (all runs) | W1 sim (matched) | W1 floor | KS (p) |",
+            "|---|---:|---:|---:|---:|---:|---:|",
+        ]
         for j, m in enumerate(r.goals):
-            lines.append(f"| {m} | {r.real_mean[j]:.2f} | {r.sim_mean[j]:.2f} | {r.sim.w1[j]:.4f} | "
-                         f"{_fmt(r.matched.w1[j] if r.matched else None, '.4f')} | "
-                         f"{_fmt(r.floor.w1[j] if r.floor else None, '.4f')} | {r.sim.ks[j]:.3f} ({r.sim.ks_p[j]:.2g}) |")
+            lines.append(
+                f"| {m} | {r.real_mean[j]:.2f} | {r.sim_mean[j]:.2f} | {r.sim.w1[j]:.4f} | "
+                f"{_fmt(r.matched.w1[j] if r.matched else None, '.4f')} | "
+                f"{_fmt(r.floor.w1[j] if r.floor else None, '.4f')} | {r.sim.ks[j]:.3f} ({r.sim.ks_p[j]:.2g}) |"
+            )
         lines += ["", "Real logs: " + ", ".join(r.real_logs)]
     return "\n".join(lines) + "\n"
 
 
 def to_text(results: Sequence[GroupResult]) -> str:
     """A compact screen table: the matched figures beside the floor, and the tests' verdicts."""
-    rows = [f"{'version':<28} {'real':>5} {'sim':>5} {'acc':>8} {'W1 sim':>8} {'W1 floor':>8} {'W1 test':>14} "
-            f"{'KLD sim':>8} {'KLD floor':>9} {'KLD test':>14}"]
+    rows = [
+        f"{'version':<28} {'real':>5} {'sim':>5} {'acc':>8} {'W1 sim':>8} {'W1 floor':>8} {'W1 test':>14} "
+        f"{'KLD sim':>8} {'KLD floor':>9} {'KLD test':>14}"
+    ]
     for r in results:
         fl, mt = r.floor, r.matched
-        rows.append(f"{r.version[:28]:<28} {r.n_real:>5} {r.n_sim:>5} {r.sim.acc:>8.2%} "
-                    f"{_fmt(mt.w1.mean() if mt else None, '.4f'):>8} {_fmt(fl.w1.mean() if fl else None, '.4f'):>8} "
-                    f"{_test_cell(r.tests.get('goals_w1')):>14} {_fmt(mt.kld if mt else None, '.3f'):>8} "
-                    f"{_fmt(fl.kld if fl else None, '.3f'):>9} {_test_cell(r.tests.get('kld')):>14}")
+        rows.append(
+            f"{r.version[:28]:<28} {r.n_real:>5} {r.n_sim:>5} {r.sim.acc:>8.2%} "
+            f"{_fmt(mt.w1.mean() if mt else None, '.4f'):>8} {_fmt(fl.w1.mean() if fl else None, '.4f'):>8} "
+            f"{_test_cell(r.tests.get('goals_w1')):>14} {_fmt(mt.kld if mt else None, '.3f'):>8} "
+            f"{_fmt(fl.kld if fl else None, '.3f'):>9} {_test_cell(r.tests.get('kld')):>14}"
+        )
     return "\n".join(rows)
 
 
-def write_report(results: Sequence[GroupResult], out: Path, title: str = "Verification report",
-                 extra: dict[str, Any] | None = None) -> tuple[Path, Path]:
+def write_report(
+    results: Sequence[GroupResult], out: Path, title: str = "Verification report", extra: dict[str, Any] | None = None
+) -> tuple[Path, Path]:
     """``report.md`` and ``report.json`` in ``out``."""
     out.mkdir(parents=True, exist_ok=True)
     md, js = out / "report.md", out / "report.json"

@@ -56,7 +56,7 @@ def mutate(data: bytes, rng: np.random.Generator, others: list[bytes]) -> bytes:
         b[i:i] = rng.integers(0, 256, rng.integers(1, 16)).astype(np.uint8).tobytes()
     elif kind == 4:  # splice two files
         o = others[rng.integers(len(others))]
-        b = b[: rng.integers(len(b))] + o[rng.integers(len(o)):]
+        b = b[: rng.integers(len(b))] + o[rng.integers(len(o)) :]
     else:  # corrupt the metadata text (JSON the loader parses)
         i = bytes(b).find(b"envi.", rng.integers(len(b) // 2))
         if i >= 0:
@@ -74,9 +74,22 @@ def harness(tmp_path_factory) -> Path:
     exe = tmp_path_factory.mktemp("fuzz") / "fuzz_loader"
     sources = [CPP / "tests" / "fuzz_loader.cpp"] + sorted((CPP / "src").glob("*.cpp"))
     sources = [s for s in sources if s.name not in ("pymodule.cpp", "envi_sim.cpp", "csvlog.cpp")]
-    cmd = [gxx, "-std=c++17", "-O1", "-g", "-fsanitize=address,undefined", "-fno-sanitize-recover=all",
-           "-fno-omit-frame-pointer", "-DEIGEN_DONT_PARALLELIZE", f"-I{CPP / 'include'}", f"-I{EIGEN}",
-           *map(str, sources), "-o", str(exe), "-pthread"]
+    cmd = [
+        gxx,
+        "-std=c++17",
+        "-O1",
+        "-g",
+        "-fsanitize=address,undefined",
+        "-fno-sanitize-recover=all",
+        "-fno-omit-frame-pointer",
+        "-DEIGEN_DONT_PARALLELIZE",
+        f"-I{CPP / 'include'}",
+        f"-I{EIGEN}",
+        *map(str, sources),
+        "-o",
+        str(exe),
+        "-pthread",
+    ]
     subprocess.run(cmd, check=True, capture_output=True, text=True)
     return exe
 
@@ -92,8 +105,11 @@ def test_corrupted_models_never_crash_the_loader(harness, tmp_path):
         data = mutate(base[i % len(base)], rng, base)
         files.append(tmp_path / f"m{i:04d}.onnx")
         files[-1].write_bytes(data)
-    env = dict(os.environ, ASAN_OPTIONS="detect_leaks=1:halt_on_error=1:abort_on_error=0",
-               UBSAN_OPTIONS="halt_on_error=1:print_stacktrace=1")
+    env = dict(
+        os.environ,
+        ASAN_OPTIONS="detect_leaks=1:halt_on_error=1:abort_on_error=0",
+        UBSAN_OPTIONS="halt_on_error=1:print_stacktrace=1",
+    )
     res = subprocess.run([str(harness), *map(str, files)], capture_output=True, text=True, env=env, timeout=900)
     assert res.returncode == 0, res.stderr[-4000:]
     assert "runtime error" not in res.stderr and "AddressSanitizer" not in res.stderr

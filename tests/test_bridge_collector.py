@@ -62,9 +62,17 @@ def run_end(run_id: int, ticks: int, rows: int, reason: int = P.END_DONE) -> tup
 def test_a_run_takes_only_frames_with_its_id() -> None:
     """The orphan's frames interleave with the run's own (time going backwards): none is recorded."""
     mine, orphan = 0x1234, 0xBEEF
-    script = [telemetry(orphan, 30), (P.STARTED, (mine, P.MODE_FIELD, 40)), telemetry(orphan, 31),
-              telemetry(mine, 0), telemetry(orphan, 32), telemetry(mine, 1), (P.RUN_END, run_end(orphan, 33, 33)),
-              telemetry(mine, 2), (P.RUN_END, run_end(mine, 3, 3))]
+    script = [
+        telemetry(orphan, 30),
+        (P.STARTED, (mine, P.MODE_FIELD, 40)),
+        telemetry(orphan, 31),
+        telemetry(mine, 0),
+        telemetry(orphan, 32),
+        telemetry(mine, 1),
+        (P.RUN_END, run_end(orphan, 33, 33)),
+        telemetry(mine, 2),
+        (P.RUN_END, run_end(mine, 3, 3)),
+    ]
     r = Run(FakeLink(script), info(), mine, P.MODE_FIELD, 3).execute()
     assert r.ticks == [0, 1, 2] and r.time_ms == [0, 40, 80] and r.complete
     assert r.foreign_frames == 4 and r.rows_sent == 3
@@ -106,8 +114,9 @@ def test_a_log_is_never_replaced_and_follows_the_umask(tmp_path: Path) -> None:
 
 
 def dead_pid() -> int:
-    proc = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True,
-                          check=True)
+    proc = subprocess.run(
+        [sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True, check=True
+    )
     return int(proc.stdout)
 
 
@@ -118,8 +127,14 @@ def test_settle_stops_an_orphan_and_reports_it_lost(tmp_path: Path) -> None:
     done = settle(link, info(P.RUN_RUNNING, 77), led, tmp_path)
     assert (P.STOP, (77,)) in link.sent
     [e] = done.entries
-    assert (e["run"], e["status"], e["rows_sent"], e["rows"], e["rows_lost"], e["file"]) == \
-        ("log_30_4", "lost", 41, 0, 41, None)
+    assert (e["run"], e["status"], e["rows_sent"], e["rows"], e["rows_lost"], e["file"]) == (
+        "log_30_4",
+        "lost",
+        41,
+        0,
+        41,
+        None,
+    )
     tally = Tally()
     tally.add(e)
     assert tally.partial and "0 complete, 0 incomplete, 1 lost run(s)" in tally.line("out")

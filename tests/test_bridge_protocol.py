@@ -12,7 +12,16 @@ from firmware_bridge.brick.crc import crc16
 
 SAMPLES = {
     P.HELLO: (),
-    P.HANDSHAKE: (2, 40, P.RUN_RUNNING, 0xDEADBEEF, "0123456789abcdef", "micropython 1.19.1", "lane-keeping", "x=30;threshold=40"),
+    P.HANDSHAKE: (
+        2,
+        40,
+        P.RUN_RUNNING,
+        0xDEADBEEF,
+        "0123456789abcdef",
+        "micropython 1.19.1",
+        "lane-keeping",
+        "x=30;threshold=40",
+    ),
     P.START: (0xFFFFFFFF, P.MODE_LOCKSTEP, 100, 40, 80),
     P.STARTED: (7, P.MODE_LOCKSTEP, 40),
     P.TELEMETRY: (0x80000001, 99, 3961, 7500, -3000, 120, P.FLAG_INJECTED | P.FLAG_OVERRUN, 12),
@@ -61,7 +70,10 @@ def test_every_message_round_trips(mtype: int) -> None:
     enc.seq = 0xFFFE  # and across the sequence wrap
     data = enc.encode(mtype, SAMPLES[mtype], 0xFFFFFFFF) + enc.encode(mtype, SAMPLES[mtype], 5)
     msgs = dec.feed(data)
-    assert [(m.type, m.seq, m.fields) for m in msgs] == [(mtype, 0xFFFE, SAMPLES[mtype]), (mtype, 0xFFFF, SAMPLES[mtype])]
+    assert [(m.type, m.seq, m.fields) for m in msgs] == [
+        (mtype, 0xFFFE, SAMPLES[mtype]),
+        (mtype, 0xFFFF, SAMPLES[mtype]),
+    ]
     assert msgs[0].time == 0xFFFFFFFF and msgs[1].time == 5
     assert dec.lost == dec.crc_errors == dec.malformed == 0
 

@@ -36,9 +36,13 @@ class BrickSim:
 
     def __init__(self, tmp: Path, *args: str) -> None:
         self.link = tmp / "brick"
-        self.proc = subprocess.Popen([sys.executable, "-m", "firmware_bridge.host.brick_sim", "--link",
-                                      str(self.link), *args], cwd=ROOT, stdout=subprocess.PIPE,
-                                     stderr=subprocess.PIPE, text=True)
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "firmware_bridge.host.brick_sim", "--link", str(self.link), *args],
+            cwd=ROOT,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
         ready, _, _ = select.select([self.proc.stdout], [], [], 30)
         assert ready, "simulated brick did not start in 30 s"
         assert self.proc.stdout.readline().strip() == str(self.link)
@@ -86,8 +90,10 @@ def test_field_runs_zero_loss(sim: BrickSim, tmp_path: Path) -> None:
     assert [lg.name for lg in logs] == ["log_30_0.csv", "log_30_1.csv", "log_30_2.csv"]
     for lg in logs:
         prov = lg.meta.provenance
-        assert lg.meta.source == "fot" and lg.meta.controller == {"name": "lane-keeping",
-                                                                  "params": {"x": 30.0, "threshold": 40.0}}
+        assert lg.meta.source == "fot" and lg.meta.controller == {
+            "name": "lane-keeping",
+            "params": {"x": 30.0, "threshold": 40.0},
+        }
         assert prov["complete"] and prov["lost_frames"] == {"brick_to_host": 0, "host_to_brick": 0}
         # a loaded machine may make the simulated brick overrun and skip a tick: that is a gap in the
         # log, counted as skipped, but never a lost frame
@@ -105,7 +111,8 @@ def test_field_runs_zero_loss(sim: BrickSim, tmp_path: Path) -> None:
         assert prov["rows_sent"] == len(lg) and prov["rows_lost"] == 0 and prov["foreign_frames_at_host"] == 0
     ends = ledger_ends(out)
     assert {k: (e["status"], e["rows"], e["rows_lost"], e["file"]) for k, e in ends.items()} == {
-        lg.name[:-4]: ("complete", len(lg), 0, lg.name) for lg in logs}
+        lg.name[:-4]: ("complete", len(lg), 0, lg.name) for lg in logs
+    }
     assert not list(out.glob(".*"))  # no temporary files left
 
 
@@ -165,8 +172,11 @@ def test_faults_are_counted_and_no_row_is_lost_or_corrupted(tmp_path: Path) -> N
         check_rows_follow_controller(lg)
         recorded = [row_key(t, c, a) for t, c, a in zip(lg.time, lg.states[:, 0], lg.actions[:, 0])]
         frames = runs[prov["brick_run_id"]]
-        intact = [row_key(m.fields[2], m.fields[3] / 100, m.fields[4] / 100)
-                  for kind, m in frames if kind == "sent" and m.type == P.TELEMETRY]
+        intact = [
+            row_key(m.fields[2], m.fields[3] / 100, m.fields[4] / 100)
+            for kind, m in frames
+            if kind == "sent" and m.type == P.TELEMETRY
+        ]
         lost = sum(kind in ("drop", "flip") for kind, _ in frames)
         for kind, _ in frames:
             faults[kind] = faults.get(kind, 0) + 1
@@ -178,11 +188,13 @@ def test_faults_are_counted_and_no_row_is_lost_or_corrupted(tmp_path: Path) -> N
             sent = sum(m.type == P.TELEMETRY for _, m in frames)
             assert prov["rows_sent"] == sent and prov["rows_lost"] == sent - len(lg)
         else:
-            assert recorded == intact[:len(recorded)]  # what arrived before the cut is intact
+            assert recorded == intact[: len(recorded)]  # what arrived before the cut is intact
             assert prov["lost_frames"]["brick_to_host"] >= missing
     assert faults["drop"] > 5 and faults["flip"] > 5  # the faults did happen
-    total = {key: sum(lg.meta.provenance[key] for lg in logs.values())
-             for key in ("duplicates_at_host", "discarded_bytes_at_host", "malformed_at_host")}
+    total = {
+        key: sum(lg.meta.provenance[key] for lg in logs.values())
+        for key in ("duplicates_at_host", "discarded_bytes_at_host", "malformed_at_host")
+    }
     assert total["duplicates_at_host"] > 0 and total["discarded_bytes_at_host"] > 0
     assert sum(lg.meta.provenance["crc_errors"]["at_host"] for lg in logs.values()) > 0
     assert not list(out.glob(".*"))
@@ -193,14 +205,15 @@ def tiny_checkpoint(path: Path) -> Path:
     torch.manual_seed(0)
     rng = np.random.default_rng(0)
     t = np.arange(200)
-    logs = [make_log(np.clip(40 + 30 * np.sin(t / (3 + i)) + rng.normal(0, 2, t.size), 5, 75).round())
-            for i in range(3)]
+    logs = [
+        make_log(np.clip(40 + 30 * np.sin(t / (3 + i)) + rng.normal(0, 2, t.size), 5, 75).round()) for i in range(3)
+    ]
     norm = Normaliser.fit(logs)
     cfg = ModelConfig(n_state=1, n_action=1, hidden=(16, 16))
     model = EnvModel(cfg)
     z = np.concatenate([norm.encode(lg.values) for lg in logs]).astype(np.float32)
-    x = torch.from_numpy(np.stack([z[i:i + cfg.history].reshape(-1) for i in range(len(z) - cfg.history)]))
-    y = torch.from_numpy(z[cfg.history:, :1])
+    x = torch.from_numpy(np.stack([z[i : i + cfg.history].reshape(-1) for i in range(len(z) - cfg.history)]))
+    y = torch.from_numpy(z[cfg.history :, :1])
     opt = torch.optim.Adam(model.parameters(), lr=1e-2)
     for _ in range(150):
         opt.zero_grad()
@@ -215,10 +228,23 @@ def test_hil_actions_are_the_controller_on_injected_colours(sim: BrickSim, tmp_p
     init = make_log(np.array([75, 74, 70, 60, 45, 30, 20, 15, 20, 35, 50, 60], dtype=float))
     init_path = tmp_path / "init.csv"
     from envi_py.logs import write_log
+
     write_log(init, init_path)
     out = tmp_path / "hil"
-    collect_ok("--port", str(sim.link), "--runs", "2", "--duration", "4s", "--out", str(out),
-               "--inject", str(ckpt_path), "--init-log", str(init_path))
+    collect_ok(
+        "--port",
+        str(sim.link),
+        "--runs",
+        "2",
+        "--duration",
+        "4s",
+        "--out",
+        str(out),
+        "--inject",
+        str(ckpt_path),
+        "--init-log",
+        str(init_path),
+    )
     model = CheckpointModel(Checkpoint.load(ckpt_path))
     for name in ("hil_30_0.csv", "hil_30_1.csv"):
         lg = read_log(out / name)
@@ -231,11 +257,11 @@ def test_hil_actions_are_the_controller_on_injected_colours(sim: BrickSim, tmp_p
         assert len(prov["hil"]["rtt_ms_per_row"]) == len(lg)
         # and the colours are the model's predictions from the window the host kept
         model.reset()
-        window = init.values[:model.history].copy()
+        window = init.values[: model.history].copy()
         for k in range(len(lg)):
             want = round(min(100.0, max(0.0, model(window))), 2)
             assert lg.states[k, 0] == pytest.approx(want, abs=0.0051), k
-            window = np.concatenate([window[1:], lg.values[k:k + 1]])
+            window = np.concatenate([window[1:], lg.values[k : k + 1]])
         assert np.ptp(lg.states) > 0  # the model did not just emit one constant
 
 
@@ -249,9 +275,25 @@ def test_ctrl_c_leaves_only_complete_files(tmp_path: Path) -> None:
 
 def ctrl_c(sim: BrickSim, tmp_path: Path) -> None:
     out = tmp_path / "logs"
-    proc = subprocess.Popen([sys.executable, "-m", "firmware_bridge.host.collect", "--port", str(sim.link),
-                             "--runs", "5", "--duration", "4s", "--out", str(out), "--quiet"],
-                            cwd=ROOT, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "firmware_bridge.host.collect",
+            "--port",
+            str(sim.link),
+            "--runs",
+            "5",
+            "--duration",
+            "4s",
+            "--out",
+            str(out),
+            "--quiet",
+        ],
+        cwd=ROOT,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     deadline = time.monotonic() + 60
     while not (out / "log_30_0.csv").exists() and time.monotonic() < deadline:
         time.sleep(0.1)
@@ -275,12 +317,26 @@ def ctrl_c(sim: BrickSim, tmp_path: Path) -> None:
 
 
 def test_hil_over_a_faulty_link_reports_every_timeout(tmp_path: Path) -> None:
-    sim = BrickSim(tmp_path, "--world", "firmware_bridge.host.world:EdgeWorld",
-                   "--faults", "drop=0.05,flip=0.03,rx_drop=0.05,seed=2")
+    sim = BrickSim(
+        tmp_path,
+        "--world",
+        "firmware_bridge.host.world:EdgeWorld",
+        "--faults",
+        "drop=0.05,flip=0.03,rx_drop=0.05,seed=2",
+    )
     out = tmp_path / "hil"
     try:
-        collect_ok("--port", str(sim.link), "--duration", "4s", "--out", str(out),
-                   "--inject", "firmware_bridge.host.inject:WorldModel", "--accept-partial")
+        collect_ok(
+            "--port",
+            str(sim.link),
+            "--duration",
+            "4s",
+            "--out",
+            str(out),
+            "--inject",
+            "firmware_bridge.host.inject:WorldModel",
+            "--accept-partial",
+        )
     finally:
         sim.stop()
     lg = read_log(out / "hil_30_0.csv")

@@ -30,16 +30,27 @@ def lane(tmp_path_factory):
     return ckpt, real, d
 
 
-REQS = [RequirementSpec("near", "max_abs_dev(color, 40) <= 35", "metric", 0.9),
-        RequirementSpec("stl", "always (color >= 5)", "stl", 0.8)]
+REQS = [
+    RequirementSpec("near", "max_abs_dev(color, 40) <= 35", "metric", 0.9),
+    RequirementSpec("stl", "always (color >= 5)", "stl", 0.8),
+]
 
 
 def test_every_version_and_requirement_gets_a_verdict_with_its_basis(lane):
     ckpt, real, _ = lane
-    rows = check(ckpt, real, REQS, unseen=[ControllerSpec("lane-keeping", {"x": 20})], max_runs=300, batch=100,
-                 sims_per_start=5, engine="torch")
-    assert [(r.version, r.requirement) for r in rows] == [(v, q) for v in ("x=10", "x=30", "x=50", "x=20")
-                                                          for q in ("near", "stl")]
+    rows = check(
+        ckpt,
+        real,
+        REQS,
+        unseen=[ControllerSpec("lane-keeping", {"x": 20})],
+        max_runs=300,
+        batch=100,
+        sims_per_start=5,
+        engine="torch",
+    )
+    assert [(r.version, r.requirement) for r in rows] == [
+        (v, q) for v in ("x=10", "x=30", "x=50", "x=20") for q in ("near", "stl")
+    ]
     for r in rows:
         s, q = r.simulation, r.real_system
         assert s["verdict"] in ("PASS", "FAIL", "UNDECIDED") and 0 <= s["successes"] <= s["runs"] <= 300
@@ -55,8 +66,9 @@ def test_every_version_and_requirement_gets_a_verdict_with_its_basis(lane):
 
 
 def test_requirements_from_the_command_line():
-    assert parse_requirement("min(distance) >= 10 @ 0.95", 0.9, 0) == \
-        RequirementSpec("R1", "min(distance) >= 10", "metric", 0.95)
+    assert parse_requirement("min(distance) >= 10 @ 0.95", 0.9, 0) == RequirementSpec(
+        "R1", "min(distance) >= 10", "metric", 0.95
+    )
     assert parse_requirement("always (distance >= 10)", 0.8, 1).kind == "stl"
     with pytest.raises(ValueError, match="strictly between"):
         parse_requirement("min(distance) >= 10 @ 1.5", 0.9, 0)
@@ -66,15 +78,50 @@ def test_check_cli_writes_the_verdict_table_first(lane, tmp_path, capsys):
     ckpt, real, d = lane
     model = ckpt.save(tmp_path / "m.pt")
     paths = [str(lg.path) for lg in real]
-    assert main(["check", "--model", str(model), "--real", *paths, "--require", "max_abs_dev(color, 40) <= 35@0.9",
-                 "--max-runs", "200", "--batch", "100", "--sims-per-start", "4", "--engine", "torch",
-                 "--out", str(tmp_path / "c")]) == 0
+    assert (
+        main(
+            [
+                "check",
+                "--model",
+                str(model),
+                "--real",
+                *paths,
+                "--require",
+                "max_abs_dev(color, 40) <= 35@0.9",
+                "--max-runs",
+                "200",
+                "--batch",
+                "100",
+                "--sims-per-start",
+                "4",
+                "--engine",
+                "torch",
+                "--out",
+                str(tmp_path / "c"),
+            ]
+        )
+        == 0
+    )
     md = (tmp_path / "c" / "check.md").read_text()
     assert md.splitlines()[2].startswith("| version | requirement |") and "## Provenance" in md
     js = json.loads((tmp_path / "c" / "check.json").read_text())
     assert len(js["rows"]) == 3 and js["alpha"] == 0.05
-    assert main(["check", "--model", str(model), "--real", *paths, "--require", "max_abs_dev(nope, 40) <= 35",
-                 "--engine", "torch"]) == 2
+    assert (
+        main(
+            [
+                "check",
+                "--model",
+                str(model),
+                "--real",
+                *paths,
+                "--require",
+                "max_abs_dev(nope, 40) <= 35",
+                "--engine",
+                "torch",
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err.strip()
     assert err == "envi check: error: requirement 'R1': unknown signal 'nope'; signals: color, angle"
     assert np.isfinite(js["rows"][0]["real_system"]["interval"][0])

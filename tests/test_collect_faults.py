@@ -2,7 +2,8 @@
 
 A 10-run session against the simulated brick on a pty; the collector is killed 20 times, each
 time at a seeded random tick of its first or second run (counted from the brick's own journal of
-the frames it sent), and restarted, asking for the runs still missing. Afterwards every log must be exactly one run's rows as
+the frames it sent), and restarted, asking for the runs still missing. Afterwards every log must be exactly
+one run's rows as
 the brick sent them, no file may ever have changed once written, and every row the brick sent
 must be either in a log or reported lost in the ledger.
 """
@@ -65,8 +66,9 @@ class Journal:
 
 
 def digest(folder: Path) -> dict[str, str]:
-    return {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(folder.iterdir())
-            if p.name != LEDGER_NAME}
+    return {
+        p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(folder.iterdir()) if p.name != LEDGER_NAME
+    }
 
 
 def complete_logs(out: Path) -> int:
@@ -90,9 +92,30 @@ def launch(link: Path, out: Path, runs: int, duration_ms: int, log: Path, *extra
     """envi-collect in a subprocess under umask 027 (the shell sets it and execs: same pid, as a user's)."""
     with open(log, "w") as err:
         return subprocess.Popen(
-            ["sh", "-c", f'umask {UMASK:03o} && exec "$0" "$@"', sys.executable, "-m", "firmware_bridge.host.collect",
-             "--port", str(link), "--runs", str(runs), "--duration", f"{duration_ms}ms", "--out", str(out),
-             "--pings", "3", "--quiet", *extra], cwd=ROOT, stdout=subprocess.DEVNULL, stderr=err)
+            [
+                "sh",
+                "-c",
+                f'umask {UMASK:03o} && exec "$0" "$@"',
+                sys.executable,
+                "-m",
+                "firmware_bridge.host.collect",
+                "--port",
+                str(link),
+                "--runs",
+                str(runs),
+                "--duration",
+                f"{duration_ms}ms",
+                "--out",
+                str(out),
+                "--pings",
+                "3",
+                "--quiet",
+                *extra,
+            ],
+            cwd=ROOT,
+            stdout=subprocess.DEVNULL,
+            stderr=err,
+        )
 
 
 def test_a_run_left_going_by_a_killed_collector_is_stopped_and_reported_lost(tmp_path: Path) -> None:
@@ -101,8 +124,15 @@ def test_a_run_left_going_by_a_killed_collector_is_stopped_and_reported_lost(tmp
     name."""
     journal = Journal(tmp_path / "journal.txt")
     out = tmp_path / "logs"
-    sim = BrickSim(tmp_path, "--period", str(PERIOD_MS), "--world", "firmware_bridge.host.world:EdgeWorld",
-                   "--journal", str(journal.path))
+    sim = BrickSim(
+        tmp_path,
+        "--period",
+        str(PERIOD_MS),
+        "--world",
+        "firmware_bridge.host.world:EdgeWorld",
+        "--journal",
+        str(journal.path),
+    )
     procs: list[subprocess.Popen] = []
     try:
         first = launch(sim.link, out, 1, 10_000, tmp_path / "first.err")  # a 500-tick run
@@ -131,7 +161,12 @@ def test_a_run_left_going_by_a_killed_collector_is_stopped_and_reported_lost(tmp
     assert rc == 2 and "1 complete, 0 incomplete, 1 lost run(s)" in err and "left unsettled" in err, err
     ends = {e["run_id"]: e for e in ledger(out) if e["event"] == "end"}
     lost = ends[orphan]
-    assert (lost["run"], lost["status"], lost["file"], lost["settled_by"]) == ("log_30_0", "lost", None, "next collector")
+    assert (lost["run"], lost["status"], lost["file"], lost["settled_by"]) == (
+        "log_30_0",
+        "lost",
+        None,
+        "next collector",
+    )
     # stopped long before its 500 ticks, and every row it sent is counted lost
     assert lost["rows_sent"] == len(journal.rows[orphan]) == lost["rows_lost"] < 400
     [log] = load_logs(out)
@@ -149,8 +184,15 @@ def test_sigkill_at_random_ticks_never_loses_overwrites_or_mixes_a_run(tmp_path:
     plan = [(rng.randrange(2), rng.randrange(1, 5 if j % 2 else TICKS)) for j in range(KILLS)]
     journal = Journal(tmp_path / "journal.txt")
     out = tmp_path / "logs"
-    sim = BrickSim(tmp_path, "--period", str(PERIOD_MS), "--world", "firmware_bridge.host.world:EdgeWorld",
-                   "--journal", str(journal.path))
+    sim = BrickSim(
+        tmp_path,
+        "--period",
+        str(PERIOD_MS),
+        "--world",
+        "firmware_bridge.host.world:EdgeWorld",
+        "--journal",
+        str(journal.path),
+    )
     procs: list[subprocess.Popen] = []
     kills = 0
     seen: dict[str, str] = {}  # every file ever written, with its hash: none may change or vanish
@@ -172,8 +214,11 @@ def test_sigkill_at_random_ticks_never_loses_overwrites_or_mixes_a_run(tmp_path:
             while proc.poll() is None and time.monotonic() < deadline:
                 journal.update()
                 mine = own_runs(out, proc.pid)
-                if target is not None and len(mine) > target[0] and \
-                        len(journal.rows.get(mine[target[0]], [])) >= target[1]:
+                if (
+                    target is not None
+                    and len(mine) > target[0]
+                    and len(journal.rows.get(mine[target[0]], [])) >= target[1]
+                ):
                     proc.send_signal(signal.SIGKILL)
                     proc.wait(timeout=10)
                     kills += 1
@@ -258,6 +303,8 @@ def test_sigkill_at_random_ticks_never_loses_overwrites_or_mixes_a_run(tmp_path:
     assert len(lost_runs) == KILLS and len(ends) == RUNS + KILLS
     assert all(e["settled_by"] == "next collector" and e["file"] is None for e in lost_runs)
     assert lost > 0 and not list(out.glob(".*"))  # no staging file left behind
-    print(f"{kills} kills, {len(ends)} runs started, {len(lost_runs)} lost (rows sent "
-          f"{sorted(e['rows_sent'] for e in lost_runs)}); rows {recorded} recorded + {lost} lost = {journal.total} "
-          "sent by the brick")
+    print(
+        f"{kills} kills, {len(ends)} runs started, {len(lost_runs)} lost (rows sent "
+        f"{sorted(e['rows_sent'] for e in lost_runs)}); rows {recorded} recorded + {lost} lost = {journal.total} "
+        "sent by the brick"
+    )

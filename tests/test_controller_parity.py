@@ -20,22 +20,46 @@ from envi_py.system import Channel, LogSchema
 pytestmark = pytest.mark.skipif(not native.available(), reason="native engine not built")
 
 HISTORY = 10
-PID_FULL = ControllerSpec("pid", {"kp": 0.8, "ki": 6.0, "kd": 0.05, "setpoint": 42.0, "out_min": -25.0,
-                                  "out_max": 25.0, "offset": 3.0})
+PID_FULL = ControllerSpec(
+    "pid", {"kp": 0.8, "ki": 6.0, "kd": 0.05, "setpoint": 42.0, "out_min": -25.0, "out_max": 25.0, "offset": 3.0}
+)
 PID_SLOW = ControllerSpec("pid", {"kp": 0.3, "ki": 40.0, "out_min": -5, "out_max": 20, "dt": 0.1})
 LANE = ControllerSpec("lane-keeping", {"x": 30})
-COMBINE = ControllerSpec("combine", {"loops": [
-    {"name": "pid", "params": {"kp": 0.5, "ki": 4.0, "kd": 0.02, "setpoint": 45.0, "out_min": -20, "out_max": 20,
-                               "input": 1, "offset": -1.5}},
-    {"name": "bang-bang", "params": {"x": 12.0, "threshold": 38.0, "input": 0}}]})
-SINGLE = [PID_FULL, PID_SLOW, LANE, ControllerSpec("lane-keeping", {"x": 10, "threshold": 55}),
-          ControllerSpec("bang-bang", {"x": 7, "threshold": 30, "input": 0}),
-          ControllerSpec("pid", {"kp": 2.0, "ki": 5.0, "kd": 0.05, "setpoint": 45.0, "out_min": -40, "out_max": 40}),
-          ControllerSpec("pid", {"kd": 0.2, "setpoint": 30})]
+COMBINE = ControllerSpec(
+    "combine",
+    {
+        "loops": [
+            {
+                "name": "pid",
+                "params": {
+                    "kp": 0.5,
+                    "ki": 4.0,
+                    "kd": 0.02,
+                    "setpoint": 45.0,
+                    "out_min": -20,
+                    "out_max": 20,
+                    "input": 1,
+                    "offset": -1.5,
+                },
+            },
+            {"name": "bang-bang", "params": {"x": 12.0, "threshold": 38.0, "input": 0}},
+        ]
+    },
+)
+SINGLE = [
+    PID_FULL,
+    PID_SLOW,
+    LANE,
+    ControllerSpec("lane-keeping", {"x": 10, "threshold": 55}),
+    ControllerSpec("bang-bang", {"x": 7, "threshold": 30, "input": 0}),
+    ControllerSpec("pid", {"kp": 2.0, "ki": 5.0, "kd": 0.05, "setpoint": 45.0, "out_min": -40, "out_max": 40}),
+    ControllerSpec("pid", {"kd": 0.2, "setpoint": 30}),
+]
 
 
-def python_actions(spec: ControllerSpec, states: np.ndarray, n_action: int, period_ms: float | None = None
-                   ) -> np.ndarray:
+def python_actions(
+    spec: ControllerSpec, states: np.ndarray, n_action: int, period_ms: float | None = None
+) -> np.ndarray:
     """The reference: reset, warm up on the first HISTORY rows, then one call per row after them."""
     ctrl = spec.build(states.shape[2], n_action, period_ms)
     ctrl.reset(states.shape[0])
@@ -43,10 +67,12 @@ def python_actions(spec: ControllerSpec, states: np.ndarray, n_action: int, peri
     return np.stack([ctrl(states[:, t]) for t in range(HISTORY, states.shape[1])], axis=1)
 
 
-def native_actions(spec: ControllerSpec, states: np.ndarray, n_action: int, period_ms: float | None = None
-                   ) -> np.ndarray:
-    return native._native().controller_actions(json.dumps(spec.to_json()), np.ascontiguousarray(states), HISTORY,
-                                               n_action, period_ms or 0.0)
+def native_actions(
+    spec: ControllerSpec, states: np.ndarray, n_action: int, period_ms: float | None = None
+) -> np.ndarray:
+    return native._native().controller_actions(
+        json.dumps(spec.to_json()), np.ascontiguousarray(states), HISTORY, n_action, period_ms or 0.0
+    )
 
 
 def real_colours(real_logs, length: int = 100) -> np.ndarray:
@@ -115,12 +141,15 @@ def test_combine_two_states_two_actions_matches_python(source, real_logs):
     assert not np.array_equal(got[..., 0], got[..., 1])  # each action its own loop, nothing broadcast
 
 
-@pytest.mark.parametrize("spec, n_state, n_action, match", [
-    (PID_FULL, 1, 2, "pid"),                 # one output for two actions: never broadcast
-    (COMBINE, 2, 1, "combine"),              # two outputs for one action
-    (COMBINE, 1, 2, "pid"),                  # the pid loop reads state 1 of a 1-state model
-    (ControllerSpec("bang-bang", {"input": 3}), 2, 1, "bang-bang"),
-])
+@pytest.mark.parametrize(
+    "spec, n_state, n_action, match",
+    [
+        (PID_FULL, 1, 2, "pid"),  # one output for two actions: never broadcast
+        (COMBINE, 2, 1, "combine"),  # two outputs for one action
+        (COMBINE, 1, 2, "pid"),  # the pid loop reads state 1 of a 1-state model
+        (ControllerSpec("bang-bang", {"input": 3}), 2, 1, "bang-bang"),
+    ],
+)
 def test_wrong_widths_raise_in_both_naming_the_controller(spec, n_state, n_action, match):
     states = random_traces(n_state)
     with pytest.raises(WidthError, match=match):
@@ -130,17 +159,20 @@ def test_wrong_widths_raise_in_both_naming_the_controller(spec, n_state, n_actio
     assert type(err.value).__name__ == "WidthError"
 
 
-@pytest.mark.parametrize("spec, match", [
-    (ControllerSpec("pid", {"kq": 1}), "unknown parameter"),
-    (ControllerSpec("pid", {"kp": "fast"}), "'kp' must be a number"),
-    (ControllerSpec("pid", {"kp": True}), "'kp' must be a number"),
-    (ControllerSpec("pid", {"out_min": 5, "out_max": 1}), "out_min"),
-    (ControllerSpec("pid", {"dt": -0.1}), "dt must be positive"),
-    (ControllerSpec("bang-bang", {"input": "left"}), "'input' must be a state channel"),
-    (ControllerSpec("combine", {"loops": []}), "combine"),
-    (ControllerSpec("combine", {"loops": [{"name": "combine", "params": {"loops": []}}]}), "is not one of"),
-    (ControllerSpec("steer"), "unknown controller 'steer'"),
-])
+@pytest.mark.parametrize(
+    "spec, match",
+    [
+        (ControllerSpec("pid", {"kq": 1}), "unknown parameter"),
+        (ControllerSpec("pid", {"kp": "fast"}), "'kp' must be a number"),
+        (ControllerSpec("pid", {"kp": True}), "'kp' must be a number"),
+        (ControllerSpec("pid", {"out_min": 5, "out_max": 1}), "out_min"),
+        (ControllerSpec("pid", {"dt": -0.1}), "dt must be positive"),
+        (ControllerSpec("bang-bang", {"input": "left"}), "'input' must be a state channel"),
+        (ControllerSpec("combine", {"loops": []}), "combine"),
+        (ControllerSpec("combine", {"loops": [{"name": "combine", "params": {"loops": []}}]}), "is not one of"),
+        (ControllerSpec("steer"), "unknown controller 'steer'"),
+    ],
+)
 def test_bad_specs_raise_in_both(spec, match):
     states = random_traces(1)
     with pytest.raises(ValueError, match=match):
@@ -151,11 +183,14 @@ def test_bad_specs_raise_in_both(spec, match):
 
 # --------------------------------------------------------------------------- engine parity
 
+
 def two_by_two_ckpt(seed: int = 0) -> Checkpoint:
     """A small deterministic MLP over 2 states and 2 actions with seeded random weights."""
     torch.manual_seed(seed)
-    schema = LogSchema(states=(Channel("color", "%", 0.0, 100.0), Channel("distance", "cm", 0.0, 100.0)),
-                       actions=(Channel("angle", "deg", -90.0, 90.0), Channel("speed", "%", -90.0, 90.0)))
+    schema = LogSchema(
+        states=(Channel("color", "%", 0.0, 100.0), Channel("distance", "cm", 0.0, 100.0)),
+        actions=(Channel("angle", "deg", -90.0, 90.0), Channel("speed", "%", -90.0, 90.0)),
+    )
     model = EnvModel(ModelConfig(n_state=2, n_action=2, history=HISTORY, hidden=(32, 32))).eval()
     with torch.no_grad():  # sizeable weights, so the states wander over the range and the loops act
         for p in model.parameters():
@@ -164,8 +199,7 @@ def two_by_two_ckpt(seed: int = 0) -> Checkpoint:
 
 
 @torch.no_grad()
-def reference_rollout(ck: Checkpoint, spec: ControllerSpec, init: np.ndarray, steps: int, runs: int = 1
-                      ) -> np.ndarray:
+def reference_rollout(ck: Checkpoint, spec: ControllerSpec, init: np.ndarray, steps: int, runs: int = 1) -> np.ndarray:
     """The simulator's protocol written out for a plain deterministic MLP: the controller is reset and
     warmed up on sigma_0's rows, then answers every predicted (post-processed) state."""
     cfg, norm = ck.config, ck.norm
@@ -188,7 +222,9 @@ def reference_rollout(ck: Checkpoint, spec: ControllerSpec, init: np.ndarray, st
             s = np.round(s / np.asarray(post["round_to"])) * np.asarray(post["round_to"])
         out[:, hist + t, :ns] = s
         out[:, hist + t, ns:] = ctrl(s)
-        window = np.concatenate([window[:, 1:], norm.encode(out[:, hist + t:hist + t + 1]).astype(np.float32)], axis=1)
+        window = np.concatenate(
+            [window[:, 1:], norm.encode(out[:, hist + t : hist + t + 1]).astype(np.float32)], axis=1
+        )
     return out
 
 
@@ -210,8 +246,10 @@ def test_native_engine_runs_combine_on_two_states_two_actions_like_the_protocol(
     assert np.mean(cold(got[:, HISTORY, :2])[:, 0] != got[:, HISTORY, 2]) > 0.5
 
 
-@pytest.mark.skipif("warmup" not in inspect.getsource(simulate.rollout),
-                    reason="envi_py.simulate.rollout does not warm the controller up yet")
+@pytest.mark.skipif(
+    "warmup" not in inspect.getsource(simulate.rollout),
+    reason="envi_py.simulate.rollout does not warm the controller up yet",
+)
 def test_native_engine_matches_the_pytorch_engine_with_combine(real_logs):
     ck = two_by_two_ckpt(seed=1)
     init = np.concatenate([two_channels(real_colours(real_logs, HISTORY))[:8], np.zeros((8, HISTORY, 2))], axis=2)
@@ -226,5 +264,9 @@ def test_native_engine_refuses_a_controller_of_the_wrong_width():
     with pytest.raises(ValueError, match="'pid' drives 1 action channel"):
         native.rollout(ck, PID_FULL, init, 5)
     with pytest.raises(ValueError, match="reads state channel 2"):
-        native.rollout(ck, ControllerSpec("combine", {"loops": [{"name": "pid", "params": {"input": 2}},
-                                                                {"name": "pid"}]}), init, 5)
+        native.rollout(
+            ck,
+            ControllerSpec("combine", {"loops": [{"name": "pid", "params": {"input": 2}}, {"name": "pid"}]}),
+            init,
+            5,
+        )

@@ -23,8 +23,9 @@ def test_lane_keeping_on_threshold_goes_straight():
 
 
 def test_pid_clamps_and_stops_integrating_when_saturated():
-    ctrl = ControllerSpec("pid", {"kp": 1.0, "ki": 10.0, "setpoint": 0.0, "dt": 0.1,
-                                  "out_min": -5.0, "out_max": 5.0}).build()
+    ctrl = ControllerSpec(
+        "pid", {"kp": 1.0, "ki": 10.0, "setpoint": 0.0, "dt": 0.1, "out_min": -5.0, "out_max": 5.0}
+    ).build()
     ctrl.reset(1)
     outs = [float(ctrl(np.array([[100.0]]))[0, 0]) for _ in range(5)]
     assert outs == [5.0] * 5
@@ -62,6 +63,7 @@ def test_unknown_controller_and_parameters_are_errors():
 
 # ------------------------------------------------------------ the protocol: widths, memory, warm-up
 
+
 def test_a_one_output_controller_on_a_two_action_model_is_an_error_naming_it():
     from envi_py.controllers import WidthError
 
@@ -75,10 +77,18 @@ def test_a_one_output_controller_on_a_two_action_model_is_an_error_naming_it():
 
 
 def test_combine_drives_one_action_per_loop_from_its_own_input():
-    spec = ControllerSpec("combine", {"loops": [{"name": "bang-bang", "params": {"x": 20, "threshold": 40}},
-                                               {"name": "pid", "params": {"input": 1, "kp": 2.0, "setpoint": 30,
-                                                                          "offset": 100, "out_min": 0,
-                                                                          "out_max": 720}}]})
+    spec = ControllerSpec(
+        "combine",
+        {
+            "loops": [
+                {"name": "bang-bang", "params": {"x": 20, "threshold": 40}},
+                {
+                    "name": "pid",
+                    "params": {"input": 1, "kp": 2.0, "setpoint": 30, "offset": 100, "out_min": 0, "out_max": 720},
+                },
+            ]
+        },
+    )
     ctrl = spec.build(n_state=2, n_action=2, period_ms=40)
     ctrl.reset(2)
     out = ctrl(np.array([[50.0, 40.0], [30.0, 10.0]]))
@@ -133,13 +143,24 @@ def test_rollout_warms_the_controller_up_on_sigma0(tmp_path):
 
     logs = [make_log(np.linspace(20, 60, 30), run=str(i)) for i in range(2)]
     ck = new_checkpoint("bc", logs, [], model_config(logs, history=10, hidden=(8,)), 0, {})
-    out = rollout(ck, ControllerSpec("tests.test_controllers:CountingController", {"gain": 2.0}),
-                  np.stack([lg.values[:10] for lg in logs]), steps=3)
+    out = rollout(
+        ck,
+        ControllerSpec("tests.test_controllers:CountingController", {"gain": 2.0}),
+        np.stack([lg.values[:10] for lg in logs]),
+        steps=3,
+    )
     assert out[:, 10:, 1].tolist() == [[22.0, 24.0, 26.0]] * 2  # 10 warm-up rows, then 11, 12, 13
 
 
-@pytest.mark.parametrize("params, why", [({"kp": None}, "'kp' must be a number"), ({"input": 1.5}, "'input' must be"),
-                                         ({"input": True}, "'input' must be"), ({"input": "1"}, "'input' must be")])
+@pytest.mark.parametrize(
+    "params, why",
+    [
+        ({"kp": None}, "'kp' must be a number"),
+        ({"input": 1.5}, "'input' must be"),
+        ({"input": True}, "'input' must be"),
+        ({"input": "1"}, "'input' must be"),
+    ],
+)
 def test_bad_parameter_types_are_value_errors_naming_the_controller(params, why):
     with pytest.raises(ValueError, match=why):
         ControllerSpec("pid", params).build(n_state=2, n_action=1)

@@ -19,8 +19,24 @@ def test_diagnose_names_noise_and_retrains_with_a_gaussian_head(tmp_path, capsys
     ckpt = train("bc", fit[:12], fit[12:], seed=0, epochs=80, lr=1e-3, history=4, head="deterministic")
     ckpt.save(tmp_path / "bc.pt")
     out = tmp_path / "diag"
-    assert main(["diagnose", "--model", str(tmp_path / "bc.pt"), "--real", str(tmp_path / "real"), "--runs", "2",
-                 "--top", "1", "--out", str(out)]) == 0
+    assert (
+        main(
+            [
+                "diagnose",
+                "--model",
+                str(tmp_path / "bc.pt"),
+                "--real",
+                str(tmp_path / "real"),
+                "--runs",
+                "2",
+                "--top",
+                "1",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     verdict = capsys.readouterr().out
     assert "Significant candidate effects, most important first: noise" in verdict
     d = json.loads((out / "diagnosis.json").read_text())

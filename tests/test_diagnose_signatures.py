@@ -6,7 +6,15 @@ import numpy as np
 import pytest
 
 from envi_py.dataset import Normaliser
-from envi_py.diagnose.effects import CANDIDATES, Finding, _nested_first, holm, lattice_step, misfit_share, run_candidates
+from envi_py.diagnose.effects import (
+    CANDIDATES,
+    Finding,
+    _nested_first,
+    holm,
+    lattice_step,
+    misfit_share,
+    run_candidates,
+)
 from envi_py.dataset import play_offsets
 from envi_py.diagnose.residuals import BEYOND, PLAY_WIDTHS, Residuals
 from envi_py.logs import LANE_KEEPING_SCHEMA
@@ -43,9 +51,20 @@ def synthetic(r_extra=None, seed: int = 0, noise: float = 0.05) -> Residuals:
     window = np.stack([np.sin(lags), np.sign(np.sin(lags))], axis=2).reshape(n, HIST * 2)
     beyond = rng.normal(size=(n, BEYOND * 2))
     misfit = 0.5 * np.sin(2 * phase)
-    res = Residuals(r=misfit + rng.normal(0, noise, n), pred_std=None, predicted=pred, real_next=pred + 0.3,
-                    state=state, action=action, run=run, row=row, dt=dt, window=window, beyond=beyond,
-                    play=play)
+    res = Residuals(
+        r=misfit + rng.normal(0, noise, n),
+        pred_std=None,
+        predicted=pred,
+        real_next=pred + 0.3,
+        state=state,
+        action=action,
+        run=run,
+        row=row,
+        dt=dt,
+        window=window,
+        beyond=beyond,
+        play=play,
+    )
     if r_extra is not None:
         res.r = res.r + r_extra(res, rng)
     res.real_next = res.predicted + res.r

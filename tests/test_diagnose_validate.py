@@ -50,10 +50,17 @@ def _result(case: str, expected: str | None, top: str | None, mode: str = "withh
 
 
 def test_score_counts_the_confusion_matrix_top1_and_false_alarms():
-    rs = [_result("noise", "noise", "noise"), _result("noise", "noise", "memory_delay"),
-          _result("jitter", "jitter", "jitter"), _result("jitter", "jitter", "jitter"),
-          _result("none", None, None), _result("none", None, None), _result("none", None, "drift"),
-          _result("none", None, None), _result("noise", "noise", "noise", mode="verification")]
+    rs = [
+        _result("noise", "noise", "noise"),
+        _result("noise", "noise", "memory_delay"),
+        _result("jitter", "jitter", "jitter"),
+        _result("jitter", "jitter", "jitter"),
+        _result("none", None, None),
+        _result("none", None, None),
+        _result("none", None, "drift"),
+        _result("none", None, None),
+        _result("noise", "noise", "noise", mode="verification"),
+    ]
     s = score(rs, "withheld")
     assert s.top1 == pytest.approx(3 / 4) and s.false_alarm == pytest.approx(1 / 4)
     assert s.top1_by_case == {"noise": 0.5, "jitter": 1.0}
@@ -64,9 +71,37 @@ def test_score_counts_the_confusion_matrix_top1_and_false_alarms():
 
 
 def test_cli_writes_the_report_and_resumes(tmp_path, capsys):
-    args = ["diagnose", "validate", "--cases", "none", "jitter", "--seeds", "1", "--mode", "withheld",
-            "--shrink-seeds", "0", "--jobs", "1", "--train", "12", "--val", "3", "--diag", "24",
-            "--epochs", "80", "--lr", "1e-3", "--history", "4", "--runs", "2", "--out", str(tmp_path)]
+    args = [
+        "diagnose",
+        "validate",
+        "--cases",
+        "none",
+        "jitter",
+        "--seeds",
+        "1",
+        "--mode",
+        "withheld",
+        "--shrink-seeds",
+        "0",
+        "--jobs",
+        "1",
+        "--train",
+        "12",
+        "--val",
+        "3",
+        "--diag",
+        "24",
+        "--epochs",
+        "80",
+        "--lr",
+        "1e-3",
+        "--history",
+        "4",
+        "--runs",
+        "2",
+        "--out",
+        str(tmp_path),
+    ]
     assert main(args) == 0
     lines = (tmp_path / "results.jsonl").read_text().splitlines()
     assert len(lines) == 2
@@ -101,8 +136,7 @@ def test_a_robot_that_never_leaves_its_setpoint_has_no_gap_to_attribute(monkeypa
     fit = _logs(case, 15, 100, 0)
     ckpt = train("bc", fit[:12], fit[12:], seed=0, epochs=40, lr=1e-3, history=8, head="deterministic")
     flagged = run.run_candidates
-    monkeypatch.setattr(run, "run_candidates",
-                        lambda *a, **k: [replace(f, significant=True) for f in flagged(*a, **k)])
+    monkeypatch.setattr(run, "run_candidates", lambda *a, **k: [replace(f, significant=True) for f in flagged(*a, **k)])
     d = diagnose(ckpt, _logs(case, 16, 100, 1), train_logs=fit[:12], val_logs=fit[12:], runs=2, retrain=True)
     assert d.no_gap and d.significant == [] and d.shrink is None
     assert "no closed-loop gap to attribute" in d.verdict()

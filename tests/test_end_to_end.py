@@ -12,19 +12,74 @@ from envi_py.cli import main
 
 def test_tovk_on_real_logs(real_dir, tmp_path, capsys):
     split = tmp_path / "split"
-    assert main(["split", "--logs", str(real_dir), "--pattern", "log_{x}_{run}.csv", "--where", "x=30",
-                 "--train", "6", "--val", "2", "--test", "12", "--seed", "1", "--out", str(split)]) == 0
+    assert (
+        main(
+            [
+                "split",
+                "--logs",
+                str(real_dir),
+                "--pattern",
+                "log_{x}_{run}.csv",
+                "--where",
+                "x=30",
+                "--train",
+                "6",
+                "--val",
+                "2",
+                "--test",
+                "12",
+                "--seed",
+                "1",
+                "--out",
+                str(split),
+            ]
+        )
+        == 0
+    )
     test_logs = json.loads((split / "test.json").read_text())["logs"]
     train_logs = json.loads((split / "train.json").read_text())["logs"]
     assert len(test_logs) == 12 and not set(test_logs) & set(train_logs)
     accs = {}
     for alg in ("bc", "random"):
         model = tmp_path / f"{alg}.pt"
-        assert main(["train", "--logs", str(split / "train.json"), "--val-logs", str(split / "val.json"),
-                     "--algorithm", alg, "--epochs", "60", "--lr", "1e-3", "--quiet", "-o", str(model)]) == 0
+        assert (
+            main(
+                [
+                    "train",
+                    "--logs",
+                    str(split / "train.json"),
+                    "--val-logs",
+                    str(split / "val.json"),
+                    "--algorithm",
+                    alg,
+                    "--epochs",
+                    "60",
+                    "--lr",
+                    "1e-3",
+                    "--quiet",
+                    "-o",
+                    str(model),
+                ]
+            )
+            == 0
+        )
         sim = tmp_path / f"sim_{alg}"
-        assert main(["simulate", "--model", str(model), "--init-logs", str(split / "test.json"),
-                     "--runs", "2", "--out", str(sim)]) == 0
+        assert (
+            main(
+                [
+                    "simulate",
+                    "--model",
+                    str(model),
+                    "--init-logs",
+                    str(split / "test.json"),
+                    "--runs",
+                    "2",
+                    "--out",
+                    str(sim),
+                ]
+            )
+            == 0
+        )
         engine = "native" if alg == "bc" and native.available() else "torch"  # auto: native where it can
         assert f"({engine} engine)" in capsys.readouterr().out
         report = tmp_path / f"report_{alg}"
@@ -57,8 +112,28 @@ def test_a_diagnosed_fix_can_be_trained_and_simulated_from_the_command_line(real
     then simulates on the PyTorch engine, and a play channel without a width is refused."""
     logs = [str(p) for p in sorted(real_dir.glob("log_30_*.csv"))[:6]]
     model = tmp_path / "play.pt"
-    assert main(["train", "--logs", *logs[:4], "--epochs", "5", "--history", "4", "--extras", "play", "dt",
-                 "--play-width", "0.3", "--quiet", "-o", str(model)]) == 0
+    assert (
+        main(
+            [
+                "train",
+                "--logs",
+                *logs[:4],
+                "--epochs",
+                "5",
+                "--history",
+                "4",
+                "--extras",
+                "play",
+                "dt",
+                "--play-width",
+                "0.3",
+                "--quiet",
+                "-o",
+                str(model),
+            ]
+        )
+        == 0
+    )
     from envi_py.model import Checkpoint
 
     cfg = Checkpoint.load(model).config

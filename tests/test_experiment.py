@@ -52,8 +52,16 @@ def test_car_versions_are_chosen_by_label_with_numbers_compared_as_numbers(car_l
     pool = versions_of(car_logs, CAR)
     assert list(pool) == sorted(CAR_LABELS, key=lambda s: [float(p.split("=")[1]) for p in s.split(",")])
     written = ("kp_steer=0.80,kp_speed=18.0", "kp_steer=2, kp_speed=18", CAR_TRAIN[2])
-    jobs, plan = make_jobs(car_logs, ["tmvk", "tmvu"], ["bc"], ns=(3,), reps=1, n_val=2, n_test=4,
-                           versions=VersionChoice(train=written, unseen=CAR_NEW))
+    jobs, plan = make_jobs(
+        car_logs,
+        ["tmvk", "tmvu"],
+        ["bc"],
+        ns=(3,),
+        reps=1,
+        n_val=2,
+        n_test=4,
+        versions=VersionChoice(train=written, unseen=CAR_NEW),
+    )
     assert plan.train["tmvk"] == CAR_TRAIN and plan.eval["tmvk"] == CAR_TRAIN and plan.eval["tmvu"] == CAR_NEW
     (job,) = jobs
 
@@ -63,8 +71,16 @@ def test_car_versions_are_chosen_by_label_with_numbers_compared_as_numbers(car_l
     assert {label(lg) for lg in job.train} == set(CAR_TRAIN) and len(job.train) == 3 * 3
     assert {label(lg) for lg in job.evals["tmvu"]} == set(CAR_NEW) and len(job.evals["tmvu"]) == 2 * 9
     assert not _names(job.evals["tmvk"]) & _names(job.train + job.val)
-    only = make_jobs(car_logs, ["tmvk"], ["bc"], ns=(3,), reps=1, n_val=2, n_test=4,
-                     versions=VersionChoice(train=CAR_TRAIN, eval=CAR_TRAIN[:1]))[1]
+    only = make_jobs(
+        car_logs,
+        ["tmvk"],
+        ["bc"],
+        ns=(3,),
+        reps=1,
+        n_val=2,
+        n_test=4,
+        versions=VersionChoice(train=CAR_TRAIN, eval=CAR_TRAIN[:1]),
+    )[1]
     assert only.eval["tmvk"] == CAR_TRAIN[:1]
 
 
@@ -72,8 +88,17 @@ def test_without_version_parameters_versions_are_chosen_by_the_controllers_label
     bare = SystemDescription("bare", CAR.schema)  # e.g. drafted without [versions]
     spec = car_logs[0].controller
     assert spec.label().startswith("combine(loops=[pid(")
-    jobs, plan = make_jobs(car_logs, ["tovk"], ["bc"], ns=(3,), reps=1, n_val=2, n_test=4, system=bare,
-                           versions=VersionChoice(tovk=spec.label()))
+    jobs, plan = make_jobs(
+        car_logs,
+        ["tovk"],
+        ["bc"],
+        ns=(3,),
+        reps=1,
+        n_val=2,
+        n_test=4,
+        system=bare,
+        versions=VersionChoice(tovk=spec.label()),
+    )
     assert plan.train["tovk"] == (spec.label(),) and {lg.controller for lg in jobs[0].train} == {spec}
 
 
@@ -84,17 +109,24 @@ def test_the_papers_figures_belong_to_the_papers_versions_only() -> None:
     assert paper_accuracy("tovk", "kp_steer=0.8,kp_speed=18") is None and paper_accuracy("tovk", "y=30") is None
 
 
-@pytest.mark.parametrize("choice, uses, message", [
-    (VersionChoice(), ["tmvk"], r"tmvk: give --train-versions .*available: kp_steer=0.8,kp_speed=18 \(9 logs\);"),
-    (VersionChoice(train=CAR_TRAIN), ["tmvu"], "tmvu: give --unseen-versions"),
-    (VersionChoice(), ["tovk"], "tovk: give --tovk-version"),
-    (VersionChoice(tovk="kp_steer=9,kp_speed=18"), ["tovk"], r"no logs of version 'kp_steer=9,kp_speed=18'; available"),
-    (VersionChoice(tovk="kp_steer=0.8"), ["tovk"], "no logs of version 'kp_steer=0.8'"),  # every parameter needed
-    (VersionChoice(train=CAR_TRAIN, unseen=CAR_TRAIN[:1]), ["tmvu"], "never trained on; kp_steer=0.8,kp_speed=18"),
-    (VersionChoice(train=CAR_TRAIN, eval=CAR_NEW[:1]), ["tmvk"], "verifies trained versions only"),
-    (VersionChoice(train=CAR_TRAIN + CAR_TRAIN[:1]), ["tmvk"], "named twice"),
-    (VersionChoice(train=CAR_TRAIN, tovk=CAR_TRAIN[0]), ["tmvk"], "--tovk-version applies to tovk"),
-])
+@pytest.mark.parametrize(
+    "choice, uses, message",
+    [
+        (VersionChoice(), ["tmvk"], r"tmvk: give --train-versions .*available: kp_steer=0.8,kp_speed=18 \(9 logs\);"),
+        (VersionChoice(train=CAR_TRAIN), ["tmvu"], "tmvu: give --unseen-versions"),
+        (VersionChoice(), ["tovk"], "tovk: give --tovk-version"),
+        (
+            VersionChoice(tovk="kp_steer=9,kp_speed=18"),
+            ["tovk"],
+            r"no logs of version 'kp_steer=9,kp_speed=18'; available",
+        ),
+        (VersionChoice(tovk="kp_steer=0.8"), ["tovk"], "no logs of version 'kp_steer=0.8'"),  # every parameter needed
+        (VersionChoice(train=CAR_TRAIN, unseen=CAR_TRAIN[:1]), ["tmvu"], "never trained on; kp_steer=0.8,kp_speed=18"),
+        (VersionChoice(train=CAR_TRAIN, eval=CAR_NEW[:1]), ["tmvk"], "verifies trained versions only"),
+        (VersionChoice(train=CAR_TRAIN + CAR_TRAIN[:1]), ["tmvk"], "named twice"),
+        (VersionChoice(train=CAR_TRAIN, tovk=CAR_TRAIN[0]), ["tmvk"], "--tovk-version applies to tovk"),
+    ],
+)
 def test_wrong_or_missing_version_choices_are_one_clear_error(car_logs, choice, uses, message) -> None:
     with pytest.raises(ValueError, match=message):
         make_jobs(car_logs, uses, ["bc"], ns=(3,), reps=1, n_val=2, n_test=4, versions=choice)
@@ -139,8 +171,15 @@ def test_authors_protocol_uses_sorted_rotated_folds(real_logs) -> None:
 
 def test_tiny_grid_repeats_and_writes_the_report(real_logs, tmp_path) -> None:
     logs = [lg for lg in real_logs if _label(lg) == "x=30"]
-    kw = {"algorithms": ("random", "bc", "gail", "bcxgail"), "ns": (3,), "reps": 2, "epochs": 2, "n_test": 6,
-          "progress": False, "train_kwargs": TINY}
+    kw = {
+        "algorithms": ("random", "bc", "gail", "bcxgail"),
+        "ns": (3,),
+        "reps": 2,
+        "epochs": 2,
+        "n_test": 6,
+        "progress": False,
+        "train_kwargs": TINY,
+    }
     a = run_experiment(logs, ["tovk"], tmp_path / "a", executor=LocalExecutor(0), **kw)
     run_experiment(logs, ["tovk"], tmp_path / "b", executor=LocalExecutor(2), **kw)
     ja = json.loads((tmp_path / "a" / "results.json").read_text())
@@ -168,18 +207,36 @@ def test_tiny_grid_repeats_and_writes_the_report(real_logs, tmp_path) -> None:
 def test_dask_executor_gives_the_local_numbers(real_logs, tmp_path) -> None:
     distributed = pytest.importorskip("distributed")
     logs = [lg for lg in real_logs if _label(lg) == "x=30"]
-    kw = {"algorithms": ("random", "bc"), "ns": (3,), "reps": 1, "epochs": 2, "n_test": 6, "progress": False,
-          "train_kwargs": TINY}
+    kw = {
+        "algorithms": ("random", "bc"),
+        "ns": (3,),
+        "reps": 1,
+        "epochs": 2,
+        "n_test": 6,
+        "progress": False,
+        "train_kwargs": TINY,
+    }
     local = run_experiment(logs, ["tovk"], tmp_path / "local", executor=LocalExecutor(0), **kw)
-    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False,
-                                  dashboard_address=None) as cluster, distributed.Client(cluster) as client:
+    with (
+        distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) as cluster,
+        distributed.Client(cluster) as client,
+    ):
         remote = run_experiment(logs, ["tovk"], tmp_path / "dask", executor=DaskExecutor(client), **kw)
     assert [r["evals"] for r in remote["results"]] == [r["evals"] for r in local["results"]]
 
 
 def test_car_grid_runs_tmvk_and_tmvu_end_to_end(car_logs, tmp_path) -> None:
-    kw = {"algorithms": ("random", "bc"), "ns": (3,), "reps": 1, "epochs": 2, "n_val": 2, "n_test": 4,
-          "progress": False, "train_kwargs": TINY, "executor": LocalExecutor(0)}
+    kw = {
+        "algorithms": ("random", "bc"),
+        "ns": (3,),
+        "reps": 1,
+        "epochs": 2,
+        "n_val": 2,
+        "n_test": 4,
+        "progress": False,
+        "train_kwargs": TINY,
+        "executor": LocalExecutor(0),
+    }
     choice = VersionChoice(train=CAR_TRAIN, unseen=CAR_NEW)
     res = run_experiment(car_logs, ["tmvk", "tmvu"], tmp_path, versions=choice, **kw)
     assert res["meta"]["jobs"] == 2 and res["meta"]["system"] == "car"  # tmvk and tmvu share their trainings
@@ -204,10 +261,14 @@ def test_car_grid_runs_tmvk_and_tmvu_end_to_end(car_logs, tmp_path) -> None:
     again = run_experiment(car_logs, ["tmvk", "tmvu"], tmp_path, versions=choice, **kw)
     assert again["meta"]["jobs_reused"] == 2
     fewer = VersionChoice(train=CAR_TRAIN, eval=CAR_TRAIN[:2], unseen=CAR_NEW)
-    assert make_jobs(car_logs, ["tmvk", "tmvu"], ["bc"], ns=(3,), reps=1, n_val=2, n_test=4, train_kwargs=TINY,
-                     versions=fewer)[0][0].fingerprint() != make_jobs(
-        car_logs, ["tmvk", "tmvu"], ["bc"], ns=(3,), reps=1, n_val=2, n_test=4, train_kwargs=TINY,
-        versions=choice)[0][0].fingerprint()  # another choice of versions is another job
+    assert (
+        make_jobs(
+            car_logs, ["tmvk", "tmvu"], ["bc"], ns=(3,), reps=1, n_val=2, n_test=4, train_kwargs=TINY, versions=fewer
+        )[0][0].fingerprint()
+        != make_jobs(
+            car_logs, ["tmvk", "tmvu"], ["bc"], ns=(3,), reps=1, n_val=2, n_test=4, train_kwargs=TINY, versions=choice
+        )[0][0].fingerprint()
+    )  # another choice of versions is another job
 
 
 def test_cli_names_the_missing_choice_in_one_line(car_logs, tmp_path, capsys) -> None:
@@ -215,8 +276,22 @@ def test_cli_names_the_missing_choice_in_one_line(car_logs, tmp_path, capsys) ->
     from envi_py.twin.car import write_car_logs
 
     write_car_logs(car_logs, tmp_path / "logs")
-    code = main(["experiment", "tmvu", "--logs", str(tmp_path / "logs"), "--system", "car",
-                 "--train-versions", *CAR_TRAIN, "--workers", "0", "--out", str(tmp_path / "out")])
+    code = main(
+        [
+            "experiment",
+            "tmvu",
+            "--logs",
+            str(tmp_path / "logs"),
+            "--system",
+            "car",
+            "--train-versions",
+            *CAR_TRAIN,
+            "--workers",
+            "0",
+            "--out",
+            str(tmp_path / "out"),
+        ]
+    )
     err = capsys.readouterr().err.strip()
     assert code == 2 and len(err.splitlines()) == 1
     assert err.startswith("envi experiment: error: tmvu: give --unseen-versions") and CAR_NEW[0] in err

@@ -25,9 +25,14 @@ def paper_ckpt(head: str = "deterministic", seed: int = 0, **cfg) -> Checkpoint:
     if head == "gaussian":
         with torch.no_grad():
             model.log_std.bias.fill_(-1.0)
-    record = TrainingRecord("bc", seed, hyper={"epochs": 3}, period_ms=40.0,
-                            data=[{"file": lg.name, "sha256": lg.sha256()} for lg in logs],
-                            controllers=[{"name": "lane-keeping", "params": {"x": 30.0}}])
+    record = TrainingRecord(
+        "bc",
+        seed,
+        hyper={"epochs": 3},
+        period_ms=40.0,
+        data=[{"file": lg.name, "sha256": lg.sha256()} for lg in logs],
+        controllers=[{"name": "lane-keeping", "params": {"x": 30.0}}],
+    )
     return Checkpoint(model, Normaliser.fit(logs), LANE_KEEPING_SCHEMA, record)
 
 

@@ -45,9 +45,18 @@ from envi_py.system import (
 )
 
 settings.register_profile(
-    "envi-fuzz", derandomize=True, deadline=None, database=None, print_blob=True,
-    suppress_health_check=[HealthCheck.too_slow, HealthCheck.filter_too_much, HealthCheck.data_too_large,
-                            HealthCheck.large_base_example])
+    "envi-fuzz",
+    derandomize=True,
+    deadline=None,
+    database=None,
+    print_blob=True,
+    suppress_health_check=[
+        HealthCheck.too_slow,
+        HealthCheck.filter_too_much,
+        HealthCheck.data_too_large,
+        HealthCheck.large_base_example,
+    ],
+)
 FUZZ = settings.get_profile("envi-fuzz")
 #: Inputs generated per test, checked against MIN_TOTAL by the last test of the module.
 GENERATED: Counter[str] = Counter()
@@ -60,6 +69,7 @@ GOOD_CSV = "time,color,angle\n0,71,30\n40,60,30\n80,35,-30\n"
 
 # ----------------------------------------------------------------------------- helpers
 
+
 class Hang(Exception):
     """Raised by the alarm when one input takes longer than TIMEOUT_S."""
 
@@ -67,8 +77,10 @@ class Hang(Exception):
 @contextlib.contextmanager
 def deadline(seconds: int = TIMEOUT_S) -> Iterator[None]:
     """Fail (do not block the suite) when the body hangs: a FIFO, /dev/zero or a runaway loop."""
+
     def ring(signum: int, frame: Any) -> None:
         raise Hang(f"no answer within {seconds} s")
+
     old = signal.signal(signal.SIGALRM, ring)
     signal.alarm(seconds)
     try:
@@ -138,14 +150,52 @@ def assert_cli_error(code: int, err: str, cmd: str) -> None:
 
 NUMBER_FORMATS = st.sampled_from(["{:d}", "{:.1f}", "{:+d}", "{:e}", " {:d} ", '"{:d}"'])  # all exact
 #: Cells that are never a valid reading, whatever column they are in.
-BAD_TOKENS = ["", " ", "abc", "nan", "NaN", "-nan", "inf", "-Infinity", "1e400", "-1e999", "1_0", "0x10", "--1",
-              "1..2", "1e", "e5", "\u0661\u0662", "\uff11\uff12", "\u00bd", "1 2", "\u00a0", "None", "true"]
+BAD_TOKENS = [
+    "",
+    " ",
+    "abc",
+    "nan",
+    "NaN",
+    "-nan",
+    "inf",
+    "-Infinity",
+    "1e400",
+    "-1e999",
+    "1_0",
+    "0x10",
+    "--1",
+    "1..2",
+    "1e",
+    "e5",
+    "\u0661\u0662",
+    "\uff11\uff12",
+    "\u00bd",
+    "1 2",
+    "\u00a0",
+    "None",
+    "true",
+]
 NOT_A_NUMBER = st.one_of(
     st.sampled_from(BAD_TOKENS),
     st.text(st.characters(blacklist_categories=("Cs",), blacklist_characters=',"\r\n\x00'), max_size=8).filter(
-        lambda t: re.fullmatch(r"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?", t.strip()) is None))
-DEFECTS = ("not_a_number", "out_of_range", "time_not_increasing", "ragged_short", "ragged_long", "separator_row",
-           "header_missing", "header_extra", "header_duplicate", "header_blank", "nul", "not_utf8", "no_rows")
+        lambda t: re.fullmatch(r"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?", t.strip()) is None
+    ),
+)
+DEFECTS = (
+    "not_a_number",
+    "out_of_range",
+    "time_not_increasing",
+    "ragged_short",
+    "ragged_long",
+    "separator_row",
+    "header_missing",
+    "header_extra",
+    "header_duplicate",
+    "header_blank",
+    "nul",
+    "not_utf8",
+    "no_rows",
+)
 
 
 @st.composite
@@ -222,8 +272,12 @@ def csv_cases(draw: st.DrawFn) -> tuple[bytes, np.ndarray | None, str | None, in
     if draw(st.booleans()):
         data = b"\xef\xbb\xbf" + data
     expected = np.array([times, color, angle], dtype=float).T if defect is None else None
-    row = row_line.get(target) if defect in ("not_a_number", "out_of_range", "time_not_increasing",
-                                             "ragged_short", "ragged_long", "separator_row") else None
+    row = (
+        row_line.get(target)
+        if defect
+        in ("not_a_number", "out_of_range", "time_not_increasing", "ragged_short", "ragged_long", "separator_row")
+        else None
+    )
     if defect in ("header_missing", "header_extra", "header_duplicate", "header_blank"):
         row = 1
     return data, expected, defect, row
@@ -252,16 +306,43 @@ def test_csv_logs_are_read_exactly_or_refused_with_file_and_row(case):
                 read_log(path)
 
 
-CELL_SOUP = st.one_of(st.sampled_from(["0", "1", "40", "-30", "1e308", "99.5", "101", '"', '""', "time", "color",
-                                       "angle", " ", "\t", "\x00", "\ufeff", "\u0660"]),
-                      NOT_A_NUMBER, st.integers(-10**20, 10**20).map(str), st.floats().map(repr))
+CELL_SOUP = st.one_of(
+    st.sampled_from(
+        [
+            "0",
+            "1",
+            "40",
+            "-30",
+            "1e308",
+            "99.5",
+            "101",
+            '"',
+            '""',
+            "time",
+            "color",
+            "angle",
+            " ",
+            "\t",
+            "\x00",
+            "\ufeff",
+            "\u0660",
+        ]
+    ),
+    NOT_A_NUMBER,
+    st.integers(-(10**20), 10**20).map(str),
+    st.floats().map(repr),
+)
 
 
 @settings(FUZZ, max_examples=120)
-@given(st.one_of(
-    st.binary(max_size=300),
-    st.lists(st.lists(CELL_SOUP, max_size=5).map(",".join), max_size=8).map(
-        lambda ls: ("time,color,angle\n" + "\n".join(ls)).encode("utf-8", "surrogatepass"))))
+@given(
+    st.one_of(
+        st.binary(max_size=300),
+        st.lists(st.lists(CELL_SOUP, max_size=5).map(",".join), max_size=8).map(
+            lambda ls: ("time,color,angle\n" + "\n".join(ls)).encode("utf-8", "surrogatepass")
+        ),
+    )
+)
 def test_random_bytes_never_crash_or_pass_bad_values(data):
     """Arbitrary bytes and cell soups: a log that keeps the contract, or one clean error line."""
     count("bytes")
@@ -273,15 +354,33 @@ def test_random_bytes_never_crash_or_pass_bad_values(data):
 
 # ----------------------------------------------------------------------------- sidecars
 
-JSON_LEAVES = st.one_of(st.none(), st.booleans(), st.integers(-10**30, 10**30), st.floats(), st.text(max_size=10))
-JSON_VALUES = st.recursive(JSON_LEAVES, lambda c: st.lists(c, max_size=4) | st.dictionaries(st.text(max_size=6), c,
-                                                                                            max_size=4), max_leaves=12)
+JSON_LEAVES = st.one_of(st.none(), st.booleans(), st.integers(-(10**30), 10**30), st.floats(), st.text(max_size=10))
+JSON_VALUES = st.recursive(
+    JSON_LEAVES, lambda c: st.lists(c, max_size=4) | st.dictionaries(st.text(max_size=6), c, max_size=4), max_leaves=12
+)
 GOOD_META = LogMeta(controller={"name": "lane-keeping", "params": {"x": 30}}, period_ms=40.0, run_id="r1").to_json()
-SIDECAR_PATHS = [("schema_version",), ("states",), ("actions",), ("logged",), ("controller",), ("controller", "name"),
-                 ("controller", "params"), ("controller", "params", "x"), ("period_ms",), ("run_id",), ("source",),
-                 ("provenance",), ("states", 0), ("states", 0, "name"), ("states", 0, "range"),
-                 ("states", 0, "range", 1), ("states", 0, "unit"), ("states", 0, "resolution"),
-                 ("states", 0, "saturates"), ("actions", 0, "name")]
+SIDECAR_PATHS = [
+    ("schema_version",),
+    ("states",),
+    ("actions",),
+    ("logged",),
+    ("controller",),
+    ("controller", "name"),
+    ("controller", "params"),
+    ("controller", "params", "x"),
+    ("period_ms",),
+    ("run_id",),
+    ("source",),
+    ("provenance",),
+    ("states", 0),
+    ("states", 0, "name"),
+    ("states", 0, "range"),
+    ("states", 0, "range", 1),
+    ("states", 0, "unit"),
+    ("states", 0, "resolution"),
+    ("states", 0, "saturates"),
+    ("actions", 0, "name"),
+]
 RUN_IDS = st.sampled_from(["../x", "/etc/passwd", "a/b", ".hidden", "", "x" * 200, "con\n", "ok-1", "a\\b", ".."])
 
 
@@ -347,15 +446,36 @@ def test_sidecars_of_any_shape_are_read_or_refused_and_can_be_skipped(text):
 # ----------------------------------------------------------------------------- manifests
 
 GOOD_MANIFEST = {"system": LANE.to_json(), "logs": ["log.csv"]}
-MANIFEST_PATHS = [("system",), ("logs",), ("logs", 0), ("system", "name"), ("system", "period_ms"),
-                  ("system", "schema"), ("system", "schema", "states"), ("system", "schema", "states", 0, "range"),
-                  ("system", "schema", "actions", 0, "name"), ("system", "versions"), ("system", "versions", "pattern"),
-                  ("system", "versions", "params"), ("system", "versions", "map"), ("system", "controller"),
-                  ("system", "controller", "params"), ("system", "ignore"), ("system", "preset"),
-                  ("system", "goals"), ("system", "requirements"), ("system", "requirements", 0),
-                  ("system", "requirements", 0, "probability")]
-LISTED = st.lists(st.sampled_from(["log.csv", "missing.csv", "sub", "fifo.csv", "/dev/zero", "../log.csv", "zero.csv",
-                                   "log.meta.json"]), min_size=1, max_size=3)
+MANIFEST_PATHS = [
+    ("system",),
+    ("logs",),
+    ("logs", 0),
+    ("system", "name"),
+    ("system", "period_ms"),
+    ("system", "schema"),
+    ("system", "schema", "states"),
+    ("system", "schema", "states", 0, "range"),
+    ("system", "schema", "actions", 0, "name"),
+    ("system", "versions"),
+    ("system", "versions", "pattern"),
+    ("system", "versions", "params"),
+    ("system", "versions", "map"),
+    ("system", "controller"),
+    ("system", "controller", "params"),
+    ("system", "ignore"),
+    ("system", "preset"),
+    ("system", "goals"),
+    ("system", "requirements"),
+    ("system", "requirements", 0),
+    ("system", "requirements", 0, "probability"),
+]
+LISTED = st.lists(
+    st.sampled_from(
+        ["log.csv", "missing.csv", "sub", "fifo.csv", "/dev/zero", "../log.csv", "zero.csv", "log.meta.json"]
+    ),
+    min_size=1,
+    max_size=3,
+)
 
 
 @settings(FUZZ, max_examples=100)
@@ -393,8 +513,10 @@ def test_manifests_of_any_shape_are_read_or_refused(text, listed):
 
 # ----------------------------------------------------------------------------- file-name patterns
 
-BRACE_SOUP = st.lists(st.sampled_from(list("{}_xyrun.0-9ä ") + ["{x}", "{run}", "{0}", "{x-y}", "log_", ".csv",
-                                                                 "{{", "}}", "{y}"]), max_size=12).map("".join)
+BRACE_SOUP = st.lists(
+    st.sampled_from(list("{}_xyrun.0-9ä ") + ["{x}", "{run}", "{0}", "{x-y}", "log_", ".csv", "{{", "}}", "{y}"]),
+    max_size=12,
+).map("".join)
 
 
 @settings(FUZZ, max_examples=80)
@@ -431,10 +553,14 @@ def test_non_finite_or_foreign_version_fields_are_refused(tmp_path):
 
 # ----------------------------------------------------------------------------- system descriptions (TOML)
 
+
 def to_toml(doc: dict[str, Any]) -> str:
     """A TOML document from nested data: top-level values, then tables and arrays of tables."""
-    lines = [f"{json.dumps(k)} = {toml_value(v)}" for k, v in doc.items()
-             if not isinstance(v, dict) and not (isinstance(v, list) and v and all(isinstance(e, dict) for e in v))]
+    lines = [
+        f"{json.dumps(k)} = {toml_value(v)}"
+        for k, v in doc.items()
+        if not isinstance(v, dict) and not (isinstance(v, list) and v and all(isinstance(e, dict) for e in v))
+    ]
     for k, v in doc.items():
         if isinstance(v, dict):
             lines += [f"[{json.dumps(k)}]"] + [f"{json.dumps(kk)} = {toml_value(vv)}" for kk, vv in v.items()]
@@ -450,11 +576,30 @@ def toml_docs() -> list[dict[str, Any]]:
     return [tomllib.loads(p.read_text()) for p in shipped().values()]
 
 
-TOML_LEAVES = st.one_of(st.booleans(), st.integers(-10**18, 10**18), st.floats(), st.text(max_size=8))
-TOML_VALUES = st.recursive(TOML_LEAVES, lambda c: st.lists(c, max_size=3) | st.dictionaries(
-    st.text("abcxyz_", min_size=1, max_size=5), c, max_size=3), max_leaves=8)
-TOML_KEYS = ["name", "role", "range", "unit", "resolution", "saturates", "pattern", "params", "map", "period_ms",
-             "goals_preset", "expr", "probability", "kind", "metric", "signal"]
+TOML_LEAVES = st.one_of(st.booleans(), st.integers(-(10**18), 10**18), st.floats(), st.text(max_size=8))
+TOML_VALUES = st.recursive(
+    TOML_LEAVES,
+    lambda c: st.lists(c, max_size=3) | st.dictionaries(st.text("abcxyz_", min_size=1, max_size=5), c, max_size=3),
+    max_leaves=8,
+)
+TOML_KEYS = [
+    "name",
+    "role",
+    "range",
+    "unit",
+    "resolution",
+    "saturates",
+    "pattern",
+    "params",
+    "map",
+    "period_ms",
+    "goals_preset",
+    "expr",
+    "probability",
+    "kind",
+    "metric",
+    "signal",
+]
 
 
 @st.composite
@@ -472,7 +617,8 @@ def toml_texts(draw: st.DrawFn) -> str:
             doc[table] = draw(TOML_VALUES)
     if draw(st.integers(0, 7)) == 0:
         doc[draw(st.sampled_from(["system", "signals", "versions", "controller", "goals", "requirements"]))] = draw(
-            TOML_VALUES)
+            TOML_VALUES
+        )
     try:
         return to_toml(doc)
     except TypeError:
@@ -528,9 +674,13 @@ def check_description(desc: SystemDescription) -> None:
 
 
 @settings(FUZZ, max_examples=60)
-@given(json_texts(LANE.to_json(),
-                  [(k,) for k in LANE.to_json()] + [("schema", "states", 0, "range"), ("versions", "params"),
-                                                    ("versions", "map"), ("versions", "pattern")]))
+@given(
+    json_texts(
+        LANE.to_json(),
+        [(k,) for k in LANE.to_json()]
+        + [("schema", "states", 0, "range"), ("versions", "params"), ("versions", "map"), ("versions", "pattern")],
+    )
+)
 def test_recorded_descriptions_are_valid_or_refused(text):
     """The JSON form recorded in checkpoints and manifests, fuzzed the same way."""
     count("system-json")
@@ -548,6 +698,7 @@ def test_recorded_descriptions_are_valid_or_refused(text):
 
 # ----------------------------------------------------------------------------- hangs: FIFOs, devices, huge files
 
+
 @pytest.mark.parametrize("kind", ["fifo", "dev-zero-link", "dev-null-link", "folder", "dangling-link"])
 @pytest.mark.parametrize("role", ["log", "sidecar", "manifest"])
 def test_special_files_are_refused_without_hanging(tmp_path, kind, role):
@@ -560,8 +711,9 @@ def test_special_files_are_refused_without_hanging(tmp_path, kind, role):
     elif kind == "folder":
         target.mkdir()
     else:
-        target.symlink_to({"dev-zero-link": "/dev/zero", "dev-null-link": "/dev/null",
-                           "dangling-link": tmp_path / "nowhere"}[kind])
+        target.symlink_to(
+            {"dev-zero-link": "/dev/zero", "dev-null-link": "/dev/null", "dangling-link": tmp_path / "nowhere"}[kind]
+        )
     source = target if role == "manifest" else tmp_path / "x.csv"
     with deadline(), pytest.raises(LogError) as err:
         load_logs(source)
@@ -586,6 +738,7 @@ def test_huge_inputs_are_read_or_refused_in_time(tmp_path):
 
 
 # ----------------------------------------------------------------------------- command lines
+
 
 @pytest.fixture(scope="module")
 def log_folder() -> Iterator[Path]:
@@ -615,14 +768,31 @@ def bad_command_lines(draw: st.DrawFn, folder: Path, out: Path) -> tuple[str, li
         return cmd, ["split", "--logs", logs, flag, value, "--out", str(out)]
     if cmd == "train":
         flag = draw(st.sampled_from(["--epochs", "--history", "--eval-every", "--hidden"]))
-        value = draw(st.sampled_from(["0", "-1", "1.5", "abc", "0,8", "8,-1"] if flag == "--hidden" else
-                                     ["0", "-1", "-5", "1.5", "1e3", "nan", "abc"]))
+        value = draw(
+            st.sampled_from(
+                ["0", "-1", "1.5", "abc", "0,8", "8,-1"]
+                if flag == "--hidden"
+                else ["0", "-1", "-5", "1.5", "1e3", "nan", "abc"]
+            )
+        )
         return cmd, ["train", "--logs", logs, f"{flag}={value}", "--quiet", "-o", str(out / "m.pt")]
     if cmd == "simulate":
-        model = draw(st.sampled_from([str(folder / "missing.pt"), str(folder / "log_30_0.csv"), "/dev/zero",
-                                      str(folder)]))
-        extra = draw(st.sampled_from([[], ["--runs", "0"], ["--runs", "-1"], ["--steps", "-5"], ["--steps", "1e12"],
-                                      ["--steps", str(10**12)], ["--runs", "1.5"]]))
+        model = draw(
+            st.sampled_from([str(folder / "missing.pt"), str(folder / "log_30_0.csv"), "/dev/zero", str(folder)])
+        )
+        extra = draw(
+            st.sampled_from(
+                [
+                    [],
+                    ["--runs", "0"],
+                    ["--runs", "-1"],
+                    ["--steps", "-5"],
+                    ["--steps", "1e12"],
+                    ["--steps", str(10**12)],
+                    ["--runs", "1.5"],
+                ]
+            )
+        )
         return cmd, ["simulate", "--model", model, "--init-logs", logs, *extra, "--out", str(out)]
     if cmd == "verify":
         sim = draw(st.sampled_from([str(folder / "missing"), "/dev/zero", str(folder / "m.json")]))
@@ -686,14 +856,17 @@ def test_init_drafts_a_description_that_reads_its_logs(log_folder, tmp_path):
     assert len(load_logs(log_folder, desc)) == 6
 
 
-@pytest.mark.parametrize("body, why", [
-    ("time,color,angle\n0,1,2\n40,nan,2\n", "row 3: column 'color'"),
-    ("time,color,angle\n0,1,2\n40,\u0661,2\n", "row 3: column 'color'"),
-    ("time,color,angle\n0,1,2\n0,1,2\n", "row 3: time 0 does not increase"),
-    ("time,color,angle,color\n0,1,2,3\n", "appear twice"),
-    ("time\n0\n", "besides 'time'"),
-    ("time,color,angle\n0,-1e308,1e308\n40,1e308,-1e308\n", None),
-])
+@pytest.mark.parametrize(
+    "body, why",
+    [
+        ("time,color,angle\n0,1,2\n40,nan,2\n", "row 3: column 'color'"),
+        ("time,color,angle\n0,1,2\n40,\u0661,2\n", "row 3: column 'color'"),
+        ("time,color,angle\n0,1,2\n0,1,2\n", "row 3: time 0 does not increase"),
+        ("time,color,angle,color\n0,1,2,3\n", "appear twice"),
+        ("time\n0\n", "besides 'time'"),
+        ("time,color,angle\n0,-1e308,1e308\n40,1e308,-1e308\n", None),
+    ],
+)
 def test_init_reads_logs_as_strictly_as_read_log(tmp_path, body, why):
     """envi init once took 'nan', Arabic digits and overflowing ranges; now each is one line (or,
     for values at the float limit, a draft that reads back)."""
@@ -711,6 +884,7 @@ def test_init_reads_logs_as_strictly_as_read_log(tmp_path, body, why):
 
 
 # ----------------------------------------------------------------------------- the issue's count
+
 
 def test_zz_at_least_400_generated_inputs():
     """Issue 16 asks for at least 400 generated malformed inputs; this counts what ran above."""

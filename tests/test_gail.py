@@ -66,8 +66,14 @@ def test_short_gail_run_moves_a_wrong_model_toward_the_data() -> None:
     ckpt = new_checkpoint("gail", logs, [], model_config(logs, hidden=(32, 32), head="gaussian"), 0, {})
     with torch.no_grad():  # deliberately wrong: always predicts a colour near the top of the range
         ckpt.model.mean.bias.fill_(1.5)
-    trainer = _Trainer(ckpt, logs, GailConfig(lr=3e-3, disc_lr=3e-3, horizon=15, stride=10, minibatch=256,
-                                              disc_hidden=(32, 32), value_hidden=(32, 32)), seed=0)
+    trainer = _Trainer(
+        ckpt,
+        logs,
+        GailConfig(
+            lr=3e-3, disc_lr=3e-3, horizon=15, stride=10, minibatch=256, disc_hidden=(32, 32), value_hidden=(32, 32)
+        ),
+        seed=0,
+    )
     x, y = (torch.from_numpy(a) for a in ckpt.dataset(logs).stacked())
 
     def one_step() -> float:

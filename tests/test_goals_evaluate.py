@@ -65,13 +65,23 @@ def car_log(n: int, period: float = 40.0, offset: float = 0.0) -> Log:
 def test_signals_of_names_every_column_and_cuts_to_the_shortest() -> None:
     schema = load_system("car").schema
     runs = signals_of([car_log(30), car_log(25, offset=1.0)], schema, skip=5)
-    assert list(runs.signals) == ["color", "distance", "steering", "speed",
-                                  "steer_p", "steer_i", "steer_d", "speed_p", "speed_i", "speed_d"]
+    assert list(runs.signals) == [
+        "color",
+        "distance",
+        "steering",
+        "speed",
+        "steer_p",
+        "steer_i",
+        "steer_d",
+        "speed_p",
+        "speed_i",
+        "speed_d",
+    ]
     assert runs.signals["color"].shape == (2, 25) and runs.period_ms == 40.0 and runs.scored_length == 20
     assert runs.signals["color"][1, 0] == 41.0 and runs.signals["speed_d"][0, 3] == 5.0
     table = goal_table(load_system("car").goals, runs)
     assert table["closest approach"].tolist() == [76.0, 76.0]  # distance 100 - t, t = 5..24
-    assert table["lane deviation"].tolist() == [24.0, 25.0]   # color 40 + t (+1), t = 5..24
+    assert table["lane deviation"].tolist() == [24.0, 25.0]  # color 40 + t (+1), t = 5..24
 
 
 def test_signals_of_refuses_logs_that_do_not_fit_the_schema() -> None:
@@ -89,13 +99,16 @@ def test_goal_errors_name_the_goal() -> None:
         goal_table([GoalSpec("h", "iae", "color")], runs)
 
 
-@pytest.mark.parametrize(("signals", "period", "skip", "message"), [
-    ({}, 40.0, 0, "no signals"),
-    ({"a": np.zeros((2, 5)), "b": np.zeros((2, 6))}, 40.0, 0, "one shape"),
-    ({"a": np.zeros((2, 5))}, 0.0, 0, "period_ms must be a positive number"),
-    ({"a": np.zeros((2, 5))}, 40.0, 5, "leaves nothing to score"),
-    ({"a": np.array([[0.0, np.nan]])}, 40.0, 0, "signal 'a' holds NaN"),
-])
+@pytest.mark.parametrize(
+    ("signals", "period", "skip", "message"),
+    [
+        ({}, 40.0, 0, "no signals"),
+        ({"a": np.zeros((2, 5)), "b": np.zeros((2, 6))}, 40.0, 0, "one shape"),
+        ({"a": np.zeros((2, 5))}, 0.0, 0, "period_ms must be a positive number"),
+        ({"a": np.zeros((2, 5))}, 40.0, 5, "leaves nothing to score"),
+        ({"a": np.array([[0.0, np.nan]])}, 40.0, 0, "signal 'a' holds NaN"),
+    ],
+)
 def test_bad_runs_are_refused(signals: dict, period: float, skip: int, message: str) -> None:
     with pytest.raises(ValueError, match=message):
         Runs(signals, period, skip)

@@ -18,14 +18,14 @@ PERIOD = 40.0
 def second_order_step(zeta: float, wn: float = 1.0, dt: float = 0.001, t_end: float = 40.0) -> np.ndarray:
     """Unit step response of wn^2 / (s^2 + 2 zeta wn s + wn^2), underdamped, sampled every dt seconds."""
     t = np.arange(0.0, t_end, dt)
-    wd = wn * math.sqrt(1 - zeta ** 2)
-    return 1 - np.exp(-zeta * wn * t) * (np.cos(wd * t) + zeta / math.sqrt(1 - zeta ** 2) * np.sin(wd * t))
+    wd = wn * math.sqrt(1 - zeta**2)
+    return 1 - np.exp(-zeta * wn * t) * (np.cos(wd * t) + zeta / math.sqrt(1 - zeta**2) * np.sin(wd * t))
 
 
 @pytest.mark.parametrize("zeta", [0.1, 0.3, 0.5, 0.7])
 def test_overshoot_of_a_step_response_matches_its_damping(zeta: float) -> None:
     y = second_order_step(zeta)[None, :]
-    expected = math.exp(-math.pi * zeta / math.sqrt(1 - zeta ** 2))
+    expected = math.exp(-math.pi * zeta / math.sqrt(1 - zeta**2))
     assert metric("overshoot")(y, 1.0, setpoint=1.0)[0] == pytest.approx(expected, abs=1e-5)
     # mirrored: the same response going down undershoots by the same amount
     assert metric("undershoot")(-y, 1.0, setpoint=-1.0)[0] == pytest.approx(expected, abs=1e-5)
@@ -50,9 +50,13 @@ def test_time_in_band_of_a_ramp_is_its_share_of_samples() -> None:
 
 
 def test_settling_time_is_the_end_of_the_last_excursion() -> None:
-    y = np.array([[5.0, 5, 0, 0, 5, 0, 0, 0],   # last outside at index 4 -> settled from 5
-                  [0.0, 0, 0, 0, 0, 0, 0, 0],   # never outside
-                  [0.0, 0, 0, 0, 0, 0, 0, 5]])  # still outside at the end: never settles
+    y = np.array(
+        [
+            [5.0, 5, 0, 0, 5, 0, 0, 0],  # last outside at index 4 -> settled from 5
+            [0.0, 0, 0, 0, 0, 0, 0, 0],  # never outside
+            [0.0, 0, 0, 0, 0, 0, 0, 5],
+        ]
+    )  # still outside at the end: never settles
     assert metric("settling_time")(y, PERIOD, setpoint=0.0, band=1.0).tolist() == [5 * PERIOD, 0.0, 8 * PERIOD]
 
 
@@ -67,7 +71,7 @@ def test_settling_time_of_a_step_response_is_where_the_envelope_stays_in_band() 
 
 
 def test_rise_time_of_ramps() -> None:
-    up = np.arange(101.0)[None, :]            # 0..100: 10% at sample 10, 90% at sample 90
+    up = np.arange(101.0)[None, :]  # 0..100: 10% at sample 10, 90% at sample 90
     assert lib.rise_time(up, PERIOD)[0] == 80 * PERIOD
     assert lib.rise_time(100 - up, PERIOD)[0] == 80 * PERIOD  # falling the same way
     assert lib.rise_time(up, PERIOD, 0.2, 0.5)[0] == 30 * PERIOD
@@ -121,11 +125,14 @@ def test_registry_parameters_units_and_scales() -> None:
     assert STANDARD["std"].scale(-math.inf, math.inf, 100, PERIOD, {}) is None
 
 
-@pytest.mark.parametrize(("name", "params", "message"), [
-    ("max_abs_dev", {}, "needs parameter 'setpoint'"),
-    ("max_abs_dev", {"setpoint": 1, "band": 2}, "no parameter 'band'"),
-    ("nonsense", {}, "unknown goal metric 'nonsense'"),
-])
+@pytest.mark.parametrize(
+    ("name", "params", "message"),
+    [
+        ("max_abs_dev", {}, "needs parameter 'setpoint'"),
+        ("max_abs_dev", {"setpoint": 1, "band": 2}, "no parameter 'band'"),
+        ("nonsense", {}, "unknown goal metric 'nonsense'"),
+    ],
+)
 def test_bad_metric_use_is_a_value_error(name: str, params: dict, message: str) -> None:
     with pytest.raises(ValueError, match=message):
         metric(name)(np.zeros((2, 5)), PERIOD, **params)
@@ -140,7 +147,8 @@ def test_nan_trace_is_refused() -> None:
 
 @pytest.fixture
 def user_module(tmp_path, monkeypatch):
-    (tmp_path / "my_goals.py").write_text(textwrap.dedent("""
+    (tmp_path / "my_goals.py").write_text(
+        textwrap.dedent("""
         import numpy as np
 
         def peak_to_peak(trace, period_ms, scale=1.0):
@@ -151,7 +159,8 @@ def user_module(tmp_path, monkeypatch):
 
         def wrong_shape(trace):
             return trace
-    """))
+    """)
+    )
     monkeypatch.syspath_prepend(str(tmp_path))
     return "my_goals"
 
@@ -169,10 +178,13 @@ def test_user_metric_with_wrong_output_shape_names_the_function(user_module: str
         metric(f"{user_module}:wrong_shape")(np.zeros((2, 5)), PERIOD)
 
 
-@pytest.mark.parametrize(("path", "message"), [
-    ("no_such_module_xyz:f", "cannot import module 'no_such_module_xyz'"),
-    ("my_goals:missing", "has no function 'missing'"),
-])
+@pytest.mark.parametrize(
+    ("path", "message"),
+    [
+        ("no_such_module_xyz:f", "cannot import module 'no_such_module_xyz'"),
+        ("my_goals:missing", "has no function 'missing'"),
+    ],
+)
 def test_user_metric_import_errors(user_module: str, path: str, message: str) -> None:
     with pytest.raises(ValueError, match=message):
         metric(path)

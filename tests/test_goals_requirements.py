@@ -27,6 +27,7 @@ def req(expr: str, kind: str = "metric") -> RequirementSpec:
 
 # ---------------------------------------------------------------------- metric requirements
 
+
 def test_shipped_requirements_parse_and_evaluate() -> None:
     system = load_system("car")
     runs = runs_of(color=[[40, 70, 40], [40, 80, 40]], distance=[[30, 12, 30], [30, 9, 30]])
@@ -49,27 +50,30 @@ def test_strict_and_non_strict_thresholds_differ_on_the_boundary() -> None:
     assert parse(req("min(distance) >= 10"), ["distance"]).margin(runs).tolist() == [0.0, -1.0]
 
 
-@pytest.mark.parametrize(("expr", "message"), [
-    ("max_abs_dev(color, 40) <=", "is not an expression"),
-    ("max_abs_dev(color, 40)", "needs one comparison"),
-    ("0 < min(color) < 5", "needs one comparison"),
-    ("min(color) == 3", "bad operator '=='"),
-    ("min(color) != 3", "bad operator '!='"),
-    ("foo(color) <= 3", "unknown metric 'foo'"),
-    ("min(colour) <= 3", "unknown signal 'colour'"),
-    ("min(color) <= x", "threshold must be a finite number, not 'x'"),
-    ("min(color) <= '3'", "threshold must be a finite number"),
-    ("min(color) <= True", "threshold must be a finite number"),
-    ("min(color) <= 1e999", "threshold must be a finite number"),
-    ("max_abs_dev(color) <= 3", "needs parameter 'setpoint'"),
-    ("max_abs_dev(color, 'a') <= 3", "parameter 'setpoint' must be a finite number"),
-    ("max_abs_dev(color, 1, 2) <= 3", "takes at most 1 parameter"),
-    ("max_abs_dev(color, 1, band=2) <= 3", "has no parameter 'band'"),
-    ("max_abs_dev(color, 1, setpoint=2) <= 3", "'setpoint' is given twice"),
-    ("max_abs_dev(40) <= 3", "needs a signal name first"),
-    ("os.system(color) <= 3", "is not a metric name"),
-    ("3 <= 4", "one side must be a metric call"),
-])
+@pytest.mark.parametrize(
+    ("expr", "message"),
+    [
+        ("max_abs_dev(color, 40) <=", "is not an expression"),
+        ("max_abs_dev(color, 40)", "needs one comparison"),
+        ("0 < min(color) < 5", "needs one comparison"),
+        ("min(color) == 3", "bad operator '=='"),
+        ("min(color) != 3", "bad operator '!='"),
+        ("foo(color) <= 3", "unknown metric 'foo'"),
+        ("min(colour) <= 3", "unknown signal 'colour'"),
+        ("min(color) <= x", "threshold must be a finite number, not 'x'"),
+        ("min(color) <= '3'", "threshold must be a finite number"),
+        ("min(color) <= True", "threshold must be a finite number"),
+        ("min(color) <= 1e999", "threshold must be a finite number"),
+        ("max_abs_dev(color) <= 3", "needs parameter 'setpoint'"),
+        ("max_abs_dev(color, 'a') <= 3", "parameter 'setpoint' must be a finite number"),
+        ("max_abs_dev(color, 1, 2) <= 3", "takes at most 1 parameter"),
+        ("max_abs_dev(color, 1, band=2) <= 3", "has no parameter 'band'"),
+        ("max_abs_dev(color, 1, setpoint=2) <= 3", "'setpoint' is given twice"),
+        ("max_abs_dev(40) <= 3", "needs a signal name first"),
+        ("os.system(color) <= 3", "is not a metric name"),
+        ("3 <= 4", "one side must be a metric call"),
+    ],
+)
 def test_malformed_metric_requirements_are_value_errors_naming_the_requirement(expr: str, message: str) -> None:
     with pytest.raises(ValueError, match=f"requirement 'R': .*{message}"):
         parse(req(expr), SIGNALS)
@@ -77,16 +81,20 @@ def test_malformed_metric_requirements_are_value_errors_naming_the_requirement(e
 
 # ---------------------------------------------------------------------- STL requirements
 
-@pytest.mark.parametrize(("expr", "message"), [
-    ("always[0:10](color >", "STL syntax error"),
-    ("always[0:10](color >= 5", "STL syntax error"),
-    ("always[0:10](colour >= 5)", "unknown signal 'colour'"),
-    ("always[0:1s](color >= 5)", "has a unit"),
-    ("always[0:2.5](color >= 5)", "whole numbers of samples"),
-    ("always[5:2](color >= 5)", "is empty"),
-    ("color + 3", "not a condition"),
-    ("always(1 > 0)", "reads no signal"),
-])
+
+@pytest.mark.parametrize(
+    ("expr", "message"),
+    [
+        ("always[0:10](color >", "STL syntax error"),
+        ("always[0:10](color >= 5", "STL syntax error"),
+        ("always[0:10](colour >= 5)", "unknown signal 'colour'"),
+        ("always[0:1s](color >= 5)", "has a unit"),
+        ("always[0:2.5](color >= 5)", "whole numbers of samples"),
+        ("always[5:2](color >= 5)", "is empty"),
+        ("color + 3", "not a condition"),
+        ("always(1 > 0)", "reads no signal"),
+    ],
+)
 def test_malformed_stl_requirements_are_value_errors(expr: str, message: str) -> None:
     with pytest.raises(ValueError, match=f"requirement 'R': .*{message}"):
         parse(req(expr, "stl"), SIGNALS)
@@ -101,9 +109,9 @@ def test_always_holds_unless_the_signal_leaves_the_band_within_the_bound() -> No
     t = 120
     base = np.full(t, 50.0)
     dip_inside, dip_after, peak = base.copy(), base.copy(), base.copy()
-    dip_inside[50] = 3.0     # within [0:100]: violated
-    dip_after[110] = 3.0     # after the bound: not looked at
-    peak[100] = 96.0         # on the bound's last sample: violated
+    dip_inside[50] = 3.0  # within [0:100]: violated
+    dip_after[110] = 3.0  # after the bound: not looked at
+    peak[100] = 96.0  # on the bound's last sample: violated
     runs = runs_of(color=np.stack([base, dip_inside, dip_after, peak]))
     r = parse(req("always[0:100](color >= 5 and color <= 95)", "stl"), ["color"])
     assert isinstance(r, StlRequirement) and r.fast is not None
@@ -114,8 +122,8 @@ def test_always_holds_unless_the_signal_leaves_the_band_within_the_bound() -> No
 def test_eventually_needs_one_sample_in_the_window() -> None:
     t = 60
     far = np.full((3, t), 80.0)
-    far[1, 20] = 35.0   # reaches the lead within [10:30]
-    far[2, 40] = 35.0   # too late
+    far[1, 20] = 35.0  # reaches the lead within [10:30]
+    far[2, 40] = 35.0  # too late
     runs = runs_of(distance=far)
     assert satisfied(req("eventually[10:30](distance <= 40)", "stl"), runs).tolist() == [False, True, False]
 
@@ -142,10 +150,10 @@ FAST_FORMS = [
     "always[10:20](not color > 80)",
     "always[0:30](abs(color - 40) <= 25)",
     "always[0:50](color - 2 * steering >= -30 and (distance > 5 or not steering < 0))",
-    "eventually[0:500](color > 95)",          # bound beyond the run: cut at its end
-    "always[200:300](color > 95)",            # window beyond the run: vacuously true
-    "eventually[200:300](color > 95)",        # ... and vacuously false
-    "color >= 40 and distance < 50",          # no temporal operator: time 0
+    "eventually[0:500](color > 95)",  # bound beyond the run: cut at its end
+    "always[200:300](color > 95)",  # window beyond the run: vacuously true
+    "eventually[200:300](color > 95)",  # ... and vacuously false
+    "color >= 40 and distance < 50",  # no temporal operator: time 0
     "30 < color",
 ]
 
@@ -154,8 +162,11 @@ FAST_FORMS = [
 def test_fast_path_equals_rtamt(expr: str) -> None:
     rng = np.random.default_rng(zlib.crc32(expr.encode()))
     n, t = 40, 110
-    runs = runs_of(color=50 + 40 * np.sin(np.arange(t) / 5 + rng.uniform(0, 6, (n, 1))) + rng.normal(0, 5, (n, t)),
-                   distance=rng.uniform(0, 100, (n, t)), steering=rng.normal(0, 10, (n, t)))
+    runs = runs_of(
+        color=50 + 40 * np.sin(np.arange(t) / 5 + rng.uniform(0, 6, (n, 1))) + rng.normal(0, 5, (n, t)),
+        distance=rng.uniform(0, 100, (n, t)),
+        steering=rng.normal(0, 10, (n, t)),
+    )
     r = parse(req(expr, "stl"), SIGNALS)
     assert r.fast is not None
     fast, slow = r.robustness(runs), r.robustness(runs, use_fast=False)
@@ -170,6 +181,7 @@ def test_stl_needs_two_samples() -> None:
 
 
 # ---------------------------------------------------------------------- verdicts with their probability
+
 
 @pytest.mark.parametrize(("passing", "n", "word"), [(200, 200, "holds"), (150, 200, "fails"), (18, 20, "undecided")])
 def test_verdict_uses_the_exact_interval(passing: int, n: int, word: str) -> None:
@@ -196,11 +208,17 @@ def test_runs_without_the_formulas_signal_name_the_requirement() -> None:
 
 
 @settings(max_examples=60, deadline=None)
-@given(op=st.sampled_from(["always", "eventually"]), lo=st.integers(0, 30), width=st.integers(0, 30),
-       threshold=st.floats(-50, 50), cmp=st.sampled_from([">=", ">", "<=", "<"]),
-       values=st.lists(st.floats(-100, 100), min_size=2, max_size=40))
-def test_fast_path_equals_rtamt_on_any_bound_and_trace(op: str, lo: int, width: int, threshold: float, cmp: str,
-                                                       values: list[float]) -> None:
+@given(
+    op=st.sampled_from(["always", "eventually"]),
+    lo=st.integers(0, 30),
+    width=st.integers(0, 30),
+    threshold=st.floats(-50, 50),
+    cmp=st.sampled_from([">=", ">", "<=", "<"]),
+    values=st.lists(st.floats(-100, 100), min_size=2, max_size=40),
+)
+def test_fast_path_equals_rtamt_on_any_bound_and_trace(
+    op: str, lo: int, width: int, threshold: float, cmp: str, values: list[float]
+) -> None:
     r = parse(req(f"{op}[{lo}:{lo + width}](color {cmp} {threshold!r})", "stl"), ["color"])
     runs = runs_of(color=[values, values[::-1]])
     assert r.fast is not None

@@ -15,8 +15,7 @@ CAR = load_system("car")
 T = 110
 
 
-def car_runs(rng: np.random.Generator, n: int = 40, shift: float = 0.0, runaway: int = 0,
-             lead_gone: int = 0) -> Runs:
+def car_runs(rng: np.random.Generator, n: int = 40, shift: float = 0.0, runaway: int = 0, lead_gone: int = 0) -> Runs:
     """Colour oscillating around 40 (+shift), distance around 30; ``runaway`` runs stick at colour 100
     from sample 60; ``lead_gone`` runs read the ultrasonic maximum 255 from sample 50."""
     color = 40 + 10 * np.sin(np.arange(T) / 4 + rng.uniform(0, 6, (n, 1))) + rng.normal(0, 3, (n, T)) + shift
@@ -65,9 +64,14 @@ def test_a_saturating_sensor_that_saturates_in_reality_too_is_not_divergence() -
 
 def test_default_goals_cover_every_state_from_its_mid_range() -> None:
     goals = default_goals(CAR.schema, {})
-    assert [(g.metric, g.signal) for g in goals] == [("mean", "color"), ("std", "color"), ("max_abs_dev", "color"),
-                                                     ("mean", "distance"), ("std", "distance"),
-                                                     ("max_abs_dev", "distance")]
+    assert [(g.metric, g.signal) for g in goals] == [
+        ("mean", "color"),
+        ("std", "color"),
+        ("max_abs_dev", "color"),
+        ("mean", "distance"),
+        ("std", "distance"),
+        ("max_abs_dev", "distance"),
+    ]
     assert goals[2].params == {"setpoint": 50.0} and goals[5].params == {"setpoint": 127.5}
 
 

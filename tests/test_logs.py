@@ -45,16 +45,19 @@ def test_pattern_regex_fields():
     assert pattern_regex("log_{x}_{run}.csv").match("other_30_12.csv") is None
 
 
-@pytest.mark.parametrize("text, expect", [
-    ("time,color\n0,1\n", "missing column(s) angle"),
-    ("time,color,angle,speed\n0,1,2,3\n", "unexpected column(s) speed"),
-    ("time,color,angle\n0,71,30\n41,abc,30\n", "row 3: column 'color' has non-numeric value 'abc'"),
-    ("time,color,angle\n0,71,30\n41,nan,30\n", "row 3: column 'color' is 'nan'"),
-    ("time,color,angle\n0,71,30\n41,70,inf\n", "row 3: column 'angle' is 'inf'"),
-    ("time,color,angle\n0,71,30\n41,70,30\n41,69,30\n", "row 4: time 41 does not increase"),
-    ("time,color,angle\n0,71,30\n41,70\n", "row 3: 2 cells"),
-    ("", "empty file"),
-])
+@pytest.mark.parametrize(
+    "text, expect",
+    [
+        ("time,color\n0,1\n", "missing column(s) angle"),
+        ("time,color,angle,speed\n0,1,2,3\n", "unexpected column(s) speed"),
+        ("time,color,angle\n0,71,30\n41,abc,30\n", "row 3: column 'color' has non-numeric value 'abc'"),
+        ("time,color,angle\n0,71,30\n41,nan,30\n", "row 3: column 'color' is 'nan'"),
+        ("time,color,angle\n0,71,30\n41,70,inf\n", "row 3: column 'angle' is 'inf'"),
+        ("time,color,angle\n0,71,30\n41,70,30\n41,69,30\n", "row 4: time 41 does not increase"),
+        ("time,color,angle\n0,71,30\n41,70\n", "row 3: 2 cells"),
+        ("", "empty file"),
+    ],
+)
 def test_bad_logs_name_file_and_row(tmp_path, text, expect):
     p = write(tmp_path, "bad.csv", text)
     with pytest.raises(LogError) as err:
@@ -123,15 +126,22 @@ def test_manifest(tmp_path):
 
 # ------------------------------------------------------------ the reader against hostile and unlucky input
 
-@pytest.mark.parametrize("text, expect", [
-    ("time,color,color,angle\n0,1,1,2\n", "appear twice in the header"),
-    ("time,color,angle\n0,71,30\n,,\n", "row 3: an empty row"),
-    ("time,color,angle\n0,71,30\n41,\u0661\u0662,30\n", "row 3: column 'color' has non-numeric value"),
-    ("time,color,angle\n0,71,30\n41,1e308,30\n", "row 3: column 'color' is 1e+308, outside its valid range [0, 100]"),
-    ("time,color,angle\n0,71,30\n41,70,-200\n", "column 'angle' is -200, outside its valid range [-90, 90]"),
-    ("time,color,angle\n0,71,30\n41,70,1e999\n", "out of the float range"),
-    ("time,color,angle\n0,71,30\n41,70,30\x00\n", "NUL bytes"),
-])
+
+@pytest.mark.parametrize(
+    "text, expect",
+    [
+        ("time,color,color,angle\n0,1,1,2\n", "appear twice in the header"),
+        ("time,color,angle\n0,71,30\n,,\n", "row 3: an empty row"),
+        ("time,color,angle\n0,71,30\n41,\u0661\u0662,30\n", "row 3: column 'color' has non-numeric value"),
+        (
+            "time,color,angle\n0,71,30\n41,1e308,30\n",
+            "row 3: column 'color' is 1e+308, outside its valid range [0, 100]",
+        ),
+        ("time,color,angle\n0,71,30\n41,70,-200\n", "column 'angle' is -200, outside its valid range [-90, 90]"),
+        ("time,color,angle\n0,71,30\n41,70,1e999\n", "out of the float range"),
+        ("time,color,angle\n0,71,30\n41,70,30\x00\n", "NUL bytes"),
+    ],
+)
 def test_hostile_cells_name_file_row_and_column(tmp_path, text, expect):
     p = write(tmp_path, "bad.csv", text)
     with pytest.raises(LogError) as err:
@@ -164,16 +174,19 @@ def test_fifo_and_device_links_are_refused_not_read(tmp_path):
         read_log(tmp_path / "ok.csv")
 
 
-@pytest.mark.parametrize("sidecar, expect", [
-    ([1, 2], "must be a JSON object"),
-    ("text", "must be a JSON object"),
-    ({"schema_version": 1, "states": "color", "actions": []}, "sidecar"),
-    ({**make_log(np.array([1.0])).meta.to_json(), "period_ms": [40]}, "period_ms"),
-    ({**make_log(np.array([1.0])).meta.to_json(), "run_id": "../../X"}, "not a plain name"),
-    ({**make_log(np.array([1.0])).meta.to_json(), "run_id": "/abs/path"}, "not a plain name"),
-    ({**make_log(np.array([1.0])).meta.to_json(), "controller": "pid"}, "controller spec must be an object"),
-    ({**make_log(np.array([1.0])).meta.to_json(), "provenance": [1]}, "provenance must be an object"),
-])
+@pytest.mark.parametrize(
+    "sidecar, expect",
+    [
+        ([1, 2], "must be a JSON object"),
+        ("text", "must be a JSON object"),
+        ({"schema_version": 1, "states": "color", "actions": []}, "sidecar"),
+        ({**make_log(np.array([1.0])).meta.to_json(), "period_ms": [40]}, "period_ms"),
+        ({**make_log(np.array([1.0])).meta.to_json(), "run_id": "../../X"}, "not a plain name"),
+        ({**make_log(np.array([1.0])).meta.to_json(), "run_id": "/abs/path"}, "not a plain name"),
+        ({**make_log(np.array([1.0])).meta.to_json(), "controller": "pid"}, "controller spec must be an object"),
+        ({**make_log(np.array([1.0])).meta.to_json(), "provenance": [1]}, "provenance must be an object"),
+    ],
+)
 def test_sidecars_of_the_wrong_type_are_one_clear_error(tmp_path, sidecar, expect):
     p = write(tmp_path, "a.csv", GOOD)
     sidecar_path(p).write_text(json.dumps(sidecar))
@@ -195,7 +208,10 @@ def test_deeply_nested_sidecar_is_an_error_not_a_recursion(tmp_path):
 def test_declared_logged_and_ignored_columns(tmp_path):
     from envi_py.system import SystemDescription
 
-    sysfile = write(tmp_path, "sys.toml", """
+    sysfile = write(
+        tmp_path,
+        "sys.toml",
+        """
 [[signals]]
 name = "color"
 role = "state"
@@ -213,7 +229,8 @@ role = "ignore"
 name = "lane-keeping"
 [versions]
 pattern = "run_{x}_{run}.csv"
-""")
+""",
+    )
     system = SystemDescription.load(sysfile)
     d = tmp_path / "logs"
     d.mkdir()
@@ -252,14 +269,37 @@ def test_saturating_sensor_is_clipped_not_refused(tmp_path):
 def test_split_manifests_carry_the_system_and_read_back_alone(real_dir, tmp_path):
     from envi_py.cli import main
 
-    assert main(["split", "--logs", str(real_dir), "--pattern", REAL_PATTERN, "--where", "x=10,30,50",
-                 "--train", "5", "--val", "2", "--test", "3", "--mode", "blocks", "--out", str(tmp_path)]) == 0
+    assert (
+        main(
+            [
+                "split",
+                "--logs",
+                str(real_dir),
+                "--pattern",
+                REAL_PATTERN,
+                "--where",
+                "x=10,30,50",
+                "--train",
+                "5",
+                "--val",
+                "2",
+                "--test",
+                "3",
+                "--mode",
+                "blocks",
+                "--out",
+                str(tmp_path),
+            ]
+        )
+        == 0
+    )
     train, test = load_logs(tmp_path / "train.json"), load_logs(tmp_path / "test.json")
     assert sorted({lg.param["x"] for lg in train}) == [10, 30, 50] and len(train) == 15
     assert sorted({lg.param["x"] for lg in test}) == [10, 30, 50] and len(test) == 9
     # blocks: each version's test logs are its last files, training its first
-    assert max(int(lg.meta.run_id) for lg in train if lg.param["x"] == 10) < \
-        min(int(lg.meta.run_id) for lg in test if lg.param["x"] == 10)
+    assert max(int(lg.meta.run_id) for lg in train if lg.param["x"] == 10) < min(
+        int(lg.meta.run_id) for lg in test if lg.param["x"] == 10
+    )
 
 
 def test_row_numbers_count_blank_lines_for_every_kind_of_error(tmp_path):
@@ -270,11 +310,14 @@ def test_row_numbers_count_blank_lines_for_every_kind_of_error(tmp_path):
             read_log(p)
 
 
-@pytest.mark.parametrize("field, value, why", [
-    ("schema_version", True, "schema_version"),  # True == 1 once passed
-    ("provenance", [], "provenance must be an object"),
-    ("controller", {"name": "lane-keeping", "params": {"x": 1e999}}, "non-finite"),
-])
+@pytest.mark.parametrize(
+    "field, value, why",
+    [
+        ("schema_version", True, "schema_version"),  # True == 1 once passed
+        ("provenance", [], "provenance must be an object"),
+        ("controller", {"name": "lane-keeping", "params": {"x": 1e999}}, "non-finite"),
+    ],
+)
 def test_sidecar_fields_are_typed(tmp_path, field, value, why):
     p = write(tmp_path, "a.csv", GOOD)
     sidecar_path(p).write_text(json.dumps({**LogMeta().to_json(), field: value}))

@@ -5,8 +5,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from envi_py.metrics import (MetricConfig, accuracy, distances, driving_metrics, floor, gaussian_kld,
-                             metric_bounds, safety_comfort)
+from envi_py.metrics import (
+    MetricConfig,
+    accuracy,
+    distances,
+    driving_metrics,
+    floor,
+    gaussian_kld,
+    metric_bounds,
+    safety_comfort,
+)
 
 CFG = MetricConfig(centre=40, band=10, skip=0)
 

@@ -137,7 +137,7 @@ def test_gaussian_draws_do_not_depend_on_threads_or_blocks():
     # other blocks or another batch: the same draws; GEMM rounding may differ in the last bits
     for block, first in [(256, 3), (1, 3), (3, 1)]:
         got = mod.rollout(model, spec, init[:first], 40, 7, 11, 2, block)
-        np.testing.assert_allclose(got, ref[:7 * first], atol=1e-4, rtol=0)
+        np.testing.assert_allclose(got, ref[: 7 * first], atol=1e-4, rtol=0)
     assert not np.array_equal(mod.rollout(model, spec, init, 40, 7, 12, 1, 256), ref)
     assert not np.array_equal(ref[0], ref[1])
 
@@ -160,8 +160,14 @@ def test_gaussian_one_step_distribution_matches_the_head():
 
 def test_metrics_match_python():
     rng = np.random.default_rng(1)
-    traces = np.concatenate([rng.uniform(0, 100, (30, 80)), np.clip(40 + np.cumsum(rng.normal(0, 6, (30, 80)), 1), 0, 100),
-                             np.full((2, 80), 50.0), np.full((2, 80), 30.0)])
+    traces = np.concatenate(
+        [
+            rng.uniform(0, 100, (30, 80)),
+            np.clip(40 + np.cumsum(rng.normal(0, 6, (30, 80)), 1), 0, 100),
+            np.full((2, 80), 50.0),
+            np.full((2, 80), 30.0),
+        ]
+    )
     traces[0, 20:30] = [50, 50.0000001, 29.9999, 30, 70, 10, 10, 40, 50, 51]
     for cfg in [MetricConfig(), MetricConfig(centre=45, band=5, skip=3)]:
         got = native._native().driving_metrics(traces, cfg.centre, cfg.band, cfg.skip)
@@ -176,13 +182,16 @@ def test_streamed_metrics_equal_metrics_of_the_traces():
     np.testing.assert_array_equal(got, driving_metrics(traces[..., 0]))
 
 
-@pytest.mark.parametrize("mutate, match", [
-    (lambda m: m.graph.node[1].__setattr__("op_type", "Softmax"), "Softmax"),
-    (lambda m: m.graph.node[1].__setattr__("domain", "com.example"), "foreign domain"),
-    (lambda m: m.graph.initializer[0].__setattr__("data_location", onnx.TensorProto.EXTERNAL), "external data"),
-    (lambda m: m.metadata_props.pop(), None),
-    (lambda m: m.graph.initializer[1].dims.__setitem__(0, 7), "bias"),
-])
+@pytest.mark.parametrize(
+    "mutate, match",
+    [
+        (lambda m: m.graph.node[1].__setattr__("op_type", "Softmax"), "Softmax"),
+        (lambda m: m.graph.node[1].__setattr__("domain", "com.example"), "foreign domain"),
+        (lambda m: m.graph.initializer[0].__setattr__("data_location", onnx.TensorProto.EXTERNAL), "external data"),
+        (lambda m: m.metadata_props.pop(), None),
+        (lambda m: m.graph.initializer[1].dims.__setitem__(0, 7), "bias"),
+    ],
+)
 def test_unsupported_models_are_clear_errors(mutate, match):
     model = to_onnx(paper_ckpt())
     if match is None:  # drop every envi metadata entry
@@ -249,8 +258,23 @@ def test_envi_sim_writes_logs_and_metrics_like_python(tmp_path, real_dir):
     model = export(ck, tmp_path / "m.onnx")
     files = [real_dir / "log_30_0.csv", real_dir / "log_30_1.csv"]
     spec = json.dumps(LANE.to_json())
-    cmd = [envi_sim(), "--model", str(model), "--init", *map(str, files), "--controller", spec, "--steps", "50",
-           "--runs", "2", "--threads", "2", "--seed", "4"]
+    cmd = [
+        envi_sim(),
+        "--model",
+        str(model),
+        "--init",
+        *map(str, files),
+        "--controller",
+        spec,
+        "--steps",
+        "50",
+        "--runs",
+        "2",
+        "--threads",
+        "2",
+        "--seed",
+        "4",
+    ]
     subprocess.run(cmd + ["--out", str(tmp_path / "sim"), "--metrics", str(tmp_path / "m.json")], check=True)
     logs = [read_log(tmp_path / "sim" / f"log_30_{i}-sim{r}.csv") for i in (0, 1) for r in (0, 1)]
     real = load_logs(files, lane_keeping().with_pattern("log_{x}_{run}.csv"))
@@ -269,8 +293,12 @@ def test_envi_sim_writes_logs_and_metrics_like_python(tmp_path, real_dir):
     assert out["mean"] == pytest.approx(np.mean(out["per_run"], axis=0))
     subprocess.run(cmd + ["--metrics-only", "--metrics", str(tmp_path / "m2.json")], check=True)
     assert json.loads((tmp_path / "m2.json").read_text())["per_run"] == out["per_run"]
-    bad = subprocess.run(cmd[:2] + [str(tmp_path / "nope.onnx")] + cmd[3:] + ["--metrics", "-"], capture_output=True,
-                         text=True, check=False)
+    bad = subprocess.run(
+        cmd[:2] + [str(tmp_path / "nope.onnx")] + cmd[3:] + ["--metrics", "-"],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
     assert bad.returncode == 2 and "nope.onnx" in bad.stderr and bad.stderr.count("\n") == 1
 
 
@@ -283,8 +311,12 @@ def test_envi_sim_controller_from_the_model_by_name_and_default_steps(tmp_path, 
     init = initial_windows(real, 10)
 
     def sim(*args: str) -> subprocess.CompletedProcess:
-        return subprocess.run([envi_sim(), f"--model={model}", "--init", *map(str, files), *args],
-                              capture_output=True, text=True, check=False)
+        return subprocess.run(
+            [envi_sim(), f"--model={model}", "--init", *map(str, files), *args],
+            capture_output=True,
+            text=True,
+            check=False,
+        )
 
     # no --controller: the model's own; no --steps: each log's length minus the history
     done = sim("--metrics-only", "--metrics=-")
@@ -298,8 +330,21 @@ def test_envi_sim_controller_from_the_model_by_name_and_default_steps(tmp_path, 
     # logs of other lengths run for their own number of steps; metrics stay in the order given
     short = tmp_path / "log_30_9.csv"
     short.write_text("".join(files[0].read_text().splitlines(keepends=True)[:61]))
-    done = subprocess.run([envi_sim(), f"--model={model}", "--init", str(files[0]), str(short), str(files[1]),
-                           "--metrics-only", "--metrics=-"], capture_output=True, text=True, check=False)
+    done = subprocess.run(
+        [
+            envi_sim(),
+            f"--model={model}",
+            "--init",
+            str(files[0]),
+            str(short),
+            str(files[1]),
+            "--metrics-only",
+            "--metrics=-",
+        ],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
     assert done.returncode == 0, done.stderr
     out = json.loads(done.stdout)
     assert out["steps"] == [90, 50, 90]
@@ -308,20 +353,25 @@ def test_envi_sim_controller_from_the_model_by_name_and_default_steps(tmp_path, 
     np.testing.assert_allclose(np.array(out["per_run"])[[0, 2]], driving_metrics(traces[..., 0]), atol=1e-4, rtol=0)
     # a registered name with --param, --opt=value forms
     pid = ControllerSpec("pid", {"kp": 2.0, "ki": 5.0, "kd": 0.05})
-    done = sim("--controller", "pid", "--param", "kp=2", "ki=5", "--param=kd=0.05", "--steps=20", f"--out={tmp_path / 'o'}")
+    done = sim(
+        "--controller", "pid", "--param", "kp=2", "ki=5", "--param=kd=0.05", "--steps=20", f"--out={tmp_path / 'o'}"
+    )
     assert done.returncode == 0, done.stderr
     logs = [read_log(tmp_path / "o" / f"{stem}-sim0.csv") for stem in ("log_30_0", "log_50_1")]
     assert all(lg.meta.controller == pid.to_json() for lg in logs)
-    np.testing.assert_allclose(np.stack([lg.values for lg in logs]), native.rollout(ck, pid, init, 20), atol=1e-4,
-                               rtol=0)
+    np.testing.assert_allclose(
+        np.stack([lg.values for lg in logs]), native.rollout(ck, pid, init, 20), atol=1e-4, rtol=0
+    )
     # a combine spec from a file, refused for its width: one line naming the controller, exit 2
     (tmp_path / "c.json").write_text(json.dumps({"name": "combine", "params": {"loops": [LANE.to_json()] * 2}}))
-    for args, words in [(["--controller", f"@{tmp_path / 'c.json'}"], "'combine' drives 2 action channel(s)"),
-                        (["--controller", "steer"], "unknown controller 'steer'"),
-                        (["--controller", "pid", "--param", "kq=1"], "unknown parameter"),
-                        (["--controller", '{"name": "pid", "params": {"input": 1}}'], "reads state channel 1"),
-                        (["--frobnicate"], "unknown option --frobnicate"),
-                        (["--steps=-3"], "--steps must not be negative")]:
+    for args, words in [
+        (["--controller", f"@{tmp_path / 'c.json'}"], "'combine' drives 2 action channel(s)"),
+        (["--controller", "steer"], "unknown controller 'steer'"),
+        (["--controller", "pid", "--param", "kq=1"], "unknown parameter"),
+        (["--controller", '{"name": "pid", "params": {"input": 1}}'], "reads state channel 1"),
+        (["--frobnicate"], "unknown option --frobnicate"),
+        (["--steps=-3"], "--steps must not be negative"),
+    ]:
         bad = sim(*args, "--metrics", "-")
         assert bad.returncode == 2 and words in bad.stderr and bad.stderr.count("\n") == 1, (args, bad.stderr)
     # a model trained under several controllers asks which one
@@ -346,14 +396,31 @@ def test_envi_sim_usage_documents_every_option():
 @pytest.mark.skipif(envi_sim() is None, reason="envi_sim binary not built")
 def test_envi_sim_metrics_only_memory_is_flat(tmp_path, real_dir):
     model = export(paper_ckpt(), tmp_path / "m.onnx")
-    probe = ("import resource, subprocess, sys; subprocess.run(sys.argv[1:], check=True, stdout=subprocess.DEVNULL); "
-             "print(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)")
+    probe = (
+        "import resource, subprocess, sys; subprocess.run(sys.argv[1:], check=True, stdout=subprocess.DEVNULL); "
+        "print(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)"
+    )
 
     def peak_kib(runs: int) -> int:
-        cmd = [envi_sim(), "--model", str(model), "--init", str(real_dir / "log_30_0.csv"), "--controller",
-               json.dumps(LANE.to_json()), "--steps", "40", "--runs", str(runs), "--metrics-only", "--metrics", "-"]
-        return int(subprocess.run([sys.executable, "-c", probe, *cmd], capture_output=True, text=True,
-                                  check=True).stdout)
+        cmd = [
+            envi_sim(),
+            "--model",
+            str(model),
+            "--init",
+            str(real_dir / "log_30_0.csv"),
+            "--controller",
+            json.dumps(LANE.to_json()),
+            "--steps",
+            "40",
+            "--runs",
+            str(runs),
+            "--metrics-only",
+            "--metrics",
+            "-",
+        ]
+        return int(
+            subprocess.run([sys.executable, "-c", probe, *cmd], capture_output=True, text=True, check=True).stdout
+        )
 
     small, large = peak_kib(500), peak_kib(50_000)
     # 50 000 kept traces would be 50000 x 50 x 2 doubles = 40 MB; streaming keeps a chunk's worth

@@ -55,8 +55,9 @@ def test_training_pairs_carry_the_filter_of_the_whole_action_history():
 
 
 def play_ckpt(logs: list, history: int = 4):
-    return new_checkpoint("bc", logs, [], model_config(logs, history=history, hidden=(16,), extras=("play",),
-                                                          play_width=0.3), 0, {})
+    return new_checkpoint(
+        "bc", logs, [], model_config(logs, history=history, hidden=(16,), extras=("play",), play_width=0.3), 0, {}
+    )
 
 
 def test_rollout_feeds_the_model_the_rows_a_log_of_its_own_trajectory_gives():

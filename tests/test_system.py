@@ -41,25 +41,35 @@ def test_a_contradicting_pattern_is_an_error_not_an_override():
         d.with_pattern("run_{run}_{x}.csv")
 
 
-@pytest.mark.parametrize("pattern, why", [("log_{x}_{x}.csv", "appears twice"), ("log_{x.csv", "brace"),
-                                          ("", "non-empty")])
+@pytest.mark.parametrize(
+    "pattern, why", [("log_{x}_{x}.csv", "appears twice"), ("log_{x.csv", "brace"), ("", "non-empty")]
+)
 def test_bad_patterns_are_value_errors(pattern, why):
     with pytest.raises(ValueError, match=why):
         pattern_regex(pattern)
 
 
-@pytest.mark.parametrize("text, why", [
-    ("[system\n", "not valid TOML"),
-    ("[system]\nname='x'\n", "no \\[\\[signals\\]\\]"),
-    ("[[signals]]\nname='a'\nrole='state'\n", "at least one 'state' and one 'action'"),
-    ("[[signals]]\nname='a'\nrole='sensor'\n", "role must be one of"),
-    ("[[signals]]\nname='a'\nrole='state'\nrange=[5, 1]\n[[signals]]\nname='b'\nrole='action'\n", "is empty"),
-    ("[[signals]]\nname='a'\nrole='state'\n[[signals]]\nname='a'\nrole='action'\n", "twice"),
-    ("[[signals]]\nname='a'\nrole='state'\n[[signals]]\nname='b'\nrole='action'\n"
-     "[[goals]]\nmetric='max'\nsignal='zz'\n", "not declared"),
-    ("[[signals]]\nname='a'\nrole='state'\n[[signals]]\nname='b'\nrole='action'\n"
-     "[[requirements]]\nexpr='max(a) <= 1'\nprobability=1.5\n", "strictly between"),
-])
+@pytest.mark.parametrize(
+    "text, why",
+    [
+        ("[system\n", "not valid TOML"),
+        ("[system]\nname='x'\n", "no \\[\\[signals\\]\\]"),
+        ("[[signals]]\nname='a'\nrole='state'\n", "at least one 'state' and one 'action'"),
+        ("[[signals]]\nname='a'\nrole='sensor'\n", "role must be one of"),
+        ("[[signals]]\nname='a'\nrole='state'\nrange=[5, 1]\n[[signals]]\nname='b'\nrole='action'\n", "is empty"),
+        ("[[signals]]\nname='a'\nrole='state'\n[[signals]]\nname='a'\nrole='action'\n", "twice"),
+        (
+            "[[signals]]\nname='a'\nrole='state'\n[[signals]]\nname='b'\nrole='action'\n"
+            "[[goals]]\nmetric='max'\nsignal='zz'\n",
+            "not declared",
+        ),
+        (
+            "[[signals]]\nname='a'\nrole='state'\n[[signals]]\nname='b'\nrole='action'\n"
+            "[[requirements]]\nexpr='max(a) <= 1'\nprobability=1.5\n",
+            "strictly between",
+        ),
+    ],
+)
 def test_malformed_descriptions_name_the_file(tmp_path: Path, text: str, why: str):
     f = tmp_path / "sys.toml"
     f.write_text(text)
@@ -77,15 +87,18 @@ def test_schema_from_json_rejects_wrong_types():
 SIGNALS = "[[signals]]\nname='a'\nrole='state'\n[[signals]]\nname='b'\nrole='action'\n"
 
 
-@pytest.mark.parametrize("extra, why", [
-    ("[versions]\nparams = 'xy'\n", "must be a list"),  # once read as the two names 'x' and 'y'
-    ("[versions]\nmap = {x = 3}\n", "table of parameter paths"),
-    ("[versions]\npattern = 5\n", "non-empty string"),
-    ("[versions]\npattern = 'log_{0}.csv'\n", "not a name"),  # once a re.error traceback
-    ("[system]\nname = [1]\n", "'name' must be a string"),
-    ("[system]\ngoals_preset = false\n", "'goals_preset' must be a string"),
-    ("goals = 5\n", "'goals' must be a list"),
-])
+@pytest.mark.parametrize(
+    "extra, why",
+    [
+        ("[versions]\nparams = 'xy'\n", "must be a list"),  # once read as the two names 'x' and 'y'
+        ("[versions]\nmap = {x = 3}\n", "table of parameter paths"),
+        ("[versions]\npattern = 5\n", "non-empty string"),
+        ("[versions]\npattern = 'log_{0}.csv'\n", "not a name"),  # once a re.error traceback
+        ("[system]\nname = [1]\n", "'name' must be a string"),
+        ("[system]\ngoals_preset = false\n", "'goals_preset' must be a string"),
+        ("goals = 5\n", "'goals' must be a list"),
+    ],
+)
 def test_wrongly_typed_description_fields_are_refused(tmp_path: Path, extra: str, why: str):
     f = tmp_path / "sys.toml"
     f.write_text(extra + SIGNALS)
@@ -94,14 +107,17 @@ def test_wrongly_typed_description_fields_are_refused(tmp_path: Path, extra: str
     assert str(f) in str(exc.value) and "\n" not in str(exc.value)
 
 
-@pytest.mark.parametrize("channel, why", [
-    ({"name": "a", "range": [0, "100"]}, "two numbers"),  # once float("100") silently
-    ({"name": "a", "range": [True, 5]}, "two numbers"),
-    ({"name": "a", "unit": ["m"]}, "'unit' must be a string"),
-    ({"name": "a", "saturates": "no"}, "true or false"),  # once bool("no") == True
-    ({"name": "a,b"}, "cannot be a CSV column"),
-    ({"name": " a"}, "cannot be a CSV column"),
-])
+@pytest.mark.parametrize(
+    "channel, why",
+    [
+        ({"name": "a", "range": [0, "100"]}, "two numbers"),  # once float("100") silently
+        ({"name": "a", "range": [True, 5]}, "two numbers"),
+        ({"name": "a", "unit": ["m"]}, "'unit' must be a string"),
+        ({"name": "a", "saturates": "no"}, "true or false"),  # once bool("no") == True
+        ({"name": "a,b"}, "cannot be a CSV column"),
+        ({"name": " a"}, "cannot be a CSV column"),
+    ],
+)
 def test_channel_fields_are_typed(channel, why):
     with pytest.raises(ValueError, match=why):
         LogSchema.from_json({"states": [channel], "actions": [{"name": "u"}]})
@@ -109,8 +125,11 @@ def test_channel_fields_are_typed(channel, why):
 
 def test_recorded_descriptions_check_pattern_and_lists():
     d = load_system("lane-keeping").to_json()
-    for key, value, why in [("versions", {"pattern": "{"}, "brace"), ("ignore", "abc", "list"),
-                            ("versions", [], "'versions' must be an object")]:
+    for key, value, why in [
+        ("versions", {"pattern": "{"}, "brace"),
+        ("ignore", "abc", "list"),
+        ("versions", [], "'versions' must be an object"),
+    ]:
         with pytest.raises(ValueError, match=why):
             SystemDescription.from_json({**d, key: value}, "ckpt")
 

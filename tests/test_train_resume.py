@@ -14,8 +14,12 @@ from .conftest import make_log
 
 def _logs(n: int, seed: int) -> list:
     rng = np.random.default_rng(seed)
-    return [make_log(np.clip(40 + 25 * np.sin(np.arange(40) / 3 + rng.uniform(0, 6)) + rng.normal(0, 2, 40), 0, 100),
-                     run=str(i)) for i in range(n)]
+    return [
+        make_log(
+            np.clip(40 + 25 * np.sin(np.arange(40) / 3 + rng.uniform(0, 6)) + rng.normal(0, 2, 40), 0, 100), run=str(i)
+        )
+        for i in range(n)
+    ]
 
 
 KW = dict(seed=3, epochs=12, eval_every=3, hidden=(16,), lr=1e-3, history=4)

@@ -35,8 +35,11 @@ class DitherSteer:
 
 
 def arrays(logs):
-    return (np.stack([lg.states[:, 0] for lg in logs]), np.stack([lg.actions[:, 0] for lg in logs]),
-            np.stack([lg.time for lg in logs]))
+    return (
+        np.stack([lg.states[:, 0] for lg in logs]),
+        np.stack([lg.actions[:, 0] for lg in logs]),
+        np.stack([lg.time for lg in logs]),
+    )
 
 
 def crossings(color: np.ndarray) -> float:
@@ -86,7 +89,7 @@ def test_delay_shifts_the_cross_correlation_peak_by_k(k):
         lane = np.sign(color - 40) * 10
         e = angle - lane  # the dither
         dc = np.diff(color, axis=1)
-        corr = [abs(np.corrcoef(e[:, 5:80].ravel(), dc[:, 5 + lag:80 + lag].ravel())[0, 1]) for lag in range(6)]
+        corr = [abs(np.corrcoef(e[:, 5:80].ravel(), dc[:, 5 + lag : 80 + lag].ravel())[0, 1]) for lag in range(6)]
         return int(np.argmax(corr))
 
     assert peak({"delay": k}) - peak(None) == k
@@ -108,7 +111,7 @@ def test_noise_adds_its_variance(sigma):
     clean, _, _ = arrays(generate(STRAIGHT, 400, 100, None, 7, BARE))
     noisy, _, _ = arrays(generate(STRAIGHT, 400, 100, {"noise": sigma}, 7, BARE))
     inside = (clean > 10) & (clean < 70)  # away from the 0..100 clip
-    assert np.var((noisy - clean)[inside]) == pytest.approx(sigma ** 2, rel=0.05)
+    assert np.var((noisy - clean)[inside]) == pytest.approx(sigma**2, rel=0.05)
 
 
 def test_glitches_are_rare_outliers_at_their_rate():
@@ -214,9 +217,26 @@ def _parser():
 
 
 def test_cli_generate_and_effects(tmp_path, capsys):
-    args = _parser().parse_args(["twin", "generate", "--controller", "lane-keeping", "--param", "x=20", "--runs", "3",
-                                 "--steps", "40", "--effects", "delay=2,noise=1.5", "--seed", "1", "--out",
-                                 str(tmp_path)])
+    args = _parser().parse_args(
+        [
+            "twin",
+            "generate",
+            "--controller",
+            "lane-keeping",
+            "--param",
+            "x=20",
+            "--runs",
+            "3",
+            "--steps",
+            "40",
+            "--effects",
+            "delay=2,noise=1.5",
+            "--seed",
+            "1",
+            "--out",
+            str(tmp_path),
+        ]
+    )
     assert args.func(args) == 0
     logs = load_logs(tmp_path)
     assert len(logs) == 3 and logs[0].param == {"x": 20.0}
@@ -227,8 +247,21 @@ def test_cli_generate_and_effects(tmp_path, capsys):
 
 
 def test_cli_calibrate_runs_end_to_end(tmp_path, real_dir):
-    args = _parser().parse_args(["twin", "calibrate", "--logs", str(real_dir), "--pattern", "log_{x}_1{run}.csv",
-                                 "--budget", "2", "--quiet", "--out", str(tmp_path)])
+    args = _parser().parse_args(
+        [
+            "twin",
+            "calibrate",
+            "--logs",
+            str(real_dir),
+            "--pattern",
+            "log_{x}_1{run}.csv",
+            "--budget",
+            "2",
+            "--quiet",
+            "--out",
+            str(tmp_path),
+        ]
+    )
     assert args.func(args) == 0
     prof = TwinProfile.load(tmp_path / "profile.json")
     assert set(prof.fit["headline"]) == {"10", "20", "30", "40", "50"}

@@ -47,8 +47,19 @@ def test_logs_round_trip_with_all_eleven_columns(tmp_path):
     logs = generate_car(car_versions()[3], 4, 50, seed=2)
     paths = write_car_logs(logs, tmp_path)
     header = paths[0].read_text().splitlines()[0].split(",")
-    assert header == ["time", "color", "distance", "steering", "speed", "steer_p", "steer_i", "steer_d",
-                      "speed_p", "speed_i", "speed_d"]
+    assert header == [
+        "time",
+        "color",
+        "distance",
+        "steering",
+        "speed",
+        "steer_p",
+        "steer_i",
+        "steer_d",
+        "speed_p",
+        "speed_i",
+        "speed_d",
+    ]
     back = load_logs(tmp_path)
     assert len(back) == 4
     for lg, bk in zip(logs, sorted(back, key=lambda b: b.meta.provenance["run"])):
@@ -108,7 +119,7 @@ def test_replay_detects_wrong_starting_memory():
     ctrl = ControllerSpec.from_json(lg.meta.controller).build(2, 2, 40.0)
     ctrl.reset(1)
     ctrl(lg.states[:1] + np.array([[10.0, 10.0]]))  # a pretend warm-up row left in memory
-    replay = np.concatenate([ctrl(lg.states[t:t + 1]) for t in range(len(lg))])
+    replay = np.concatenate([ctrl(lg.states[t : t + 1]) for t in range(len(lg))])
     assert not np.array_equal(replay, lg.actions)
 
 
@@ -118,13 +129,15 @@ def test_distance_reads_255_in_some_runs_but_not_all():
     lost = (dist == 255).any(1)
     assert 0 < lost.sum() < len(logs)
     # the causes: a lead beyond the echo range, and drop-outs; without both the sensor always answers
-    quiet = generate_car(car_versions()[1], 40, 100, seed=0, far_start_prob=0.0, dropout_prob=0.0,
-                         echo_range=(300.0, 300.0))
+    quiet = generate_car(
+        car_versions()[1], 40, 100, seed=0, far_start_prob=0.0, dropout_prob=0.0, echo_range=(300.0, 300.0)
+    )
     assert not any((lg.states[:, 1] == 255).any() for lg in quiet)
     far = generate_car(car_versions()[1], 10, 5, seed=0, far_start_prob=1.0, warmup=0)
     assert all(lg.states[0, 1] == 255 for lg in far)
-    drop = generate_car(car_versions()[1], 20, 100, seed=0, far_start_prob=0.0, dropout_prob=0.05,
-                        echo_range=(300.0, 300.0))
+    drop = generate_car(
+        car_versions()[1], 20, 100, seed=0, far_start_prob=0.0, dropout_prob=0.05, echo_range=(300.0, 300.0)
+    )
     hits = np.mean([(lg.states[:, 1] == 255).mean() for lg in drop])
     assert 0.03 < hits < 0.07  # 2000 readings at 5 %: sd 0.5 %
 
@@ -204,8 +217,10 @@ def test_bad_requests_are_one_clear_error():
     with pytest.raises(ValueError, match="non-negative"):
         generate_car(spec, 1, motor_tau_s=float("nan"))
     with pytest.raises(ValueError, match="two PID loops"):
-        generate_car(ControllerSpec("combine", {"loops": [{"name": "pid", "params": {}},
-                                                          {"name": "bang-bang", "params": {}}]}), 1)
+        generate_car(
+            ControllerSpec("combine", {"loops": [{"name": "pid", "params": {}}, {"name": "bang-bang", "params": {}}]}),
+            1,
+        )
     with pytest.raises(ValueError, match="no version 7"):
         generate_car_versions(1, versions=[7])
 
@@ -222,23 +237,67 @@ def _run(argv: list[str]) -> int:
 
 
 def test_cli_generates_car_versions_and_keeps_lane_keeping_the_default(tmp_path, capsys):
-    assert _run(["twin", "generate", "--system", "car", "--runs", "2", "--steps", "20", "--out",
-                 str(tmp_path / "all")]) == 0
+    assert (
+        _run(["twin", "generate", "--system", "car", "--runs", "2", "--steps", "20", "--out", str(tmp_path / "all")])
+        == 0
+    )
     assert len(list((tmp_path / "all").glob("car_*.csv"))) == 10
-    assert _run(["twin", "generate", "--system", "car", "--param", "kp_steer=1", "kp_speed=20", "--runs", "3",
-                 "--steps", "20", "--out", str(tmp_path / "one")]) == 0
+    assert (
+        _run(
+            [
+                "twin",
+                "generate",
+                "--system",
+                "car",
+                "--param",
+                "kp_steer=1",
+                "kp_speed=20",
+                "--runs",
+                "3",
+                "--steps",
+                "20",
+                "--out",
+                str(tmp_path / "one"),
+            ]
+        )
+        == 0
+    )
     assert sorted(p.name for p in (tmp_path / "one").glob("*.csv")) == [f"car_1_20_{r}.csv" for r in range(3)]
-    assert _run(["twin", "generate", "--system", "car", "--version", "3", "4", "--world", "dropout_prob=0",
-                 "--runs", "1", "--steps", "20", "--out", str(tmp_path / "unseen")]) == 0
+    assert (
+        _run(
+            [
+                "twin",
+                "generate",
+                "--system",
+                "car",
+                "--version",
+                "3",
+                "4",
+                "--world",
+                "dropout_prob=0",
+                "--runs",
+                "1",
+                "--steps",
+                "20",
+                "--out",
+                str(tmp_path / "unseen"),
+            ]
+        )
+        == 0
+    )
     names = sorted(p.name for p in (tmp_path / "unseen").glob("*.csv"))
     assert names == sorted(f"car_{ks:g}_{kv:g}_0.csv" for ks, kv in (CAR_GAINS[3], CAR_GAINS[4]))
     assert _run(["twin", "generate", "--runs", "2", "--steps", "15", "--out", str(tmp_path / "lane")]) == 0
     lane = read_log(next((tmp_path / "lane").glob("*.csv")))
     assert lane.meta.schema.columns == ["time", "color", "angle"] and lane.meta.controller["name"] == "lane-keeping"
     capsys.readouterr()
-    for bad in (["--system", "car", "--effects", "noise=1"], ["--system", "car", "--world", "warp=1"],
-                ["--system", "car", "--version", "9"], ["--system", "car", "--version", "1", "--param", "kp_steer=1"],
-                ["--version", "1"]):
+    for bad in (
+        ["--system", "car", "--effects", "noise=1"],
+        ["--system", "car", "--world", "warp=1"],
+        ["--system", "car", "--version", "9"],
+        ["--system", "car", "--version", "1", "--param", "kp_steer=1"],
+        ["--version", "1"],
+    ):
         assert _run(["twin", "generate", *bad, "--out", str(tmp_path / "bad")]) == 2, bad
         err = capsys.readouterr().err.strip()
         assert err.startswith("envi twin generate: ") and "\n" not in err, err

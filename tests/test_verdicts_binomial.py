@@ -10,16 +10,16 @@ from envi_py.verdicts import Verdict, clopper_pearson, decide
 
 def test_zero_and_all_successes_have_closed_form_bounds():
     # k = 0: upper solves (1 - p)^10 = 0.025; k = n: lower solves p^10 = 0.025
-    assert clopper_pearson(0, 10) == pytest.approx((0.0, 1 - 0.025 ** 0.1), abs=1e-12)
-    assert clopper_pearson(10, 10) == pytest.approx((0.025 ** 0.1, 1.0), abs=1e-12)
+    assert clopper_pearson(0, 10) == pytest.approx((0.0, 1 - 0.025**0.1), abs=1e-12)
+    assert clopper_pearson(10, 10) == pytest.approx((0.025**0.1, 1.0), abs=1e-12)
 
 
 def test_one_success_and_one_failure_have_closed_form_bounds():
     # k = 1: lower solves 1 - (1 - p)^10 = 0.025; k = 9: upper solves 1 - p^10 = 0.025
     lo, _ = clopper_pearson(1, 10)
     _, hi = clopper_pearson(9, 10)
-    assert lo == pytest.approx(1 - 0.975 ** 0.1, abs=1e-12)
-    assert hi == pytest.approx(0.975 ** 0.1, abs=1e-12)
+    assert lo == pytest.approx(1 - 0.975**0.1, abs=1e-12)
+    assert hi == pytest.approx(0.975**0.1, abs=1e-12)
 
 
 def test_seven_of_ten_matches_the_tabulated_interval():
@@ -27,8 +27,10 @@ def test_seven_of_ten_matches_the_tabulated_interval():
     assert (round(lo, 4), round(hi, 4)) == (0.3475, 0.9333)  # the textbook table value for 7/10
     # and each bound is where the one-sided binomial tail equals alpha/2, summed by hand
     from math import comb
+
     def tail_at_least(k: int, p: float) -> float:
         return sum(comb(10, j) * p**j * (1 - p) ** (10 - j) for j in range(k, 11))
+
     assert tail_at_least(7, lo) == pytest.approx(0.025, abs=1e-9)
     assert 1 - tail_at_least(8, hi) == pytest.approx(0.025, abs=1e-9)
 
@@ -68,15 +70,24 @@ def test_exact_interval_never_undercovers():
         assert cover >= 0.95 - 3 * np.sqrt(0.05 * 0.95 / 4000)
 
 
-@pytest.mark.parametrize("args, match", [((11, 10), "k must be <= n"), ((-1, 10), "k must be >= 0"),
-                                         ((2.5, 10), "k must be an integer"), ((True, 10), "k must be an integer")])
+@pytest.mark.parametrize(
+    "args, match",
+    [
+        ((11, 10), "k must be <= n"),
+        ((-1, 10), "k must be >= 0"),
+        ((2.5, 10), "k must be an integer"),
+        ((True, 10), "k must be an integer"),
+    ],
+)
 def test_bad_counts(args, match):
     with pytest.raises(ValueError, match=match):
         clopper_pearson(*args)
 
 
-@pytest.mark.parametrize("p, alpha, match", [(float("nan"), 0.05, "p_required"), (1.5, 0.05, "p_required"),
-                                             (0.5, 0.0, "alpha"), (0.5, "x", "alpha")])
+@pytest.mark.parametrize(
+    "p, alpha, match",
+    [(float("nan"), 0.05, "p_required"), (1.5, 0.05, "p_required"), (0.5, 0.0, "alpha"), (0.5, "x", "alpha")],
+)
 def test_bad_levels(p, alpha, match):
     with pytest.raises(ValueError, match=match):
         decide(5, 10, p, alpha)

@@ -43,8 +43,9 @@ def test_too_narrow_simulation_is_outside_the_floor_with_kld():
 
 def test_faithful_simulation_is_within_the_floor_with_w1():
     rng = np.random.default_rng(1)
-    res = fair_floor(rng.normal(size=(10, 2)), rng.normal(size=(200, 2)), w1_normalised(4.0), repetitions=10,
-                     permutations=99)
+    res = fair_floor(
+        rng.normal(size=(10, 2)), rng.normal(size=(200, 2)), w1_normalised(4.0), repetitions=10, permutations=99
+    )
     assert res.within_floor and res.ratio_null_band[0] <= res.ratio <= res.ratio_null_band[1]
     assert res.statistic_null_band[0] <= res.statistic <= res.statistic_null_band[1]
 

@@ -48,8 +48,9 @@ def test_ppi_covers_and_is_narrower_than_real_only_with_a_faithful_model():
 
 def test_verdict_keeps_the_claim_with_a_faithful_model_and_covers():
     rng, truth, reps = np.random.default_rng(1), true_rate(8.0), 300
-    verdicts = [ppi_verdict(*synthetic(rng, 10, 8.0), p_required=0.5, sims_per_start=SIMS_PER_START)
-                for _ in range(reps)]
+    verdicts = [
+        ppi_verdict(*synthetic(rng, 10, 8.0), p_required=0.5, sims_per_start=SIMS_PER_START) for _ in range(reps)
+    ]
     assert np.mean([v.withdrawn for v in verdicts]) <= 0.05 + 3 * np.sqrt(0.05 * 0.95 / reps)
     assert np.mean([v.low <= truth <= v.high for v in verdicts]) >= 0.93
 
@@ -96,8 +97,12 @@ def test_badly_biased_model_is_caught(n_real, slope, at_least):
     at 10 real runs: 96 % with slope 4, but 67 % with slope 8, where the model is wrong only for the few
     starts in the middle and 10 real runs often miss them; 40 real runs catch it."""
     rng, reps = np.random.default_rng(4), 200
-    rate = np.mean([ppi_verdict(*synthetic(rng, n_real, slope, -5.0), p_required=0.5,
-                                sims_per_start=SIMS_PER_START).withdrawn for _ in range(reps)])
+    rate = np.mean(
+        [
+            ppi_verdict(*synthetic(rng, n_real, slope, -5.0), p_required=0.5, sims_per_start=SIMS_PER_START).withdrawn
+            for _ in range(reps)
+        ]
+    )
     assert rate >= at_least
 
 
@@ -119,7 +124,9 @@ def test_calibration_test_matches_binomtest_and_shrinks_estimated_predictions():
     y, f = np.array([1, 1, 1]), np.array([0.0, 1.0, 1.0])
     assert rectifier_check(y, f).p_value < 1e-12  # as exact probabilities: a count of 3 is impossible
     shrunk = rectifier_check(y, f, level=0.01, sims_per_start=20)  # as estimates from 20 runs: rare, not impossible
-    assert shrunk.passed and shrunk.p_value == pytest.approx((0.5 / 21) * (20.5 / 21) ** 2 + (20.5 / 21) * (0.5 / 21) ** 2)
+    assert shrunk.passed and shrunk.p_value == pytest.approx(
+        (0.5 / 21) * (20.5 / 21) ** 2 + (20.5 / 21) * (0.5 / 21) ** 2
+    )
 
 
 def test_model_only_carries_the_measured_error():
@@ -138,12 +145,15 @@ def test_model_only_carries_the_measured_error():
     assert refused.verdict is Verdict.UNDECIDED and "x=50" in refused.reason
 
 
-@pytest.mark.parametrize("args, match", [
-    (([0.5, 0.5], [1, 0, 1], [0.5, 0.5]), "must pair run by run"),
-    (([0.5, 0.5], [1, 0.5], [0.5, 0.5]), "goal outcomes"),
-    (([0.5, float("nan")], [1, 0], [0.5, 0.5]), "sim_predictions holds 1 NaN"),
-    (([0.5, 0.5], [1, 0], [0.5, 1.5]), "probabilities in"),
-])
+@pytest.mark.parametrize(
+    "args, match",
+    [
+        (([0.5, 0.5], [1, 0, 1], [0.5, 0.5]), "must pair run by run"),
+        (([0.5, 0.5], [1, 0.5], [0.5, 0.5]), "goal outcomes"),
+        (([0.5, float("nan")], [1, 0], [0.5, 0.5]), "sim_predictions holds 1 NaN"),
+        (([0.5, 0.5], [1, 0], [0.5, 1.5]), "probabilities in"),
+    ],
+)
 def test_bad_inputs(args, match):
     with pytest.raises(ValueError, match=match):
         ppi_verdict(*args, p_required=0.5)

@@ -50,11 +50,13 @@ def test_sprt_truncated_at_max_runs_is_undecided():
 
 def test_fixed_sample_size_is_the_smallest_exact_design():
     from scipy import stats
+
     n, c = fixed_sample_size(0.9, 0.05, 0.05, 0.05)
     assert stats.binom.sf(c - 1, n, 0.85) <= 0.05 and stats.binom.cdf(c - 1, n, 0.95) <= 0.05
     for m in range(n - 20, n):  # no smaller n has any critical count meeting both error rates
-        assert not any(stats.binom.sf(k - 1, m, 0.85) <= 0.05 and stats.binom.cdf(k - 1, m, 0.95) <= 0.05
-                       for k in range(m + 1))
+        assert not any(
+            stats.binom.sf(k - 1, m, 0.85) <= 0.05 and stats.binom.cdf(k - 1, m, 0.95) <= 0.05 for k in range(m + 1)
+        )
 
 
 def test_wald_expected_runs_at_the_hypotheses_closed_form():

@@ -22,8 +22,17 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
     real = read_logs(args, "real", min_length=hist + 1)
     confirm = read_logs(args, "confirm", min_length=hist + 1) if args.confirm else None
     train_logs = read_logs(args, "train_logs", min_length=hist + 1) if args.train_logs else None
-    d = diagnose(ckpt, real, confirm, train_logs, metric=metric_config(args, hist), runs=args.runs,
-                 top=args.top, retrain=not args.no_retrain, seed=args.seed)
+    d = diagnose(
+        ckpt,
+        real,
+        confirm,
+        train_logs,
+        metric=metric_config(args, hist),
+        runs=args.runs,
+        top=args.top,
+        retrain=not args.no_retrain,
+        seed=args.seed,
+    )
     md = write_diagnosis(d, Path(args.out))
     print(d.verdict())
     print(f"report: {md}")
@@ -38,11 +47,20 @@ def _cmd_validate(args: argparse.Namespace) -> int:
     if unknown:
         raise ValueError(f"unknown case(s) {', '.join(sorted(unknown))}; known: {', '.join(known)}")
     cases = [known[n] for n in args.cases] if args.cases else list(CASES)
-    size = Size(train=args.train, val=args.val, diagnose=args.diag, steps=args.steps, epochs=args.epochs,
-                lr=args.lr, history=args.history, runs=args.runs)
+    size = Size(
+        train=args.train,
+        val=args.val,
+        diagnose=args.diag,
+        steps=args.steps,
+        epochs=args.epochs,
+        lr=args.lr,
+        history=args.history,
+        runs=args.runs,
+    )
     out = Path(args.out)
-    results = run_validation(out, cases, range(args.first_seed, args.first_seed + args.seeds), args.mode, size,
-                             args.shrink_seeds, args.jobs)
+    results = run_validation(
+        out, cases, range(args.first_seed, args.first_seed + args.seeds), args.mode, size, args.shrink_seeds, args.jobs
+    )
     scores = [score(results, m) for m in args.mode]
     md = to_markdown(scores, size)
     (out / "report.md").write_text(md + "\n")
@@ -56,15 +74,24 @@ def register(sub: Any) -> None:
     """Add ``diagnose`` to the ``envi`` subcommands."""
     from ..cli import add_log_args, add_metric_args
 
-    p = sub.add_parser("diagnose", help="where the sim-to-real gap lies, which effect causes it, "
-                                        "how far it shrinks once added")
+    p = sub.add_parser(
+        "diagnose", help="where the sim-to-real gap lies, which effect causes it, how far it shrinks once added"
+    )
     add_log_args(p, "--real", required=False, help="real logs to diagnose against (choose + confirm)")
     p.add_argument("--model", help="checkpoint to diagnose")
-    p.add_argument("--confirm", nargs="*", default=None,
-                   help="confirmation logs, used neither for training nor for choosing the effect "
-                        "(default: half of --real, per controller version)")
-    p.add_argument("--train-logs", nargs="*", default=None,
-                   help="the model's training logs, if they are not where its checkpoint recorded them")
+    p.add_argument(
+        "--confirm",
+        nargs="*",
+        default=None,
+        help="confirmation logs, used neither for training nor for choosing the effect "
+        "(default: half of --real, per controller version)",
+    )
+    p.add_argument(
+        "--train-logs",
+        nargs="*",
+        default=None,
+        help="the model's training logs, if they are not where its checkpoint recorded them",
+    )
     p.add_argument("--runs", type=int, default=10, help="simulated runs per initial window")
     p.add_argument("--top", type=int, default=2, help="how many significant effects to retrain with")
     p.add_argument("--no-retrain", action="store_true", help="skip the retraining (step 3)")
@@ -78,12 +105,19 @@ def register(sub: Any) -> None:
     modes = p.add_subparsers(dest="diagnose_mode", metavar="validate")
     v = modes.add_parser("validate", help="score the diagnosis on twin data whose effect is known and withheld")
     d = Size()
-    v.add_argument("--cases", nargs="*", default=None, help="validation cases (default: all, incl. the negative control)")
+    v.add_argument(
+        "--cases", nargs="*", default=None, help="validation cases (default: all, incl. the negative control)"
+    )
     v.add_argument("--seeds", type=int, default=20, help="seeds per case (default 20)")
     v.add_argument("--first-seed", type=int, default=0)
-    v.add_argument("--mode", nargs="+", choices=("withheld", "verification"), default=["withheld", "verification"],
-                   help="withheld: effect in all logs, missing from the model; verification: effect only in "
-                        "the logs verified against")
+    v.add_argument(
+        "--mode",
+        nargs="+",
+        choices=("withheld", "verification"),
+        default=["withheld", "verification"],
+        help="withheld: effect in all logs, missing from the model; verification: effect only in "
+        "the logs verified against",
+    )
     v.add_argument("--shrink-seeds", type=int, default=5, help="seeds per case that also retrain with the fix")
     v.add_argument("--jobs", type=int, default=default_jobs(), help="parallel trials")
     v.add_argument("--train", type=int, default=d.train, help="training logs per trial")

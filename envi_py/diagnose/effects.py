@@ -59,9 +59,17 @@ class Finding:
         return max(self.share, self.what_if)
 
     def to_json(self) -> dict[str, Any]:
-        return {"effect": self.effect, "statistic": self.statistic, "p": self.p, "p_holm": self.p_holm,
-                "share": self.share, "what_if": self.what_if, "significant": self.significant, "detail": self.detail,
-                "fix": {k: list(v) if isinstance(v, tuple) else v for k, v in self.fix.items()}}
+        return {
+            "effect": self.effect,
+            "statistic": self.statistic,
+            "p": self.p,
+            "p_holm": self.p_holm,
+            "share": self.share,
+            "what_if": self.what_if,
+            "significant": self.significant,
+            "detail": self.detail,
+            "fix": {k: list(v) if isinstance(v, tuple) else v for k, v in self.fix.items()},
+        }
 
 
 def _rho(res: Residuals) -> float:
@@ -93,7 +101,7 @@ def _fit_dof(y: np.ndarray, x: np.ndarray, run: np.ndarray) -> tuple[float, floa
     same = run[1:] == run[:-1]
     a, b = e[:-1][same], e[1:][same]
     rho = float(np.clip(np.corrcoef(a, b)[0, 1], 0.0, 0.95)) if len(a) > 2 and a.std() > 0 and b.std() > 0 else 0.0
-    return float(np.sum(e ** 2)), max(10.0, len(y) * (1 - rho) / (1 + rho)), int(rank)
+    return float(np.sum(e**2)), max(10.0, len(y) * (1 - rho) / (1 + rho)), int(rank)
 
 
 def _diff(res: Residuals, v: np.ndarray) -> np.ndarray:
@@ -113,8 +121,9 @@ def _null(res: Residuals) -> np.ndarray:
     return np.column_stack([np.ones(len(res.pairs)), _diff(res, res.window)])
 
 
-def _f_test(res: Residuals, x: np.ndarray, mask: np.ndarray | None = None,
-            given: np.ndarray | None = None) -> tuple[float, float, float]:
+def _f_test(
+    res: Residuals, x: np.ndarray, mask: np.ndarray | None = None, given: np.ndarray | None = None
+) -> tuple[float, float, float]:
     """Do the pair differences ``x`` explain the residual differences (beyond the window's and
     ``given``'s)? F statistic, p-value and the share of the differenced mean square they explain
     (beyond what chance explains)."""
@@ -138,7 +147,7 @@ def _compare(y: np.ndarray, x0: np.ndarray, x1: np.ndarray, run: np.ndarray) -> 
     q = max(rank1 - rank0, 1)
     dof = max(ne - rank1, 5)
     f = ((rss0 - rss1) / q) / max(rss1 / dof, 1e-300)
-    share = max(0.0, (rss0 - rss1) - q * rss1 / dof) / max(float(np.sum(y ** 2)), 1e-300)
+    share = max(0.0, (rss0 - rss1) - q * rss1 / dof) / max(float(np.sum(y**2)), 1e-300)
     return float(f), float(stats.f.sf(f, q, dof)), float(share)
 
 
@@ -176,16 +185,26 @@ def test_memory(res: Residuals, ckpt: Checkpoint) -> tuple[float, float, float, 
     mask = _beyond_mask(res)
     x = np.nan_to_num(_diff(res, res.beyond))
     f, p, share = _f_test(res, x, mask, given=_diff(res, res.play))
-    return f, p, share, f"the {res.beyond.shape[1] // ckpt.config.channels} rows before the window explain " \
-                        f"{share:.1%} of the residual differences between look-alike windows"
+    return (
+        f,
+        p,
+        share,
+        f"the {res.beyond.shape[1] // ckpt.config.channels} rows before the window explain "
+        f"{share:.1%} of the residual differences between look-alike windows",
+    )
 
 
 def _features(res: Residuals, ckpt: Checkpoint) -> np.ndarray:
     """Every pair difference some candidate suspects, so noise is what none of them explains."""
     g = _change(res)
     period = ckpt.record.period_ms or float(np.median(res.dt))
-    cols = [np.nan_to_num(_diff(res, res.beyond)), _diff(res, res.row.astype(float)),
-            _diff(res, res.row * g), _diff(res, (res.dt / period - 1) * g), _diff(res, res.play)]
+    cols = [
+        np.nan_to_num(_diff(res, res.beyond)),
+        _diff(res, res.row.astype(float)),
+        _diff(res, res.row * g),
+        _diff(res, (res.dt / period - 1) * g),
+        _diff(res, res.play),
+    ]
     return np.column_stack(cols)
 
 
@@ -212,13 +231,17 @@ def test_noise(res: Residuals, ckpt: Checkpoint) -> tuple[float, float, float, s
     else:
         step = lattice_step(res.real_next) or 0.0
         span = float(np.ptp(res.real_next)) or 1.0
-        ref = max(step ** 2 / 12, (0.005 * span) ** 2)
+        ref = max(step**2 / 12, (0.005 * span) ** 2)
         what = "the resolution floor"
     tstat = (white - ref) / max(se, 1e-300)
-    share = max(0.0, 2 * (white - ref)) / max(float(np.mean(y ** 2)), 1e-300)
-    return white / max(ref, 1e-12), float(stats.t.sf(tstat, dof)), min(1.0, share), \
-        f"white residual variance {white:.3g} (look-alike windows, zero distance) is {white / max(ref, 1e-12):.2f}x " \
-        f"{what} ({ref:.3g})"
+    share = max(0.0, 2 * (white - ref)) / max(float(np.mean(y**2)), 1e-300)
+    return (
+        white / max(ref, 1e-12),
+        float(stats.t.sf(tstat, dof)),
+        min(1.0, share),
+        f"white residual variance {white:.3g} (look-alike windows, zero distance) is {white / max(ref, 1e-12):.2f}x "
+        f"{what} ({ref:.3g})",
+    )
 
 
 def test_quantisation(res: Residuals, ckpt: Checkpoint) -> tuple[float, float, float, str]:
@@ -233,9 +256,14 @@ def test_quantisation(res: Residuals, ckpt: Checkpoint) -> tuple[float, float, f
     off = np.abs(res.predicted / step - np.round(res.predicted / step)) > 1e-6
     k = int(off.sum())
     p = float(stats.binom.sf(k - 1, n, 0.5)) if k else 1.0  # a lattice model would be off never
-    share = min(1.0, 2 * (step ** 2 / 12) / max(float(np.mean(_diff(res, res.r) ** 2)), 1e-300))
-    return step, p, share, f"real readings sit on a lattice of step {step:g}; rounding error variance " \
-                           f"{step ** 2 / 12:.3g} is {share:.1%} of the differenced residual mean square"
+    share = min(1.0, 2 * (step**2 / 12) / max(float(np.mean(_diff(res, res.r) ** 2)), 1e-300))
+    return (
+        step,
+        p,
+        share,
+        f"real readings sit on a lattice of step {step:g}; rounding error variance "
+        f"{step**2 / 12:.3g} is {share:.1%} of the differenced residual mean square",
+    )
 
 
 def test_saturation(res: Residuals, ckpt: Checkpoint) -> tuple[float, float, float, str]:
@@ -268,11 +296,11 @@ def test_saturation(res: Residuals, ckpt: Checkpoint) -> tuple[float, float, flo
     edge = float(v[at][0])
     cfg = ckpt.config
     z = (edge - ckpt.norm.centre[0]) / ckpt.norm.half[0]
-    seen = np.abs(res.window[:, ::cfg.row_width] - z) < 1e-5 * max(1.0, abs(z))  # state 0 of each row
+    seen = np.abs(res.window[:, :: cfg.row_width] - z) < 1e-5 * max(1.0, abs(z))  # state 0 of each row
     hit = at | seen.any(axis=1) | (res.predicted > hi) | (res.predicted < lo)
     pr = res.pairs
     y = _diff(res, res.r)
-    share = float(np.sum(y[hit[pr.i] | hit[pr.j]] ** 2) / max(float(np.sum(y ** 2)), 1e-300))
+    share = float(np.sum(y[hit[pr.i] | hit[pr.j]] ** 2) / max(float(np.sum(y**2)), 1e-300))
     return float(ratio), p, share, f"{detail}, {ratio:.1f}x the adjacent bin"
 
 
@@ -306,8 +334,7 @@ def test_run_to_run(res: Residuals, ckpt: Checkpoint) -> tuple[float, float, flo
         return 0.0, 1.0, 0.0, "too few runs"
     x0 = np.column_stack([_null(res), _change(res)[p.i]])
     f, pv, share = _compare(y, x0, np.column_stack([x0, _run_effects(res)]), res.run[p.i])
-    return f, pv, share, \
-        f"per-run offsets and gains explain {share:.1%} of the residual differences ({len(runs)} runs)"
+    return f, pv, share, f"per-run offsets and gains explain {share:.1%} of the residual differences ({len(runs)} runs)"
 
 
 def _best_play(res: Residuals) -> tuple[float, float, float, int]:
@@ -315,8 +342,9 @@ def _best_play(res: Residuals) -> tuple[float, float, float, int]:
     the most of the residual differences beyond the rows before the window."""
     best = (0.0, 1.0, 0.0, 0)
     for k in range(res.play.shape[1]):
-        f, p, share = _f_test(res, _diff(res, res.play[:, k]), _beyond_mask(res),
-                              given=np.nan_to_num(_diff(res, res.beyond)))
+        f, p, share = _f_test(
+            res, _diff(res, res.play[:, k]), _beyond_mask(res), given=np.nan_to_num(_diff(res, res.beyond))
+        )
         if share > best[2] or (best[2] == 0 and p < best[1]):
             best = (f, p, share, k)
     return best
@@ -327,9 +355,13 @@ def test_backlash(res: Residuals, ckpt: Checkpoint) -> tuple[float, float, float
     play would sit relative to the command (a hysteresis of the whole action history), beyond what
     the rows before the window explain linearly; the best of a few play widths (Bonferroni)."""
     f, p, share, k = _best_play(res)
-    return f, min(1.0, p * res.play.shape[1]), share, \
-        f"an actuator play of {PLAY_WIDTHS[k]:.0%} of the action range explains {share:.1%} of the residual " \
-        f"differences between look-alike windows"
+    return (
+        f,
+        min(1.0, p * res.play.shape[1]),
+        share,
+        f"an actuator play of {PLAY_WIDTHS[k]:.0%} of the action range explains {share:.1%} of the residual "
+        f"differences between look-alike windows",
+    )
 
 
 def _play_channel(cfg: ModelConfig, res: Residuals) -> dict[str, Any]:
@@ -347,8 +379,13 @@ def test_jitter(res: Residuals, ckpt: Checkpoint) -> tuple[float, float, float, 
     if np.allclose(z, 0):
         return 0.0, 1.0, 0.0, "no interval variation"
     f, p, share = _f_test(res, _diff(res, z))
-    return f, p, share, f"the interval's deviation explains {share:.1%} of the residual differences " \
-                        f"(period sd {np.std(res.dt):.2g} ms)"
+    return (
+        f,
+        p,
+        share,
+        f"the interval's deviation explains {share:.1%} of the residual differences "
+        f"(period sd {np.std(res.dt):.2g} ms)",
+    )
 
 
 def _longer_history(cfg: ModelConfig, res: Residuals) -> dict[str, Any]:
@@ -382,26 +419,51 @@ class Candidate:
 
 
 CANDIDATES: tuple[Candidate, ...] = (
-    Candidate("memory_delay", "missing memory or actuation delay", test_memory, _longer_history,
-              ("delay", "lag", "lowpass"), what_if=lambda ckpt, logs, res: input_what_if(ckpt, logs, res, ACTUATOR_LAGS)),
+    Candidate(
+        "memory_delay",
+        "missing memory or actuation delay",
+        test_memory,
+        _longer_history,
+        ("delay", "lag", "lowpass"),
+        what_if=lambda ckpt, logs, res: input_what_if(ckpt, logs, res, ACTUATOR_LAGS),
+    ),
     Candidate("noise", "unmodelled noise", test_noise, lambda c, r: {"head": "gaussian"}, ("noise", "glitch")),
-    Candidate("quantisation", "sensor quantisation", test_quantisation, lambda c, r: {"round_to": (lattice_step(r.real_next) or 1.0,) * c.n_state},
-              ("quantise",)),
+    Candidate(
+        "quantisation",
+        "sensor quantisation",
+        test_quantisation,
+        lambda c, r: {"round_to": (lattice_step(r.real_next) or 1.0,) * c.n_state},
+        ("quantise",),
+    ),
     Candidate("saturation", "saturation at range limits", test_saturation, _clip_and_remember, ("saturation",)),
     # Per-run offsets and trends in time absorb slow transients of a closed loop whose state the
     # window does not fully hold (PID steering of a clean twin: shares up to 5.5% on negative
     # controls), so these two need a higher bar; injected drift or run variation explains >= 14%.
-    Candidate("drift", "drift within a run", test_drift, lambda c, r: {"extras": tuple(c.extras) + ("phase",)},
-              ("battery",), min_share=0.10),
-    Candidate("run_to_run", "run-to-run variation", test_run_to_run, lambda c, r: {"context": True},
-              ("run_variation",), min_share=0.10),
+    Candidate(
+        "drift",
+        "drift within a run",
+        test_drift,
+        lambda c, r: {"extras": tuple(c.extras) + ("phase",)},
+        ("battery",),
+        min_share=0.10,
+    ),
+    Candidate(
+        "run_to_run",
+        "run-to-run variation",
+        test_run_to_run,
+        lambda c, r: {"context": True},
+        ("run_variation",),
+        min_share=0.10,
+    ),
     # The play test is conditioned on the rows before the window, so a closed loop's slow transients
     # do not reach it: in 160 negative-control trials (seeds 0-79, both modes, bang-bang and PID
     # steering) it was never Holm-significant, while injected backlash often explains only 1-3%.
-    Candidate("backlash", "dead zone or backlash", test_backlash, _play_channel, ("backlash", "deadzone"),
-              min_share=0.01),
-    Candidate("jitter", "sampling jitter", test_jitter, lambda c, r: {"extras": tuple(c.extras) + ("dt",)},
-              ("jitter",)),
+    Candidate(
+        "backlash", "dead zone or backlash", test_backlash, _play_channel, ("backlash", "deadzone"), min_share=0.01
+    ),
+    Candidate(
+        "jitter", "sampling jitter", test_jitter, lambda c, r: {"extras": tuple(c.extras) + ("dt",)}, ("jitter",)
+    ),
 )
 
 
@@ -433,8 +495,14 @@ MIN_SHARE = 0.03
 WHAT_IF_BAR = 0.25
 
 
-def run_candidates(res: Residuals, ckpt: Checkpoint, alpha: float = 0.05, min_share: float = MIN_SHARE,
-                   candidates: Sequence[Candidate] = CANDIDATES, logs: Sequence[Log] | None = None) -> list[Finding]:
+def run_candidates(
+    res: Residuals,
+    ckpt: Checkpoint,
+    alpha: float = 0.05,
+    min_share: float = MIN_SHARE,
+    candidates: Sequence[Candidate] = CANDIDATES,
+    logs: Sequence[Log] | None = None,
+) -> list[Finding]:
     """Every candidate's finding, significant ones first (by weight), then the rest by p-value.
 
     With the ``logs`` the residuals came from, candidates that have a what-if also try it; such a
@@ -447,13 +515,18 @@ def run_candidates(res: Residuals, ckpt: Checkpoint, alpha: float = 0.05, min_sh
         w = c.what_if(ckpt, logs, res) if c.what_if is not None and logs is not None else None
         if w is not None:
             p = min(1.0, 2 * min(p, w.p))
-            detail += f"; feeding the model the commands through {w.label} removes {w.share:.1%} of the residual " \
-                      f"mean square" if w.share > 0 else f"; what-if: {w.label}"
+            detail += (
+                f"; feeding the model the commands through {w.label} removes {w.share:.1%} of the residual mean square"
+                if w.share > 0
+                else f"; what-if: {w.label}"
+            )
         raw.append(Finding(c.name, stat, p, share, detail, fix, what_if=max(0.0, w.share) if w else 0.0))
         bars.append(c.bar(min_share))
     adj = holm([f.p for f in raw])
-    out = [replace(f, p_holm=float(a), significant=bool(a < alpha and (f.share >= bar or f.what_if >= WHAT_IF_BAR)))
-           for f, a, bar in zip(raw, adj, bars)]
+    out = [
+        replace(f, p_holm=float(a), significant=bool(a < alpha and (f.share >= bar or f.what_if >= WHAT_IF_BAR)))
+        for f, a, bar in zip(raw, adj, bars)
+    ]
     out.sort(key=lambda f: (not f.significant, -f.weight if f.significant else f.p_holm))
     return _nested_first(out, alpha)
 

@@ -25,8 +25,9 @@ def floor_ratio(value: float, floor: float) -> float:
     return 0.0 if value == 0 else float("inf")
 
 
-def metric_gaps(real: np.ndarray, sim: np.ndarray, cfg: MetricConfig, boot: int = 200,
-                seed: int = 0) -> list[dict[str, Any]]:
+def metric_gaps(
+    real: np.ndarray, sim: np.ndarray, cfg: MetricConfig, boot: int = 200, seed: int = 0
+) -> list[dict[str, Any]]:
     """Per metric: normalised W1 with a bootstrap 95% interval (runs resampled on both sides), the
     real-vs-real floor (random halves), and their ratio; ranked by the ratio, largest first."""
     rng = np.random.default_rng(seed)
@@ -34,17 +35,29 @@ def metric_gaps(real: np.ndarray, sim: np.ndarray, cfg: MetricConfig, boot: int 
     lo, hi = metric_bounds(real.shape[1] - cfg.skip, cfg)
     span = hi - lo
     w1 = _w1_metrics(mr, ms, span)
-    bs = np.array([_w1_metrics(mr[rng.integers(0, len(mr), len(mr))], ms[rng.integers(0, len(ms), len(ms))], span)
-                   for _ in range(boot)])
+    bs = np.array(
+        [
+            _w1_metrics(mr[rng.integers(0, len(mr), len(mr))], ms[rng.integers(0, len(ms), len(ms))], span)
+            for _ in range(boot)
+        ]
+    )
     halves = []
     for _ in range(50):
         p = rng.permutation(len(mr))
-        halves.append(_w1_metrics(mr[p[: len(p) // 2]], mr[p[len(p) // 2:]], span))
+        halves.append(_w1_metrics(mr[p[: len(p) // 2]], mr[p[len(p) // 2 :]], span))
     fl = np.mean(halves, axis=0)
-    rows = [{"metric": m, "w1": float(w1[j]), "ci": [float(np.percentile(bs[:, j], 2.5)),
-                                                     float(np.percentile(bs[:, j], 97.5))],
-             "floor": float(fl[j]), "ratio": floor_ratio(float(w1[j]), float(fl[j])),
-             "real": mr[:, j].tolist(), "sim": ms[:, j].tolist()} for j, m in enumerate(METRIC_NAMES)]
+    rows = [
+        {
+            "metric": m,
+            "w1": float(w1[j]),
+            "ci": [float(np.percentile(bs[:, j], 2.5)), float(np.percentile(bs[:, j], 97.5))],
+            "floor": float(fl[j]),
+            "ratio": floor_ratio(float(w1[j]), float(fl[j])),
+            "real": mr[:, j].tolist(),
+            "sim": ms[:, j].tolist(),
+        }
+        for j, m in enumerate(METRIC_NAMES)
+    ]
     return sorted(rows, key=lambda r: -r["ratio"])
 
 
@@ -57,7 +70,7 @@ def horizon_gap(real: np.ndarray, sim: np.ndarray, skip: int, seed: int = 0) -> 
     steps = np.arange(skip, t)
     w1 = np.array([stats.wasserstein_distance(real[:, k], sim[:, k]) for k in steps])
     p = rng.permutation(len(real))
-    a, b = real[p[: len(p) // 2]], real[p[len(p) // 2:]]
+    a, b = real[p[: len(p) // 2]], real[p[len(p) // 2 :]]
     fl = np.array([stats.wasserstein_distance(a[:, k], b[:, k]) for k in steps])
     lo, hi = np.percentile(real[:, steps], 5, axis=0), np.percentile(real[:, steps], 95, axis=0)
     outside = (sim[:, steps] < lo) | (sim[:, steps] > hi)
@@ -65,9 +78,14 @@ def horizon_gap(real: np.ndarray, sim: np.ndarray, skip: int, seed: int = 0) -> 
     for row in outside:
         run3 = np.convolve(row.astype(int), np.ones(3, int), mode="valid") == 3
         exits.append(int(np.argmax(run3)) if run3.any() else len(steps))
-    return {"step": steps.tolist(), "w1": w1.tolist(), "floor": fl.tolist(),
-            "outside_band": outside.mean(axis=0).tolist(), "median_exit_step": float(np.median(exits)),
-            "never_exit_share": float(np.mean(np.array(exits) == len(steps)))}
+    return {
+        "step": steps.tolist(),
+        "w1": w1.tolist(),
+        "floor": fl.tolist(),
+        "outside_band": outside.mean(axis=0).tolist(),
+        "median_exit_step": float(np.median(exits)),
+        "never_exit_share": float(np.mean(np.array(exits) == len(steps))),
+    }
 
 
 def residual_map(res: Residuals, state_bins: int = 8, alpha: float = 0.05) -> dict[str, Any]:
@@ -101,21 +119,40 @@ def residual_map(res: Residuals, state_bins: int = 8, alpha: float = 0.05) -> di
             tstat = r.mean() / (r.std(ddof=1) / np.sqrt(ne) + 1e-12)
             p = 2 * stats.t.sf(abs(tstat), ne - 1)
             if p * cells < alpha:
-                significant.append({"action": a_labels[i], "state": [float(edges[j]), float(edges[j + 1])],
-                                    "bias": float(r.mean()), "sd": float(r.std()), "n": int(len(r)),
-                                    "p_bonferroni": float(min(1.0, p * cells))})
+                significant.append(
+                    {
+                        "action": a_labels[i],
+                        "state": [float(edges[j]), float(edges[j + 1])],
+                        "bias": float(r.mean()),
+                        "sd": float(r.std()),
+                        "n": int(len(r)),
+                        "p_bonferroni": float(min(1.0, p * cells)),
+                    }
+                )
     phase_edges = np.quantile(res.row, np.linspace(0, 1, 6))
     ph = np.clip(np.searchsorted(phase_edges, res.row, side="right") - 1, 0, 4)
-    phase = [{"rows": [float(phase_edges[k]), float(phase_edges[k + 1])], "bias": float(res.r[ph == k].mean()),
-              "sd": float(res.r[ph == k].std()), "rms": float(np.sqrt(np.mean(res.r[ph == k] ** 2)))}
-             for k in range(5) if np.any(ph == k)]
-    return {"state_edges": edges.tolist(), "actions": a_labels, "mean": mean.tolist(), "count": count.tolist(),
-            "significant": sorted(significant, key=lambda c: -abs(c["bias"])), "by_phase": phase,
-            "rmse": float(np.sqrt(np.mean(res.r ** 2)))}
+    phase = [
+        {
+            "rows": [float(phase_edges[k]), float(phase_edges[k + 1])],
+            "bias": float(res.r[ph == k].mean()),
+            "sd": float(res.r[ph == k].std()),
+            "rms": float(np.sqrt(np.mean(res.r[ph == k] ** 2))),
+        }
+        for k in range(5)
+        if np.any(ph == k)
+    ]
+    return {
+        "state_edges": edges.tolist(),
+        "actions": a_labels,
+        "mean": mean.tolist(),
+        "count": count.tolist(),
+        "significant": sorted(significant, key=lambda c: -abs(c["bias"])),
+        "by_phase": phase,
+        "rmse": float(np.sqrt(np.mean(res.r**2))),
+    }
 
 
-def coverage(train_windows: np.ndarray, sim_windows: np.ndarray, seed: int = 0,
-             sample: int = 2000) -> dict[str, Any]:
+def coverage(train_windows: np.ndarray, sim_windows: np.ndarray, seed: int = 0, sample: int = 2000) -> dict[str, Any]:
     """Share of simulated windows farther from every training window than 95% of training windows
     are from their nearest neighbour (normalised units): where the model extrapolates."""
     rng = np.random.default_rng(seed)
@@ -131,14 +168,18 @@ def coverage(train_windows: np.ndarray, sim_windows: np.ndarray, seed: int = 0,
     ref = nn(tr, tr, True)
     threshold = float(np.percentile(ref, 95))
     dist = nn(sm, tr, False)
-    return {"threshold": threshold, "outside_share": float(np.mean(dist > threshold)),
-            "median_distance": float(np.median(dist)), "train_median_distance": float(np.median(ref))}
+    return {
+        "threshold": threshold,
+        "outside_share": float(np.mean(dist > threshold)),
+        "median_distance": float(np.median(dist)),
+        "train_median_distance": float(np.median(ref)),
+    }
 
 
 def windows_of(traces: np.ndarray, norm_encode: Any, history: int, skip: int) -> np.ndarray:
     """Flattened normalised windows (N, l*C) of simulated physical traces (R, T, C) after ``skip``."""
     z = norm_encode(traces)
-    out = [z[:, t - history:t].reshape(len(z), -1) for t in range(max(history, skip), z.shape[1])]
+    out = [z[:, t - history : t].reshape(len(z), -1) for t in range(max(history, skip), z.shape[1])]
     return np.concatenate(out, axis=0) if out else np.zeros((0, history * z.shape[2]))
 
 
@@ -147,9 +188,15 @@ def by_version(groups: Sequence[tuple[str, np.ndarray, np.ndarray]], cfg: Metric
     out = []
     for label, real, sim in groups:
         gaps = metric_gaps(real, sim, cfg, boot=50)
-        out.append({"controller": label, "mean_w1": float(np.mean([g["w1"] for g in gaps])),
-                    "mean_floor": float(np.mean([g["floor"] for g in gaps])),
-                    "worst_metric": gaps[0]["metric"], "worst_ratio": gaps[0]["ratio"]})
+        out.append(
+            {
+                "controller": label,
+                "mean_w1": float(np.mean([g["w1"] for g in gaps])),
+                "mean_floor": float(np.mean([g["floor"] for g in gaps])),
+                "worst_metric": gaps[0]["metric"],
+                "worst_ratio": gaps[0]["ratio"],
+            }
+        )
     return out
 
 
@@ -158,7 +205,9 @@ def by_run(res: Residuals, names: Sequence[str]) -> list[dict[str, Any]]:
     lives in some runs only (a worn battery, a slippery patch) shows as a few logs far above 1."""
     ms = res.ms_by_run(len(names))
     med = float(np.nanmedian(ms)) or 1e-12
-    rows = [{"log": names[i], "rms": float(np.sqrt(ms[i])), "ratio": float(ms[i] / med)}
-            for i in range(len(names)) if np.isfinite(ms[i])]
+    rows = [
+        {"log": names[i], "rms": float(np.sqrt(ms[i])), "ratio": float(ms[i] / med)}
+        for i in range(len(names))
+        if np.isfinite(ms[i])
+    ]
     return sorted(rows, key=lambda r: -r["ratio"])
-

@@ -45,8 +45,9 @@ class Residuals:
 
     def ms_by_run(self, runs: int) -> np.ndarray:
         """Mean square residual of each of ``runs`` logs (NaN for a log without residuals)."""
-        return np.array([float(np.mean(self.r[self.run == i] ** 2)) if np.any(self.run == i) else np.nan
-                         for i in range(runs)])
+        return np.array(
+            [float(np.mean(self.r[self.run == i] ** 2)) if np.any(self.run == i) else np.nan for i in range(runs)]
+        )
 
     @cached_property
     def pairs(self) -> "Pairs":
@@ -114,12 +115,12 @@ def one_step_residuals(ckpt: Checkpoint, logs: Sequence[Log]) -> Residuals:
         parts["pred_std"].append(np.exp(log_std.numpy()[:, 0]) * scale[0] if log_std is not None else np.zeros(n))
         parts["predicted"].append(pred)
         parts["real_next"].append(real_next)
-        parts["state"].append(lg.states[hist - 1:-1, 0])
-        parts["action"].append(lg.actions[hist - 1:-1, 0])
+        parts["state"].append(lg.states[hist - 1 : -1, 0])
+        parts["action"].append(lg.actions[hist - 1 : -1, 0])
         parts["run"].append(np.full(n, i))
         parts["row"].append(rows)
-        parts["dt"].append(np.diff(lg.time)[hist - 1:])
-        parts["window"].append(x[:, :hist * cfg.row_width])
+        parts["dt"].append(np.diff(lg.time)[hist - 1 :])
+        parts["window"].append(x[:, : hist * cfg.row_width])
         z = ckpt.norm.encode(lg.values)
         beyond = np.full((n, BEYOND * ch), np.nan)
         for j, t in enumerate(rows):
@@ -127,11 +128,11 @@ def one_step_residuals(ckpt: Checkpoint, logs: Sequence[Log]) -> Residuals:
             lo = max(0, first - BEYOND)
             block = z[lo:first]
             if len(block):
-                beyond[j, (BEYOND - len(block)) * ch:] = block.ravel()
+                beyond[j, (BEYOND - len(block)) * ch :] = block.ravel()
         parts["beyond"].append(beyond)
         span = 2 * float(ckpt.norm.half[ns])  # the first action's training range
         play = np.stack([play_offsets(lg.actions[:, 0], f * span) for f in PLAY_WIDTHS], axis=1)
-        parts["play"].append(play[hist - 1:-1])
+        parts["play"].append(play[hist - 1 : -1])
     out = {k: np.concatenate(v) for k, v in parts.items()}
     if cfg.head != "gaussian":
         out["pred_std"] = None

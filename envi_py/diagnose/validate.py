@@ -81,8 +81,9 @@ def _logs(case: Case, n: int, steps: int, seed: int, effects: dict[str, Any] | N
     """``n`` logs of a clean twin with the case's effects (or ``effects``) on."""
     from ..twin import TwinProfile, generate
 
-    return generate(case.controller, n, steps, case.effects if effects is None else effects,
-                    seed=seed, profile=TwinProfile())
+    return generate(
+        case.controller, n, steps, case.effects if effects is None else effects, seed=seed, profile=TwinProfile()
+    )
 
 
 def _where(ckpt: Any, case: Case, size: Size, seed: int) -> dict[str, Any]:
@@ -116,24 +117,55 @@ def trial(case: Case, seed: int, mode: str = "withheld", size: Size = Size(), sh
     n_fit = size.train + size.val
     diag = _logs(case, size.diagnose, size.steps, seed + 1_000_000)
     fit = _logs(case, n_fit, size.steps, seed, None if mode == "withheld" else {})
-    train_logs, val_logs = fit[:size.train], fit[size.train:]
-    ckpt = train("bc", train_logs, val_logs, seed=seed, epochs=size.epochs, lr=size.lr, head="deterministic",
-                 history=case.history or size.history)
-    d = diagnose(ckpt, diag, train_logs=train_logs, val_logs=val_logs, runs=size.runs, top=1,
-                 retrain=shrink and mode == "withheld" and case.expected is not None, seed=seed)
+    train_logs, val_logs = fit[: size.train], fit[size.train :]
+    ckpt = train(
+        "bc",
+        train_logs,
+        val_logs,
+        seed=seed,
+        epochs=size.epochs,
+        lr=size.lr,
+        head="deterministic",
+        history=case.history or size.history,
+    )
+    d = diagnose(
+        ckpt,
+        diag,
+        train_logs=train_logs,
+        val_logs=val_logs,
+        runs=size.runs,
+        top=1,
+        retrain=shrink and mode == "withheld" and case.expected is not None,
+        seed=seed,
+    )
     sig = [f.effect for f in d.significant]
     out: dict[str, Any] = {
-        "case": case.name, "seed": seed, "mode": mode, "expected": case.expected,
-        "top": sig[0] if sig else None, "significant": sig,
-        "findings": {f.effect: {"share": f.share, "what_if": f.what_if, "p_holm": f.p_holm, "statistic": f.statistic}
-                     for f in d.findings},
-        "residual_rms": d.residual_map["rmse"], "misfit": d.misfit, "gap_ratio": d.gaps[0]["gaps"][0]["ratio"], "gap_metric": d.gaps[0]["gaps"][0]["metric"],
+        "case": case.name,
+        "seed": seed,
+        "mode": mode,
+        "expected": case.expected,
+        "top": sig[0] if sig else None,
+        "significant": sig,
+        "findings": {
+            f.effect: {"share": f.share, "what_if": f.what_if, "p_holm": f.p_holm, "statistic": f.statistic}
+            for f in d.findings
+        },
+        "residual_rms": d.residual_map["rmse"],
+        "misfit": d.misfit,
+        "gap_ratio": d.gaps[0]["gaps"][0]["ratio"],
+        "gap_metric": d.gaps[0]["gaps"][0]["metric"],
     }
     if d.shrink:
         b, a = d.shrink["before"], d.shrink["after"][0]
-        out["shrink"] = {"effect": a["effect"], "before": b["mean_w1"], "after": a["mean_w1"],
-                         "floor": b["mean_floor"], "shrink": a["shrink"],
-                         "inside_before": b["inside_floor"], "inside_after": a["inside_floor"]}
+        out["shrink"] = {
+            "effect": a["effect"],
+            "before": b["mean_w1"],
+            "after": a["mean_w1"],
+            "floor": b["mean_floor"],
+            "shrink": a["shrink"],
+            "inside_before": b["inside_floor"],
+            "inside_after": a["inside_floor"],
+        }
     if mode == "verification" and case.expected is not None:
         out["where"] = _where(ckpt, case, size, seed)
     return out
@@ -149,13 +181,27 @@ def _run_one(args: tuple[Case, int, str, Size, bool]) -> dict[str, Any]:
     try:
         return trial(*args)
     except Exception as exc:  # noqa: BLE001 - any failure of the diagnosis is a validation outcome
-        return {"case": case.name, "seed": seed, "mode": mode, "expected": case.expected, "top": None,
-                "significant": [], "findings": {}, "error": f"{type(exc).__name__}: {exc}"}
+        return {
+            "case": case.name,
+            "seed": seed,
+            "mode": mode,
+            "expected": case.expected,
+            "top": None,
+            "significant": [],
+            "findings": {},
+            "error": f"{type(exc).__name__}: {exc}",
+        }
 
 
-def run_validation(out: Path, cases: Sequence[Case] = CASES, seeds: Iterable[int] = range(20),
-                   modes: Sequence[str] = ("withheld",), size: Size = Size(), shrink_seeds: int = 5,
-                   jobs: int = 1) -> list[dict[str, Any]]:
+def run_validation(
+    out: Path,
+    cases: Sequence[Case] = CASES,
+    seeds: Iterable[int] = range(20),
+    modes: Sequence[str] = ("withheld",),
+    size: Size = Size(),
+    shrink_seeds: int = 5,
+    jobs: int = 1,
+) -> list[dict[str, Any]]:
     """Every (mode, case, seed) trial, appended to ``out/results.jsonl`` as it finishes (a rerun
     resumes); the retraining step runs on the first ``shrink_seeds`` seeds of each case."""
     out.mkdir(parents=True, exist_ok=True)
@@ -167,8 +213,13 @@ def run_validation(out: Path, cases: Sequence[Case] = CASES, seeds: Iterable[int
                 r = json.loads(line)
                 done[_key(r)] = r
     seeds = list(seeds)
-    todo = [(c, s, m, size, i < shrink_seeds) for m in modes for c in cases for i, s in enumerate(seeds)
-            if (m, c.name, s) not in done and (m == "withheld" or c.verification)]
+    todo = [
+        (c, s, m, size, i < shrink_seeds)
+        for m in modes
+        for c in cases
+        for i, s in enumerate(seeds)
+        if (m, c.name, s) not in done and (m == "withheld" or c.verification)
+    ]
     (out / "size.json").write_text(json.dumps(asdict(size), indent=1) + "\n")
     with path.open("a") as fh:
         if jobs > 1 and len(todo) > 1:
@@ -215,66 +266,105 @@ def score(results: Sequence[dict[str, Any]], mode: str) -> Score:
     eff = [r for r in rs if r["expected"] is not None]
     neg = [r for r in rs if r["expected"] is None]
     negative = {r["case"] for r in neg}  # negative controls: nothing injected
-    by_case = {c: float(np.mean([r["top"] == r["expected"] for r in rs if r["case"] == c]))
-               for c in labels if c not in negative}
+    by_case = {
+        c: float(np.mean([r["top"] == r["expected"] for r in rs if r["case"] == c]))
+        for c in labels
+        if c not in negative
+    }
     fa_by_case = {c: float(np.mean([bool(r["significant"]) for r in rs if r["case"] == c])) for c in negative}
     shrink: dict[str, dict[str, float]] = {}
     where: dict[str, dict[str, float]] = {}
     for c in labels:
         sh = [r["shrink"] for r in rs if r["case"] == c and "shrink" in r]
         if sh:
-            shrink[c] = {"trials": len(sh), "median_shrink": float(np.median([s["shrink"] for s in sh])),
-                         "median_before_over_floor": float(np.median([s["before"] / s["floor"] for s in sh])),
-                         "median_after_over_floor": float(np.median([s["after"] / s["floor"] for s in sh])),
-                         "after_within_1.5_floor": float(np.mean([s["after"] <= 1.5 * s["floor"] for s in sh])),
-                         "fixed_with": ",".join(sorted({s["effect"] for s in sh}))}
+            shrink[c] = {
+                "trials": len(sh),
+                "median_shrink": float(np.median([s["shrink"] for s in sh])),
+                "median_before_over_floor": float(np.median([s["before"] / s["floor"] for s in sh])),
+                "median_after_over_floor": float(np.median([s["after"] / s["floor"] for s in sh])),
+                "after_within_1.5_floor": float(np.mean([s["after"] <= 1.5 * s["floor"] for s in sh])),
+                "fixed_with": ",".join(sorted({s["effect"] for s in sh})),
+            }
         wh = [r["where"] for r in rs if r["case"] == c and "where" in r]
         if wh:
-            where[c] = {"median_run_auc": float(np.median([w["run_auc"] for w in wh])),
-                        "worst_fifth_mode": int(np.bincount([w["worst_fifth"] for w in wh]).argmax()),
-                        "median_misfit": float(np.median([r.get("misfit", np.nan) for r in rs if r["case"] == c]))}
-    return Score(mode, labels, columns, conf,
-                 float(np.mean([r["top"] == r["expected"] for r in eff])) if eff else float("nan"),
-                 by_case, {c: sum(r["case"] == c for r in rs) for c in labels},
-                 float(np.mean([bool(r["significant"]) for r in neg])) if neg else float("nan"),
-                 errors=sum("error" in r for r in rs), shrink=shrink, where=where, false_alarm_by_case=fa_by_case)
+            where[c] = {
+                "median_run_auc": float(np.median([w["run_auc"] for w in wh])),
+                "worst_fifth_mode": int(np.bincount([w["worst_fifth"] for w in wh]).argmax()),
+                "median_misfit": float(np.median([r.get("misfit", np.nan) for r in rs if r["case"] == c])),
+            }
+    return Score(
+        mode,
+        labels,
+        columns,
+        conf,
+        float(np.mean([r["top"] == r["expected"] for r in eff])) if eff else float("nan"),
+        by_case,
+        {c: sum(r["case"] == c for r in rs) for c in labels},
+        float(np.mean([bool(r["significant"]) for r in neg])) if neg else float("nan"),
+        errors=sum("error" in r for r in rs),
+        shrink=shrink,
+        where=where,
+        false_alarm_by_case=fa_by_case,
+    )
 
 
 def to_markdown(scores: Sequence[Score], size: Size) -> str:
     """The validation report: confusion matrix, top-1, false alarms and shrink per mode."""
     own = "; ".join(f"{c.history} for {c.name}" for c in CASES if c.history) or "all cases"
-    lines = ["# Diagnosis validation on the twin", "",
-             f"Clean twin (`TwinProfile()`), one effect injected per case; BC model of history {size.history} "
-             f"({own}), {size.train} training / {size.val} validation logs of {size.steps} rows, {size.epochs} epochs at lr "
-             f"{size.lr:g}; diagnosis on {size.diagnose} fresh logs (half choose, half confirm), blind.", ""]
+    lines = [
+        "# Diagnosis validation on the twin",
+        "",
+        f"Clean twin (`TwinProfile()`), one effect injected per case; BC model of history {size.history} "
+        f"({own}), {size.train} training / {size.val} validation logs of {size.steps} rows, {size.epochs} epochs at lr "
+        f"{size.lr:g}; diagnosis on {size.diagnose} fresh logs (half choose, half confirm), blind.",
+        "",
+    ]
     for s in scores:
-        lines += [f"## Mode `{s.mode}`", "",
-                  f"Top-1 accuracy over effect cases: **{s.top1:.0%}**; false-alarm rate on negative controls: "
-                  f"**{s.false_alarm:.0%}**." + (f" {s.errors} trial(s) failed (scored as misses; see "
-                                                  f"`results.jsonl`)." if s.errors else ""), "",
-                  "Confusion matrix (rows: injected case, columns: top-1 significant candidate):", "",
-                  "| injected \\ diagnosed | " + " | ".join(s.columns) + " | top-1 |",
-                  "|---|" + "---:|" * (len(s.columns) + 1)]
+        lines += [
+            f"## Mode `{s.mode}`",
+            "",
+            f"Top-1 accuracy over effect cases: **{s.top1:.0%}**; false-alarm rate on negative controls: "
+            f"**{s.false_alarm:.0%}**."
+            + (f" {s.errors} trial(s) failed (scored as misses; see `results.jsonl`)." if s.errors else ""),
+            "",
+            "Confusion matrix (rows: injected case, columns: top-1 significant candidate):",
+            "",
+            "| injected \\ diagnosed | " + " | ".join(s.columns) + " | top-1 |",
+            "|---|" + "---:|" * (len(s.columns) + 1),
+        ]
         for label, row in zip(s.labels, s.confusion):
             acc = s.top1_by_case.get(label)
             cell = f"{acc:.0%}" if acc is not None else f"FA {s.false_alarm_by_case.get(label, s.false_alarm):.0%}"
-            lines.append(f"| {label} (n={s.trials_by_case[label]}) | " + " | ".join(str(v) for v in row) + f" | {cell} |")
+            lines.append(
+                f"| {label} (n={s.trials_by_case[label]}) | " + " | ".join(str(v) for v in row) + f" | {cell} |"
+            )
         if s.shrink:
-            lines += ["", "Retraining with the diagnosed fix (confirmation logs; mean normalised W1 over the 8 metrics):",
-                      "", "| case | trials | fixed with | median shrink | before / floor | after / floor | "
-                          "after within 1.5x floor |", "|---|---:|---|---:|---:|---:|---:|"]
+            lines += [
+                "",
+                "Retraining with the diagnosed fix (confirmation logs; mean normalised W1 over the 8 metrics):",
+                "",
+                "| case | trials | fixed with | median shrink | before / floor | after / floor | "
+                "after within 1.5x floor |",
+                "|---|---:|---|---:|---:|---:|---:|",
+            ]
             for c, v in s.shrink.items():
-                lines.append(f"| {c} | {v['trials']} | {v['fixed_with']} | {v['median_shrink']:+.0%} | "
-                             f"{v['median_before_over_floor']:.2f} | {v['median_after_over_floor']:.2f} | "
-                             f"{v['after_within_1.5_floor']:.0%} |")
+                lines.append(
+                    f"| {c} | {v['trials']} | {v['fixed_with']} | {v['median_shrink']:+.0%} | "
+                    f"{v['median_before_over_floor']:.2f} | {v['median_after_over_floor']:.2f} | "
+                    f"{v['after_within_1.5_floor']:.0%} |"
+                )
         if s.where:
-            lines += ["", "Where the gap lies (mixed set, half the runs affected):", "",
-                      "| case | median AUC of per-run residual MS (affected vs clean) | fifth of the run with the "
-                      "largest residual (mode) | median misfit share |", "|---|---:|---:|---:|"]
+            lines += [
+                "",
+                "Where the gap lies (mixed set, half the runs affected):",
+                "",
+                "| case | median AUC of per-run residual MS (affected vs clean) | fifth of the run with the "
+                "largest residual (mode) | median misfit share |",
+                "|---|---:|---:|---:|",
+            ]
             for c, v in s.where.items():
-                lines.append(f"| {c} | {v['median_run_auc']:.2f} | {v['worst_fifth_mode'] + 1} of 5 | "
-                             f"{v['median_misfit']:.0%} |")
+                lines.append(
+                    f"| {c} | {v['median_run_auc']:.2f} | {v['worst_fifth_mode'] + 1} of 5 | {v['median_misfit']:.0%} |"
+                )
         lines.append("")
     return "\n".join(lines)
-
-

@@ -62,11 +62,11 @@ def lagged(a: np.ndarray, tau_rows: float) -> np.ndarray:
 LAG_ROWS = (0.5, 1, 2, 3, 5, 8, 13)
 ACTUATOR_LAGS: tuple[Transform, ...] = tuple(
     [(f"a delay of {k} row{'s' * (k > 1)}", lambda a, k=k: delayed(a, k)) for k in (1, 2, 3)]
-    + [(f"a first-order lag of {tau:g} rows", lambda a, tau=tau: lagged(a, tau)) for tau in LAG_ROWS])
+    + [(f"a first-order lag of {tau:g} rows", lambda a, tau=tau: lagged(a, tau)) for tau in LAG_ROWS]
+)
 
 
-def input_what_if(ckpt: Checkpoint, logs: Sequence[Log], res: Residuals,
-                  transforms: Sequence[Transform]) -> WhatIf:
+def input_what_if(ckpt: Checkpoint, logs: Sequence[Log], res: Residuals, transforms: Sequence[Transform]) -> WhatIf:
     """Feed the model each transform of the logged commands; keep the one that removes the most of
     the residual mean square (``res``: the residuals of the untransformed ``logs``). Runs are
     independent, so the p-value pairs the per-run mean squares."""

@@ -37,8 +37,11 @@ class LocalExecutor:
 
     def __init__(self, workers: int | None = None) -> None:
         self.workers = (os.cpu_count() or 1) if workers is None else workers
-        self._pool = (ProcessPoolExecutor(self.workers, mp_context=mp.get_context("spawn"), initializer=_one_thread)
-                      if self.workers > 0 else None)
+        self._pool = (
+            ProcessPoolExecutor(self.workers, mp_context=mp.get_context("spawn"), initializer=_one_thread)
+            if self.workers > 0
+            else None
+        )
 
     def map(self, fn: Callable[[Any], Any], items: Sequence[Any]) -> Iterator[tuple[int, Any]]:
         if self._pool is None:

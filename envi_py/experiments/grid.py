@@ -58,32 +58,43 @@ class Job:
 
     def fingerprint(self) -> str:
         """Everything that determines the job's result; a finished job with the same one is reused."""
-        blob = json.dumps({"key": self.key, "seed": self.seed, "train": [lg.sha256() for lg in self.train],
-                           "val": [lg.sha256() for lg in self.val],
-                           "evals": {k: [lg.sha256() for lg in v] for k, v in sorted(self.evals.items())},
-                           "kwargs": self.train_kwargs, "runs": self.runs, "versions": self.versions,
-                           "system": self.system.to_json()}, sort_keys=True, default=str)
+        blob = json.dumps(
+            {
+                "key": self.key,
+                "seed": self.seed,
+                "train": [lg.sha256() for lg in self.train],
+                "val": [lg.sha256() for lg in self.val],
+                "evals": {k: [lg.sha256() for lg in v] for k, v in sorted(self.evals.items())},
+                "kwargs": self.train_kwargs,
+                "runs": self.runs,
+                "versions": self.versions,
+                "system": self.system.to_json(),
+            },
+            sort_keys=True,
+            default=str,
+        )
         return hashlib.sha256(blob.encode()).hexdigest()
 
 
-def _split_random(pool: dict[str, Version], labels: Sequence[str], n: int, rep: int, seed: int,
-                  n_val: int, n_test: int, max_n: int) -> tuple[list[Log], list[Log], dict[str, list[Log]]]:
+def _split_random(
+    pool: dict[str, Version], labels: Sequence[str], n: int, rep: int, seed: int, n_val: int, n_test: int, max_n: int
+) -> tuple[list[Log], list[Log], dict[str, list[Log]]]:
     train, val, test = [], [], {}
     for x in labels:
         logs = pool[x].logs
         perm = np.random.default_rng([seed, rep, *pool[x].entropy()]).permutation(len(logs))
         k_test = min(n_test, len(logs) - max_n - n_val)
         if k_test < 2:
-            raise ValueError(f"{x}: {len(logs)} logs cannot hold {max_n} training, {n_val} validation "
-                             f"and 2 test logs")
-        test[x] = [logs[i] for i in sorted(perm[len(logs) - k_test:])]
-        val += [logs[i] for i in sorted(perm[len(logs) - k_test - n_val:len(logs) - k_test])]
+            raise ValueError(f"{x}: {len(logs)} logs cannot hold {max_n} training, {n_val} validation and 2 test logs")
+        test[x] = [logs[i] for i in sorted(perm[len(logs) - k_test :])]
+        val += [logs[i] for i in sorted(perm[len(logs) - k_test - n_val : len(logs) - k_test])]
         train += [logs[i] for i in sorted(perm[:n])]
     return train, val, test
 
 
-def _split_authors(pool: dict[str, Version], labels: Sequence[str], n: int, fold: int, folds: int = 5,
-                   n_test: int = 10) -> tuple[list[Log], list[Log], dict[str, list[Log]]]:
+def _split_authors(
+    pool: dict[str, Version], labels: Sequence[str], n: int, fold: int, folds: int = 5, n_test: int = 10
+) -> tuple[list[Log], list[Log], dict[str, list[Log]]]:
     train, test = [], {}
     for x in labels:
         logs = sorted(pool[x].logs, key=lambda lg: lg.name)
@@ -96,11 +107,21 @@ def _split_authors(pool: dict[str, Version], labels: Sequence[str], n: int, fold
     return train, [], test
 
 
-def make_jobs(logs: Sequence[Log], use_cases: Sequence[str], algorithms: Sequence[str] = ALGORITHMS,
-              ns: Sequence[int] = (3, 15, 30), reps: int = 5, seed: int = 0, protocol: str = "random",
-              n_val: int = 3, n_test: int = 30, train_kwargs: dict[str, Any] | None = None,
-              runs: int = 1, system: SystemDescription | None = None,
-              versions: VersionChoice | None = None) -> tuple[list[Job], Plan]:
+def make_jobs(
+    logs: Sequence[Log],
+    use_cases: Sequence[str],
+    algorithms: Sequence[str] = ALGORITHMS,
+    ns: Sequence[int] = (3, 15, 30),
+    reps: int = 5,
+    seed: int = 0,
+    protocol: str = "random",
+    n_val: int = 3,
+    n_test: int = 30,
+    train_kwargs: dict[str, Any] | None = None,
+    runs: int = 1,
+    system: SystemDescription | None = None,
+    versions: VersionChoice | None = None,
+) -> tuple[list[Job], Plan]:
     """Every (family, algorithm, n, repetition) training with its logs, in a fixed order, and the
     versions each use case trains on and verifies.
 
@@ -132,12 +153,32 @@ def make_jobs(logs: Sequence[Log], use_cases: Sequence[str], algorithms: Sequenc
                 evals = {}
                 for uc in ucs:
                     if uc == "tmvu":  # unseen versions: no log of them is used for anything else
-                        evals[uc] = [lg for x in plan.eval[uc] for lg in
-                                     (pool[x].logs if protocol == "random"
-                                      else sorted(pool[x].logs, key=lambda g: g.name)[-10:])]
+                        evals[uc] = [
+                            lg
+                            for x in plan.eval[uc]
+                            for lg in (
+                                pool[x].logs
+                                if protocol == "random"
+                                else sorted(pool[x].logs, key=lambda g: g.name)[-10:]
+                            )
+                        ]
                     else:
                         evals[uc] = [lg for x in plan.eval[uc] for lg in test[x]]
                 for algo in algorithms:
-                    jobs.append(Job(family, algo, n, rep, int(seed * 100003 + rep * 1009 + n), train, val, evals,
-                                    system, chosen, dict(train_kwargs or {}), runs))
+                    jobs.append(
+                        Job(
+                            family,
+                            algo,
+                            n,
+                            rep,
+                            int(seed * 100003 + rep * 1009 + n),
+                            train,
+                            val,
+                            evals,
+                            system,
+                            chosen,
+                            dict(train_kwargs or {}),
+                            runs,
+                        )
+                    )
     return jobs, plan

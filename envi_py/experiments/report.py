@@ -22,18 +22,48 @@ from .versions import parse_label
 
 #: The paper's accuracies (%), Tables 5-7, for n = 3, 15, 30 (random: one value for every n).
 PAPER = {
-    "tovk": {30: {"random": 82.47, "bc": (97.53, 97.27, 97.49), "gail": (96.15, 97.62, 97.83),
-                  "bcxgail": (98.69, 99.20, 99.30)}},
-    "tmvk": {10: {"random": 69.63, "bc": (95.77, 96.14, 97.17), "gail": (96.16, 98.21, 98.52),
-                  "bcxgail": (97.38, 96.95, 97.47)},
-             30: {"random": 82.04, "bc": (97.74, 97.91, 98.15), "gail": (96.64, 98.32, 98.59),
-                  "bcxgail": (98.78, 99.20, 99.33)},
-             50: {"random": 80.96, "bc": (97.80, 97.85, 97.71), "gail": (97.25, 97.92, 98.80),
-                  "bcxgail": (98.54, 99.24, 99.34)}},
-    "tmvu": {20: {"random": 79.63, "bc": (97.09, 96.62, 96.71), "gail": (97.03, 98.94, 99.21),
-                  "bcxgail": (98.44, 97.47, 97.51)},
-             40: {"random": 81.60, "bc": (97.79, 98.18, 98.03), "gail": (96.85, 98.18, 98.73),
-                  "bcxgail": (98.76, 99.32, 99.53)}},
+    "tovk": {
+        30: {
+            "random": 82.47,
+            "bc": (97.53, 97.27, 97.49),
+            "gail": (96.15, 97.62, 97.83),
+            "bcxgail": (98.69, 99.20, 99.30),
+        }
+    },
+    "tmvk": {
+        10: {
+            "random": 69.63,
+            "bc": (95.77, 96.14, 97.17),
+            "gail": (96.16, 98.21, 98.52),
+            "bcxgail": (97.38, 96.95, 97.47),
+        },
+        30: {
+            "random": 82.04,
+            "bc": (97.74, 97.91, 98.15),
+            "gail": (96.64, 98.32, 98.59),
+            "bcxgail": (98.78, 99.20, 99.33),
+        },
+        50: {
+            "random": 80.96,
+            "bc": (97.80, 97.85, 97.71),
+            "gail": (97.25, 97.92, 98.80),
+            "bcxgail": (98.54, 99.24, 99.34),
+        },
+    },
+    "tmvu": {
+        20: {
+            "random": 79.63,
+            "bc": (97.09, 96.62, 96.71),
+            "gail": (97.03, 98.94, 99.21),
+            "bcxgail": (98.44, 97.47, 97.51),
+        },
+        40: {
+            "random": 81.60,
+            "bc": (97.79, 98.18, 98.03),
+            "gail": (96.85, 98.18, 98.73),
+            "bcxgail": (98.76, 99.32, 99.53),
+        },
+    },
 }
 
 
@@ -124,8 +154,10 @@ def collect(results: Sequence[dict[str, Any]], use_case: str) -> dict[str, Any]:
             label = g["version"]
             names = goals.setdefault(label, list(g["goals"]))
             if names != list(g["goals"]):
-                raise ValueError(f"{use_case}, {label}: jobs scored different goals ({', '.join(names)} vs "
-                                 f"{', '.join(g['goals'])}); were they run with different system descriptions?")
+                raise ValueError(
+                    f"{use_case}, {label}: jobs scored different goals ({', '.join(names)} vs "
+                    f"{', '.join(g['goals'])}); were they run with different system descriptions?"
+                )
             cell = table.setdefault(label, {}).setdefault(res["algorithm"], {}).setdefault(res["n"], _cell())
             _add(cell, g["sim_vs_real"], names)
             floor_key = (label, tuple(ev["test_logs"]), res["rep"])
@@ -133,8 +165,13 @@ def collect(results: Sequence[dict[str, Any]], use_case: str) -> dict[str, Any]:
                 seen.add(floor_key)
                 _add(floors.setdefault(label, _cell()), g["floor"], names)
     order += [v for v in table if v not in order]
-    return {"table": table, "floor": floors, "goals": goals, "kld_geomean": geo,
-            "order": [v for v in order if v in table]}
+    return {
+        "table": table,
+        "floor": floors,
+        "goals": goals,
+        "kld_geomean": geo,
+        "order": [v for v in order if v in table],
+    }
 
 
 def _summary_cell(cell: dict[str, list]) -> dict[str, Any]:
@@ -143,8 +180,10 @@ def _summary_cell(cell: dict[str, list]) -> dict[str, Any]:
     out: dict[str, Any] = {k: mean_ci(cell[k]) for k in ("acc", "w1")}
     if np.isfinite(cell["kld"]).any():
         out["kld"] = mean_ci(cell["kld"])
-    return out | {"w1_goal": np.mean(cell["w1_goal"], axis=0).tolist(),
-                  "ks_goal": np.mean(cell["ks_goal"], axis=0).tolist()}
+    return out | {
+        "w1_goal": np.mean(cell["w1_goal"], axis=0).tolist(),
+        "ks_goal": np.mean(cell["ks_goal"], axis=0).tolist(),
+    }
 
 
 def summarise(results: Sequence[dict[str, Any]], use_cases: Sequence[str]) -> dict[str, Any]:
@@ -156,14 +195,21 @@ def summarise(results: Sequence[dict[str, Any]], use_cases: Sequence[str]) -> di
         for label in c["order"]:
             versions[label] = {
                 "goals": c["goals"][label],
-                "cells": {a: {str(n): _summary_cell(cell) | {"reps": len(cell["acc"])}
-                              for n, cell in sorted(ns.items())} for a, ns in c["table"][label].items()},
-                "floor": _summary_cell(c["floor"][label]) if label in c["floor"] else {}}
-        out[uc] = {"versions": versions,
-                   "kld_geomean": {a: {str(n): mean_ci(v) for n, v in sorted(ns.items())}
-                                   for a, ns in c["kld_geomean"].items()},
-                   "kld_geomean_pooled": {a: {str(n): geometric_mean(v) for n, v in sorted(ns.items())}
-                                          for a, ns in c["kld_geomean"].items()}}
+                "cells": {
+                    a: {str(n): _summary_cell(cell) | {"reps": len(cell["acc"])} for n, cell in sorted(ns.items())}
+                    for a, ns in c["table"][label].items()
+                },
+                "floor": _summary_cell(c["floor"][label]) if label in c["floor"] else {},
+            }
+        out[uc] = {
+            "versions": versions,
+            "kld_geomean": {
+                a: {str(n): mean_ci(v) for n, v in sorted(ns.items())} for a, ns in c["kld_geomean"].items()
+            },
+            "kld_geomean_pooled": {
+                a: {str(n): geometric_mean(v) for n, v in sorted(ns.items())} for a, ns in c["kld_geomean"].items()
+            },
+        }
     return out
 
 
@@ -181,15 +227,24 @@ def _version_tables(uc: str, label: str, v: dict[str, Any], algorithms: Sequence
         figures.append(("kld", "safety/comfort KLD", 1.0))
     for key, title, scale in figures:
         digits = 2 if key == "acc" else 4
-        lines += [f"## {uc.upper()}, {label}: {title}", "",
-                  "| algorithm | " + " | ".join(f"n={n}" for n in ns) + " |", "|---|" + "---:|" * len(ns)]
+        lines += [
+            f"## {uc.upper()}, {label}: {title}",
+            "",
+            "| algorithm | " + " | ".join(f"n={n}" for n in ns) + " |",
+            "|---|" + "---:|" * len(ns),
+        ]
         for a in algos:
-            cells = [_fmt(tuple(v["cells"][a][str(n)].get(key, NONE)), scale, digits) if str(n) in v["cells"][a]
-                     else "-" for n in ns]
+            cells = [
+                _fmt(tuple(v["cells"][a][str(n)].get(key, NONE)), scale, digits) if str(n) in v["cells"][a] else "-"
+                for n in ns
+            ]
             lines.append(f"| {a} | " + " | ".join(cells) + " |")
         if v["floor"]:
-            lines.append("| FOT vs FOT floor | "
-                         + " | ".join([_fmt(tuple(v["floor"].get(key, NONE)), scale, digits)] * len(ns)) + " |")
+            lines.append(
+                "| FOT vs FOT floor | "
+                + " | ".join([_fmt(tuple(v["floor"].get(key, NONE)), scale, digits)] * len(ns))
+                + " |"
+            )
         paper = paper_accuracy(uc, label)
         if key == "acc" and paper and ns == [3, 15, 30]:
             for a, p in paper.items():
@@ -197,12 +252,19 @@ def _version_tables(uc: str, label: str, v: dict[str, Any], algorithms: Sequence
                 lines.append(f"| paper: {a} | " + " | ".join(f"{q:.2f}" for q in vals) + " |")
         lines.append("")
     best_n = str(max(ns))
-    lines += [f"## {uc.upper()}, {label}: per-goal W1 / KS at n={best_n}", "",
-              "| goal | " + " | ".join(f"{a} W1 / KS" for a in algos) + " | floor W1 / KS |",
-              "|---|" + "---:|" * (len(algos) + 1)]
+    lines += [
+        f"## {uc.upper()}, {label}: per-goal W1 / KS at n={best_n}",
+        "",
+        "| goal | " + " | ".join(f"{a} W1 / KS" for a in algos) + " | floor W1 / KS |",
+        "|---|" + "---:|" * (len(algos) + 1),
+    ]
     for j, m in enumerate(v["goals"]):
-        cells = [f"{v['cells'][a][best_n]['w1_goal'][j]:.4f} / {v['cells'][a][best_n]['ks_goal'][j]:.3f}"
-                 if best_n in v["cells"][a] else "-" for a in algos]
+        cells = [
+            f"{v['cells'][a][best_n]['w1_goal'][j]:.4f} / {v['cells'][a][best_n]['ks_goal'][j]:.3f}"
+            if best_n in v["cells"][a]
+            else "-"
+            for a in algos
+        ]
         fl = f"{v['floor']['w1_goal'][j]:.4f} / {v['floor']['ks_goal'][j]:.3f}" if v["floor"] else "-"
         lines.append(f"| {m} | " + " | ".join(cells) + f" | {fl} |")
     lines.append("")
@@ -215,28 +277,47 @@ def _geomean_table(uc: str, s: dict[str, Any], algorithms: Sequence[str]) -> lis
         return []
     ns = sorted({int(n) for a in g for n in g[a]})
     pooled = s["kld_geomean_pooled"]
-    lines = [f"## {uc.upper()}: geometric-mean KLD over versions (the authors' summary)", "",
-             ("Per repetition the geometric mean over controller versions; cells give its mean ± 95% "
-             "interval over repetitions and, in brackets, the geometric mean over all repetitions (the "
-             "authors' figure: BCxGAIL 0.80 at n=20, about 6.5 at n=3, FOT-vs-FOT about 0.62)."), "",
-             "| algorithm | " + " | ".join(f"n={n}" for n in ns) + " |", "|---|" + "---:|" * len(ns)]
+    lines = [
+        f"## {uc.upper()}: geometric-mean KLD over versions (the authors' summary)",
+        "",
+        (
+            "Per repetition the geometric mean over controller versions; cells give its mean ± 95% "
+            "interval over repetitions and, in brackets, the geometric mean over all repetitions (the "
+            "authors' figure: BCxGAIL 0.80 at n=20, about 6.5 at n=3, FOT-vs-FOT about 0.62)."
+        ),
+        "",
+        "| algorithm | " + " | ".join(f"n={n}" for n in ns) + " |",
+        "|---|" + "---:|" * len(ns),
+    ]
     for a in [a for a in algorithms if a in g]:
         cells = g[a]
-        lines.append(f"| {a} | " + " | ".join(f"{_fmt(tuple(cells[str(n)]), 1.0, 3)} [{pooled[a][str(n)]:.3f}]"
-                                              if str(n) in cells else "-" for n in ns) + " |")
+        lines.append(
+            f"| {a} | "
+            + " | ".join(
+                f"{_fmt(tuple(cells[str(n)]), 1.0, 3)} [{pooled[a][str(n)]:.3f}]" if str(n) in cells else "-"
+                for n in ns
+            )
+            + " |"
+        )
     lines.append("")
     return lines
 
 
 def to_markdown(summary: dict[str, Any], meta: dict[str, Any]) -> str:
-    lines = [f"# ENVI experiments: {', '.join(u.upper() for u in summary)}", "",
-             (f"System {meta.get('system', '?')}. Protocol {meta['protocol']}, algorithms "
-             f"{', '.join(meta['algorithms'])}, n = {', '.join(map(str, meta['ns']))} training logs per version, "
-             f"{meta['reps']} repetitions, seed {meta['seed']}, epochs {meta['epochs']}. Cells: mean ± half-width "
-             "of the 95% t-interval over repetitions. acc: the paper's verification accuracy (%) over the "
-             "system's goals. W1: mean over the goals of the normalised Wasserstein-1 distance. KLD (lane "
-             "keeping only): Gaussian KL of (safety, comfort), real || sim. Floor: the same between two "
-             "halves of the real test logs (FOT vs FOT)."), ""]
+    lines = [
+        f"# ENVI experiments: {', '.join(u.upper() for u in summary)}",
+        "",
+        (
+            f"System {meta.get('system', '?')}. Protocol {meta['protocol']}, algorithms "
+            f"{', '.join(meta['algorithms'])}, n = {', '.join(map(str, meta['ns']))} training logs per version, "
+            f"{meta['reps']} repetitions, seed {meta['seed']}, epochs {meta['epochs']}. Cells: mean ± half-width "
+            "of the 95% t-interval over repetitions. acc: the paper's verification accuracy (%) over the "
+            "system's goals. W1: mean over the goals of the normalised Wasserstein-1 distance. KLD (lane "
+            "keeping only): Gaussian KL of (safety, comfort), real || sim. Floor: the same between two "
+            "halves of the real test logs (FOT vs FOT)."
+        ),
+        "",
+    ]
     for uc, plan in meta.get("versions", {}).items():
         lines.append(f"- {uc.upper()}: trains on {'; '.join(plan['train'])}; verifies {'; '.join(plan['eval'])}")
     lines.append("")
@@ -253,8 +334,13 @@ def _grid(n: int, cols: int = 3) -> tuple[int, int]:
     return -(-max(n, 1) // c), c
 
 
-def plot(summary: dict[str, Any], results: Sequence[dict[str, Any]], out: Path,
-         ranges: dict[str, list[float] | None] | None = None, band: tuple[float, float] | None = None) -> list[Path]:
+def plot(
+    summary: dict[str, Any],
+    results: Sequence[dict[str, Any]],
+    out: Path,
+    ranges: dict[str, list[float] | None] | None = None,
+    band: tuple[float, float] | None = None,
+) -> list[Path]:
     """Accuracy vs n per algorithm and version (paper Figures 6-8), and real vs simulated traces of
     every state channel. ``ranges``: each state's plotted range (its valid range when finite);
     ``band``: the lane-keeping steady band, shaded on ``color``."""
@@ -281,7 +367,7 @@ def plot(summary: dict[str, Any], results: Sequence[dict[str, Any]], out: Path,
             ax.set_xlabel("training logs per version")
             ax.set_ylabel("verification accuracy (%)")
             ax.legend(fontsize=8)
-        for ax in list(axes.flat)[len(vs):]:
+        for ax in list(axes.flat)[len(vs) :]:
             ax.set_visible(False)
         fig.tight_layout()
         p = out / f"accuracy_{uc}.png"
@@ -294,8 +380,14 @@ def plot(summary: dict[str, Any], results: Sequence[dict[str, Any]], out: Path,
     return paths
 
 
-def _plot_traces(plt: Any, uc: str, results: Sequence[dict[str, Any]], out: Path,
-                 ranges: dict[str, list[float] | None], band: tuple[float, float] | None) -> Path | None:
+def _plot_traces(
+    plt: Any,
+    uc: str,
+    results: Sequence[dict[str, Any]],
+    out: Path,
+    ranges: dict[str, list[float] | None],
+    band: tuple[float, float] | None,
+) -> Path | None:
     """One row per (version, state channel): real traces, then each algorithm's simulated ones
     (first repetition, largest n)."""
     mine = [r for r in results if uc in r["evals"]]
@@ -306,8 +398,14 @@ def _plot_traces(plt: Any, uc: str, results: Sequence[dict[str, Any]], out: Path
     groups = chosen[0]["evals"][uc]["groups"]
     rows = [(gi, ch) for gi, g in enumerate(groups) for ch in g["traces"]["real"]]
     # shared axes and a fixed layout: tick placement dominates the cost of a figure with many panels
-    fig, axes = plt.subplots(len(rows), len(chosen) + 1, figsize=(3.2 * (len(chosen) + 1), 2.4 * len(rows)),
-                             squeeze=False, sharex=True, sharey="row")
+    fig, axes = plt.subplots(
+        len(rows),
+        len(chosen) + 1,
+        figsize=(3.2 * (len(chosen) + 1), 2.4 * len(rows)),
+        squeeze=False,
+        sharex=True,
+        sharey="row",
+    )
     fig.subplots_adjust(left=0.12, right=0.98, bottom=0.04, top=1 - 0.5 / len(rows), hspace=0.25, wspace=0.08)
     for ri, (gi, ch) in enumerate(rows):
         axes[ri, 0].set_ylabel(f"{groups[gi]['version']}\n{ch}", fontsize=8)
@@ -334,8 +432,9 @@ def write_report(results: Sequence[dict[str, Any]], meta: dict[str, Any], out: P
     """``report.md``, ``results.json`` (every job, its logs and numbers) and the PNGs in ``out``."""
     out.mkdir(parents=True, exist_ok=True)
     summary = summarise(results, meta["use_cases"])
-    (out / "results.json").write_text(json.dumps(strict_json({"meta": meta, "summary": summary, "jobs": list(results)}),
-                                                      indent=1, allow_nan=False))
+    (out / "results.json").write_text(
+        json.dumps(strict_json({"meta": meta, "summary": summary, "jobs": list(results)}), indent=1, allow_nan=False)
+    )
     md = out / "report.md"
     md.write_text(to_markdown(summary, meta))
     band = meta.get("lane_band")

@@ -35,12 +35,27 @@ def _read_journal(path: Path) -> dict[str, Any]:
     return done
 
 
-def run_experiment(logs: Sequence[Log], use_cases: Sequence[str], out: str | Path, *,
-                   algorithms: Sequence[str] = ALGORITHMS, ns: Sequence[int] = (3, 15, 30), reps: int = 5,
-                   seed: int = 0, protocol: str = "random", epochs: int = 300, n_val: int = 3, n_test: int = 30,
-                   runs: int = 1, executor: Executor | None = None, progress: bool = True,
-                   train_kwargs: dict[str, Any] | None = None, resume: bool = True,
-                   system: SystemDescription | None = None, versions: VersionChoice | None = None) -> dict[str, Any]:
+def run_experiment(
+    logs: Sequence[Log],
+    use_cases: Sequence[str],
+    out: str | Path,
+    *,
+    algorithms: Sequence[str] = ALGORITHMS,
+    ns: Sequence[int] = (3, 15, 30),
+    reps: int = 5,
+    seed: int = 0,
+    protocol: str = "random",
+    epochs: int = 300,
+    n_val: int = 3,
+    n_test: int = 30,
+    runs: int = 1,
+    executor: Executor | None = None,
+    progress: bool = True,
+    train_kwargs: dict[str, Any] | None = None,
+    resume: bool = True,
+    system: SystemDescription | None = None,
+    versions: VersionChoice | None = None,
+) -> dict[str, Any]:
     """Train and verify every job of the grid; returns the metadata and writes ``out``.
 
     ``system``: the logs' description (default: the one of their schema), which names the versions
@@ -55,8 +70,9 @@ def run_experiment(logs: Sequence[Log], use_cases: Sequence[str], out: str | Pat
     if not logs:
         raise ValueError("no logs to experiment on")
     system = system or describe_schema(logs[0].meta.schema)
-    jobs, plan = make_jobs(logs, use_cases, algorithms, ns, reps, seed, protocol, n_val, n_test, kwargs, runs,
-                           system, versions)
+    jobs, plan = make_jobs(
+        logs, use_cases, algorithms, ns, reps, seed, protocol, n_val, n_test, kwargs, runs, system, versions
+    )
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     journal = out / "jobs.jsonl"
@@ -69,20 +85,37 @@ def run_experiment(logs: Sequence[Log], use_cases: Sequence[str], out: str | Pat
     t0 = time.perf_counter()
     try:
         with journal.open("a" if resume else "w") as jf:
-            for j, res in tqdm(executor.map(run_job, [jobs[i] for i in todo]), total=len(todo), desc="experiment",
-                               disable=not progress):
+            for j, res in tqdm(
+                executor.map(run_job, [jobs[i] for i in todo]), total=len(todo), desc="experiment", disable=not progress
+            ):
                 results[todo[j]] = res
                 jf.write(json.dumps({"fingerprint": prints[todo[j]], "result": res}) + "\n")
                 jf.flush()
     finally:
         if own:
             executor.close()
-    meta = {"use_cases": list(use_cases), "algorithms": list(algorithms), "ns": list(ns), "reps": reps,
-            "seed": seed, "protocol": protocol, "epochs": epochs, "n_val": n_val, "n_test": n_test, "runs": runs,
-            "train_kwargs": kwargs, "jobs": len(jobs), "jobs_reused": len(jobs) - len(todo),
-            "wall_seconds": time.perf_counter() - t0, "system": system.name, "versions": plan.to_json(),
-            "state_ranges": {c.name: [c.low, c.high] if math.isfinite(c.low) and math.isfinite(c.high) else None
-                             for c in system.schema.states}}
+    meta = {
+        "use_cases": list(use_cases),
+        "algorithms": list(algorithms),
+        "ns": list(ns),
+        "reps": reps,
+        "seed": seed,
+        "protocol": protocol,
+        "epochs": epochs,
+        "n_val": n_val,
+        "n_test": n_test,
+        "runs": runs,
+        "train_kwargs": kwargs,
+        "jobs": len(jobs),
+        "jobs_reused": len(jobs) - len(todo),
+        "wall_seconds": time.perf_counter() - t0,
+        "system": system.name,
+        "versions": plan.to_json(),
+        "state_ranges": {
+            c.name: [c.low, c.high] if math.isfinite(c.low) and math.isfinite(c.high) else None
+            for c in system.schema.states
+        },
+    }
     if system.preset == "lane-keeping":
         centre = lane_keeping_centre(system)
         meta["lane_band"] = [centre - LANE_KEEPING_BAND, centre + LANE_KEEPING_BAND]

@@ -73,15 +73,22 @@ class Version:
         if choice.strip() == self.label:
             return True
         asked = parse_label(choice)
-        return bool(asked) and set(asked) == set(self.params) and all(
-            _same(asked[k], _text(v)) for k, v in self.params.items())
+        return (
+            bool(asked)
+            and set(asked) == set(self.params)
+            and all(_same(asked[k], _text(v)) for k, v in self.params.items())
+        )
 
     def entropy(self) -> list[int]:
         """Seed material that identifies the version (whole non-negative numbers as themselves, so
         the paper's x versions keep their draws; anything else through a hash of its text)."""
         values = list(self.params.values()) or [self.label]
-        return [int(v) if isinstance(v, (int, float)) and not isinstance(v, bool) and float(v).is_integer()
-                and v >= 0 else int.from_bytes(hashlib.sha256(_text(v).encode()).digest()[:4], "big") for v in values]
+        return [
+            int(v)
+            if isinstance(v, (int, float)) and not isinstance(v, bool) and float(v).is_integer() and v >= 0
+            else int.from_bytes(hashlib.sha256(_text(v).encode()).digest()[:4], "big")
+            for v in values
+        ]
 
 
 def versions_of(logs: Sequence[Log], system: SystemDescription) -> dict[str, Version]:
@@ -93,17 +100,23 @@ def versions_of(logs: Sequence[Log], system: SystemDescription) -> dict[str, Ver
         spec = lg.controller
         label = version_label(spec, system)
         if specs.setdefault(label, spec) != spec:
-            raise ValueError(f"{lg.name}: controller {spec.label()} and {specs[label].label()} share the version "
-                             f"{label}; name the parameter that tells them apart in the system's [versions] params")
+            raise ValueError(
+                f"{lg.name}: controller {spec.label()} and {specs[label].label()} share the version "
+                f"{label}; name the parameter that tells them apart in the system's [versions] params"
+            )
         grouped.setdefault(label, []).append(lg)
 
     def order(label: str) -> tuple:
         params = system.version_params(specs[label])
-        return tuple((0, float(v), "") if isinstance(v, (int, float)) and not isinstance(v, bool) else (1, 0.0, str(v))
-                     for v in params.values()) + ((1, 0.0, label),)
+        return tuple(
+            (0, float(v), "") if isinstance(v, (int, float)) and not isinstance(v, bool) else (1, 0.0, str(v))
+            for v in params.values()
+        ) + ((1, 0.0, label),)
 
-    return {label: Version(label, system.version_params(specs[label]), tuple(grouped[label]))
-            for label in sorted(grouped, key=order)}
+    return {
+        label: Version(label, system.version_params(specs[label]), tuple(grouped[label]))
+        for label in sorted(grouped, key=order)
+    }
 
 
 @dataclass(frozen=True)
@@ -155,10 +168,12 @@ def plan_versions(versions: dict[str, Version], use_cases: Sequence[str], choice
     unknown = [uc for uc in use_cases if uc not in USE_CASES]
     if unknown:
         raise ValueError(f"unknown use case {unknown[0]!r}; known: {', '.join(USE_CASES)}")
-    for given, flag, needs in ((choice.train, "--train-versions", ("tmvk", "tmvu")),
-                               (choice.eval, "--eval-versions", ("tmvk",)),
-                               (choice.unseen, "--unseen-versions", ("tmvu",)),
-                               (choice.tovk, "--tovk-version", ("tovk",))):
+    for given, flag, needs in (
+        (choice.train, "--train-versions", ("tmvk", "tmvu")),
+        (choice.eval, "--eval-versions", ("tmvk",)),
+        (choice.unseen, "--unseen-versions", ("tmvu",)),
+        (choice.tovk, "--tovk-version", ("tovk",)),
+    ):
         if given and not set(needs) & set(use_cases):
             raise ValueError(f"{flag} applies to {' and '.join(needs)}, which is not asked for")
     paper = _paper(versions)
@@ -167,8 +182,9 @@ def plan_versions(versions: dict[str, Version], use_cases: Sequence[str], choice
         if given:
             return _pick(versions, given, flag)
         if not paper:
-            raise ValueError(f"{uc}: give {flag} (name=value[,name=value] per version); available: "
-                             f"{_available(versions)}")
+            raise ValueError(
+                f"{uc}: give {flag} (name=value[,name=value] per version); available: {_available(versions)}"
+            )
         return _pick(versions, [f"x={x}" for x in PAPER_X[uc][which]], f"{uc} (the paper's versions)")
 
     train: dict[str, tuple[str, ...]] = {}
@@ -182,12 +198,15 @@ def plan_versions(versions: dict[str, Version], use_cases: Sequence[str], choice
             evals[uc] = _pick(versions, choice.eval, "--eval-versions") if choice.eval else train[uc]
             untrained = [v for v in evals[uc] if v not in train[uc]]
             if untrained:
-                raise ValueError(f"tmvk verifies trained versions only; {', '.join(untrained)} is not among "
-                                 f"--train-versions (verify it as unseen with tmvu and --unseen-versions)")
+                raise ValueError(
+                    f"tmvk verifies trained versions only; {', '.join(untrained)} is not among "
+                    f"--train-versions (verify it as unseen with tmvu and --unseen-versions)"
+                )
         else:
             evals[uc] = chosen(choice.unseen, "--unseen-versions", uc, 1)
             seen = [v for v in evals[uc] if v in train[uc]]
             if seen:
-                raise ValueError(f"tmvu verifies versions never trained on; {', '.join(seen)} is among "
-                                 f"--train-versions")
+                raise ValueError(
+                    f"tmvu verifies versions never trained on; {', '.join(seen)} is among --train-versions"
+                )
     return Plan(train, evals)

@@ -59,8 +59,14 @@ def run_job(job: Job) -> dict[str, Any]:
     torch.set_num_threads(1)
     skip = job.train_kwargs.get("history", 10)
     t0 = time.perf_counter()
-    ckpt = train(job.algorithm, job.train, job.val, system=job.system, seed=job.seed,
-                 **trainer_kwargs(job.algorithm, job.train_kwargs))
+    ckpt = train(
+        job.algorithm,
+        job.train,
+        job.val,
+        system=job.system,
+        seed=job.seed,
+        **trainer_kwargs(job.algorithm, job.train_kwargs),
+    )
     seconds = time.perf_counter() - t0
     evals: dict[str, Any] = {}
     for uc, logs in job.evals.items():
@@ -69,17 +75,29 @@ def run_job(job: Job) -> dict[str, Any]:
         for r in verify(logs, sims, job.system, skip=skip, seed=0):
             spec = ControllerSpec.from_json(r.controller)
             real_v = [lg for lg in logs if lg.controller == spec][:TRACES_KEPT]
-            sim_v = [s for s in sims if s.controller == spec][:TRACES_KEPT * job.runs:job.runs]
+            sim_v = [s for s in sims if s.controller == spec][: TRACES_KEPT * job.runs : job.runs]
             g = r.to_json()
             g["version"] = version_label(spec, job.system)
             g["traces"] = {"real": state_traces(real_v), "sim": state_traces(sim_v)}
             groups.append(g)
         order = job.versions.get(uc, [])
         groups.sort(key=lambda g: order.index(g["version"]) if g["version"] in order else len(order))
-        evals[uc] = {"groups": groups, "goals": groups[0]["goals"] if groups else [],
-                     "kld_geomean": geometric_mean_kld([g["sim_vs_real"]["kld"] for g in groups]),
-                     "test_logs": [lg.name for lg in logs]}
-    return {"family": job.family, "algorithm": job.algorithm, "n": job.n, "rep": job.rep, "seed": job.seed,
-            "versions": job.versions, "train_logs": [lg.name for lg in job.train],
-            "val_logs": [lg.name for lg in job.val], "train_seconds": seconds,
-            "selection": {k: v for k, v in ckpt.record.selection.items() if k != "curve"}, "evals": evals}
+        evals[uc] = {
+            "groups": groups,
+            "goals": groups[0]["goals"] if groups else [],
+            "kld_geomean": geometric_mean_kld([g["sim_vs_real"]["kld"] for g in groups]),
+            "test_logs": [lg.name for lg in logs],
+        }
+    return {
+        "family": job.family,
+        "algorithm": job.algorithm,
+        "n": job.n,
+        "rep": job.rep,
+        "seed": job.seed,
+        "versions": job.versions,
+        "train_logs": [lg.name for lg in job.train],
+        "val_logs": [lg.name for lg in job.val],
+        "train_seconds": seconds,
+        "selection": {k: v for k, v in ckpt.record.selection.items() if k != "curve"},
+        "evals": evals,
+    }

@@ -32,8 +32,10 @@ class Runs:
         shapes = {name: np.shape(v) for name, v in self.signals.items()}
         first = next(iter(shapes.values()))
         if len(first) != 2 or any(s != first for s in shapes.values()):
-            raise ValueError(f"every signal must be (runs, samples) of one shape, got "
-                             f"{', '.join(f'{n} {s}' for n, s in shapes.items())}")
+            raise ValueError(
+                f"every signal must be (runs, samples) of one shape, got "
+                f"{', '.join(f'{n} {s}' for n, s in shapes.items())}"
+            )
         if isinstance(self.period_ms, bool) or not (math.isfinite(self.period_ms) and self.period_ms > 0):
             raise ValueError(f"period_ms must be a positive number, not {self.period_ms!r}")
         if not 0 <= self.skip < first[1]:
@@ -55,7 +57,7 @@ class Runs:
         """Signal ``name`` after the skipped rows, (R, T - skip); an unknown name is an error."""
         if name not in self.signals:
             raise ValueError(f"unknown signal {name!r}; signals: {', '.join(self.signals)}")
-        return np.asarray(self.signals[name], dtype=np.float64)[:, self.skip:]
+        return np.asarray(self.signals[name], dtype=np.float64)[:, self.skip :]
 
 
 def signals_of(logs: Sequence[Log], schema: LogSchema, skip: int, period_ms: float | None = None) -> Runs:
@@ -69,8 +71,10 @@ def signals_of(logs: Sequence[Log], schema: LogSchema, skip: int, period_ms: flo
     for log in logs:
         got = (log.states.shape[1], log.actions.shape[1], log.logged.shape[1])
         if got != widths:
-            raise ValueError(f"{log.name}: has {got[0]} states, {got[1]} actions, {got[2]} logged columns; "
-                             f"the schema declares {widths[0]}, {widths[1]}, {widths[2]}")
+            raise ValueError(
+                f"{log.name}: has {got[0]} states, {got[1]} actions, {got[2]} logged columns; "
+                f"the schema declares {widths[0]}, {widths[1]}, {widths[2]}"
+            )
     t = min(len(log) for log in logs)
     signals: dict[str, np.ndarray] = {}
     for group, channels in (("states", schema.states), ("actions", schema.actions), ("logged", schema.logged)):

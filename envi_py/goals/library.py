@@ -42,29 +42,34 @@ class MetricDef:
     uses_period: bool = False
     unit: Callable[[str], str] = lambda u: u
     scale: Callable[[float, float, int, float, Mapping[str, Any]], float | None] = (
-        lambda low, high, scored, period, params: None)
+        lambda low, high, scored, period, params: None
+    )
 
     def __call__(self, trace: np.ndarray, period_ms: float, **params: Any) -> np.ndarray:
         """The metric of each run, with parameters checked by name and the output by shape."""
         unknown = sorted(set(params) - set(self.params))
         if unknown:
-            raise ValueError(f"metric {self.name!r} has no parameter {unknown[0]!r}; "
-                             f"parameters: {', '.join(self.params) or 'none'}")
+            raise ValueError(
+                f"metric {self.name!r} has no parameter {unknown[0]!r}; parameters: {', '.join(self.params) or 'none'}"
+            )
         missing = [p for p in self.required if p not in params]
         if missing:
             raise ValueError(f"metric {self.name!r} needs parameter {missing[0]!r}")
         trace = np.atleast_2d(np.asarray(trace, dtype=np.float64))
         if trace.ndim != 2 or trace.shape[1] == 0:
-            raise ValueError(f"metric {self.name!r}: needs (runs, samples) with at least one sample, "
-                             f"got shape {trace.shape}")
+            raise ValueError(
+                f"metric {self.name!r}: needs (runs, samples) with at least one sample, got shape {trace.shape}"
+            )
         if not np.isfinite(trace).all():
             raise ValueError(f"metric {self.name!r}: the signal holds NaN or infinite values")
         out = self.fn(trace, period_ms=period_ms, **params) if self.uses_period else self.fn(trace, **params)
         out = np.asarray(out, dtype=np.float64) if isinstance(out, (np.ndarray, list, tuple)) else out
         if not isinstance(out, np.ndarray) or out.shape != (trace.shape[0],):
             shape = getattr(out, "shape", type(out).__name__)
-            raise ValueError(f"metric {self.name!r} ({_qualname(self.fn)}) returned {shape}, "
-                             f"expected one value per run: ({trace.shape[0]},)")
+            raise ValueError(
+                f"metric {self.name!r} ({_qualname(self.fn)}) returned {shape}, "
+                f"expected one value per run: ({trace.shape[0]},)"
+            )
         if np.isnan(out).any():
             raise ValueError(f"metric {self.name!r} ({_qualname(self.fn)}) returned NaN")
         return out
@@ -75,6 +80,7 @@ def _qualname(fn: MetricFn) -> str:
 
 
 # ---------------------------------------------------------------------- the metrics
+
 
 def max_abs_dev(trace: np.ndarray, setpoint: float) -> np.ndarray:
     """Largest |signal - setpoint| of each run."""
@@ -113,8 +119,9 @@ def settling_time(trace: np.ndarray, period_ms: float, setpoint: float, band: fl
     return np.where(outside.any(axis=1), (last_out + 1) * period_ms, 0.0)
 
 
-def rise_time(trace: np.ndarray, period_ms: float, low_frac: float = 0.1, high_frac: float = 0.9,
-              setpoint: float | None = None) -> np.ndarray:
+def rise_time(
+    trace: np.ndarray, period_ms: float, low_frac: float = 0.1, high_frac: float = 0.9, setpoint: float | None = None
+) -> np.ndarray:
     """Time (ms) the signal takes to go from ``low_frac`` to ``high_frac`` of its change.
 
     The change is from the first scored sample y0 to the target: ``setpoint`` when given, else the
@@ -180,6 +187,7 @@ def std(trace: np.ndarray) -> np.ndarray:
 
 # ---------------------------------------------------------------------- registry
 
+
 def _width(low: float, high: float, scored: int, period: float, params: Mapping[str, Any]) -> float | None:
     return high - low if math.isfinite(high - low) else None
 
@@ -222,19 +230,22 @@ def _unit2_ms(unit: str) -> str:
     return f"{unit}^2*ms" if unit else "ms"
 
 
-STANDARD: dict[str, MetricDef] = {m.name: m for m in (
-    MetricDef("max_abs_dev", max_abs_dev, ("setpoint",), ("setpoint",), scale=_width),
-    MetricDef("mean_abs_dev", mean_abs_dev, ("setpoint",), ("setpoint",), scale=_width),
-    MetricDef("time_in_band", time_in_band, ("setpoint", "band"), ("setpoint", "band"), unit=_none, scale=_one),
-    MetricDef("overshoot", overshoot, ("setpoint",), ("setpoint",), scale=_width),
-    MetricDef("undershoot", undershoot, ("setpoint",), ("setpoint",), scale=_width),
-    MetricDef("settling_time", settling_time, ("setpoint", "band"), ("setpoint", "band"), True, _ms, _duration),
-    MetricDef("rise_time", rise_time, ("low_frac", "high_frac", "setpoint"), (), True, _ms, _duration),
-    MetricDef("iae", iae, ("setpoint",), ("setpoint",), True, _unit_ms, _width_time),
-    MetricDef("ise", ise, ("setpoint",), ("setpoint",), True, _unit2_ms, _width2_time),
-    MetricDef("oscillations", oscillations, ("setpoint",), ("setpoint",), unit=_none, scale=_half_samples),
-    MetricDef("min", minimum, scale=_width),
-    MetricDef("max", maximum, scale=_width),
-    MetricDef("mean", mean, scale=_width),
-    MetricDef("std", std, scale=_width),
-)}
+STANDARD: dict[str, MetricDef] = {
+    m.name: m
+    for m in (
+        MetricDef("max_abs_dev", max_abs_dev, ("setpoint",), ("setpoint",), scale=_width),
+        MetricDef("mean_abs_dev", mean_abs_dev, ("setpoint",), ("setpoint",), scale=_width),
+        MetricDef("time_in_band", time_in_band, ("setpoint", "band"), ("setpoint", "band"), unit=_none, scale=_one),
+        MetricDef("overshoot", overshoot, ("setpoint",), ("setpoint",), scale=_width),
+        MetricDef("undershoot", undershoot, ("setpoint",), ("setpoint",), scale=_width),
+        MetricDef("settling_time", settling_time, ("setpoint", "band"), ("setpoint", "band"), True, _ms, _duration),
+        MetricDef("rise_time", rise_time, ("low_frac", "high_frac", "setpoint"), (), True, _ms, _duration),
+        MetricDef("iae", iae, ("setpoint",), ("setpoint",), True, _unit_ms, _width_time),
+        MetricDef("ise", ise, ("setpoint",), ("setpoint",), True, _unit2_ms, _width2_time),
+        MetricDef("oscillations", oscillations, ("setpoint",), ("setpoint",), unit=_none, scale=_half_samples),
+        MetricDef("min", minimum, scale=_width),
+        MetricDef("max", maximum, scale=_width),
+        MetricDef("mean", mean, scale=_width),
+        MetricDef("std", std, scale=_width),
+    )
+}

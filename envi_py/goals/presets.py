@@ -29,13 +29,11 @@ def _config(centre: float, band: float, low: float = 0.0, high: float = 100.0) -
     return MetricConfig(centre=float(centre), band=float(band), skip=0, low=low, high=high)
 
 
-def _driving_metric(index: int, trace: np.ndarray, centre: float = 40.0,
-                    band: float = LANE_KEEPING_BAND) -> np.ndarray:
+def _driving_metric(index: int, trace: np.ndarray, centre: float = 40.0, band: float = LANE_KEEPING_BAND) -> np.ndarray:
     return driving_metrics(trace, _config(centre, band))[:, index]
 
 
-def _driving_scale(index: int, low: float, high: float, scored: int, period: float,
-                   params: Mapping[str, Any]) -> float:
+def _driving_scale(index: int, low: float, high: float, scored: int, period: float, params: Mapping[str, Any]) -> float:
     cfg = _config(params.get("centre", 40.0), params.get("band", LANE_KEEPING_BAND), low, high)
     lo, hi = metric_bounds(scored, cfg)
     return float(hi[index] - lo[index])
@@ -50,8 +48,14 @@ def _driving_unit(index: int, unit: str) -> str:
 
 #: The paper's eight metrics by name (``steady_count``, ..., ``under_duration``).
 DRIVING: dict[str, MetricDef] = {
-    name: MetricDef(name, partial(_driving_metric, j), ("centre", "band"), (),
-                    unit=partial(_driving_unit, j), scale=partial(_driving_scale, j))
+    name: MetricDef(
+        name,
+        partial(_driving_metric, j),
+        ("centre", "band"),
+        (),
+        unit=partial(_driving_unit, j),
+        scale=partial(_driving_scale, j),
+    )
     for j, name in enumerate(METRIC_NAMES)
 }
 
@@ -71,11 +75,14 @@ def preset_goals(name: str, system: SystemDescription | None = None) -> tuple[Go
     if name != "lane-keeping":
         raise ValueError(f"unknown goals preset {name!r}; known: lane-keeping")
     if system is not None and LANE_KEEPING_SIGNAL not in system.schema.columns:
-        raise ValueError(f"{system.source or system.name}: goals preset 'lane-keeping' scores the signal "
-                         f"{LANE_KEEPING_SIGNAL!r}, which this system does not declare")
+        raise ValueError(
+            f"{system.source or system.name}: goals preset 'lane-keeping' scores the signal "
+            f"{LANE_KEEPING_SIGNAL!r}, which this system does not declare"
+        )
     centre = lane_keeping_centre(system)
-    return tuple(GoalSpec(m, m, LANE_KEEPING_SIGNAL, {"centre": centre, "band": LANE_KEEPING_BAND})
-                 for m in METRIC_NAMES)
+    return tuple(
+        GoalSpec(m, m, LANE_KEEPING_SIGNAL, {"centre": centre, "band": LANE_KEEPING_BAND}) for m in METRIC_NAMES
+    )
 
 
 def goals_of(system: SystemDescription) -> tuple[GoalSpec, ...]:

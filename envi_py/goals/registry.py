@@ -23,8 +23,9 @@ def metric(name: str) -> MetricDef:
     if name in KNOWN:
         return KNOWN[name]
     if ":" not in name:
-        raise ValueError(f"unknown goal metric {name!r}; known: {', '.join(sorted(KNOWN))}, "
-                         f"or a user's 'package.module:function'")
+        raise ValueError(
+            f"unknown goal metric {name!r}; known: {', '.join(sorted(KNOWN))}, or a user's 'package.module:function'"
+        )
     return user_metric(name)
 
 
@@ -48,5 +49,6 @@ def user_metric(path: str) -> MetricDef:
     rest = [p for p in params[1:] if p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)]
     names = tuple(p.name for p in rest if p.name != "period_ms")
     required = tuple(p.name for p in rest if p.name != "period_ms" and p.default is p.empty)
-    return MetricDef(path, fn, names, required, uses_period=any(p.name == "period_ms" for p in rest),
-                     unit=lambda unit: "")
+    return MetricDef(
+        path, fn, names, required, uses_period=any(p.name == "period_ms" for p in rest), unit=lambda unit: ""
+    )

@@ -46,8 +46,10 @@ from .evaluate import Runs
 from .registry import KNOWN, metric
 
 COMPARISONS: dict[type, tuple[str, Callable[[Any, Any], Any]]] = {
-    ast.Lt: ("<", operator.lt), ast.LtE: ("<=", operator.le),
-    ast.Gt: (">", operator.gt), ast.GtE: (">=", operator.ge),
+    ast.Lt: ("<", operator.lt),
+    ast.LtE: ("<=", operator.le),
+    ast.Gt: (">", operator.gt),
+    ast.GtE: (">=", operator.ge),
 }
 FLIPPED = {"<": ">", "<=": ">=", ">": "<", ">=": "<="}
 OPS = {sym: fn for sym, fn in COMPARISONS.values()}
@@ -134,6 +136,7 @@ def satisfied(req: RequirementSpec | Requirement, runs: Runs) -> np.ndarray:
 
 # ---------------------------------------------------------------------- metric requirements
 
+
 def _parse_metric(req: RequirementSpec, signals: Collection[str]) -> MetricRequirement:
     where = f"requirement {req.name!r}"
     try:
@@ -141,8 +144,10 @@ def _parse_metric(req: RequirementSpec, signals: Collection[str]) -> MetricRequi
     except SyntaxError as exc:
         raise ValueError(f"{where}: {req.expr!r} is not an expression ({exc.msg} at column {exc.offset})") from None
     if not isinstance(tree, ast.Compare) or len(tree.ops) != 1:
-        raise ValueError(f"{where}: needs one comparison of a metric with a number, "
-                         f"e.g. 'max_abs_dev(color, 40) <= 35', not {req.expr!r}")
+        raise ValueError(
+            f"{where}: needs one comparison of a metric with a number, "
+            f"e.g. 'max_abs_dev(color, 40) <= 35', not {req.expr!r}"
+        )
     op_type = type(tree.ops[0])
     if op_type not in COMPARISONS:
         raise ValueError(f"{where}: bad operator {_op_text(tree.ops[0])!r}; use <, <=, > or >=")
@@ -152,7 +157,8 @@ def _parse_metric(req: RequirementSpec, signals: Collection[str]) -> MetricRequi
         left, right, op = right, left, FLIPPED[op]
     if not isinstance(left, ast.Call):
         raise ValueError(  # noqa: TRY004 (bad input: ValueError)
-            f"{where}: one side must be a metric call like 'min(distance)', not {ast.unparse(left)!r}")
+            f"{where}: one side must be a metric call like 'min(distance)', not {ast.unparse(left)!r}"
+        )
     threshold = _number(right, where, "threshold")
     name, signal, params = _metric_call(left, where, signals)
     return MetricRequirement(req.name, name, signal, params, op, threshold)
@@ -172,20 +178,24 @@ def _metric_call(call: ast.Call, where: str, signals: Collection[str]) -> tuple[
         raise ValueError(f"{where}: unknown signal {signal!r}; signals: {', '.join(signals)}")
     positional = call.args[1:]
     if len(positional) > len(spec.params):
-        raise ValueError(f"{where}: {name}() takes at most {len(spec.params)} parameter(s) after the signal "
-                         f"({', '.join(spec.params) or 'none'}), got {len(positional)}")
+        raise ValueError(
+            f"{where}: {name}() takes at most {len(spec.params)} parameter(s) after the signal "
+            f"({', '.join(spec.params) or 'none'}), got {len(positional)}"
+        )
     params = {p: _number(a, where, f"{name}() parameter {p!r}") for p, a in zip(spec.params, positional)}
     for kw in call.keywords:
         if kw.arg is None or kw.arg not in spec.params:
-            raise ValueError(f"{where}: {name}() has no parameter {kw.arg!r}; parameters: "
-                             f"{', '.join(spec.params) or 'none'}")
+            raise ValueError(
+                f"{where}: {name}() has no parameter {kw.arg!r}; parameters: {', '.join(spec.params) or 'none'}"
+            )
         if kw.arg in params:
             raise ValueError(f"{where}: {name}() parameter {kw.arg!r} is given twice")
         params[kw.arg] = _number(kw.value, where, f"{name}() parameter {kw.arg!r}")
     missing = [p for p in spec.required if p not in params]
     if missing:
-        raise ValueError(f"{where}: {name}() needs parameter {missing[0]!r} "
-                         f"(parameters in order: {', '.join(spec.params)})")
+        raise ValueError(
+            f"{where}: {name}() needs parameter {missing[0]!r} (parameters in order: {', '.join(spec.params)})"
+        )
     return name, signal, params
 
 
@@ -196,15 +206,20 @@ def _number(node: ast.expr, where: str, what: str) -> float:
     if isinstance(node, ast.UnaryOp) and isinstance(node.op, (ast.USub, ast.UAdd)):
         sign = -1.0 if isinstance(node.op, ast.USub) else 1.0
         inner = node.operand
-    if (isinstance(inner, ast.Constant) and isinstance(inner.value, (int, float))
-            and not isinstance(inner.value, bool) and math.isfinite(inner.value)):
+    if (
+        isinstance(inner, ast.Constant)
+        and isinstance(inner.value, (int, float))
+        and not isinstance(inner.value, bool)
+        and math.isfinite(inner.value)
+    ):
         return sign * float(inner.value)
     raise ValueError(f"{where}: {what} must be a finite number, not {ast.unparse(node)!r}")
 
 
 def _op_text(op: ast.cmpop) -> str:
-    return {ast.Eq: "==", ast.NotEq: "!=", ast.Is: "is", ast.IsNot: "is not",
-            ast.In: "in", ast.NotIn: "not in"}.get(type(op), type(op).__name__)
+    return {ast.Eq: "==", ast.NotEq: "!=", ast.Is: "is", ast.IsNot: "is not", ast.In: "in", ast.NotIn: "not in"}.get(
+        type(op), type(op).__name__
+    )
 
 
 # ---------------------------------------------------------------------- STL requirements
@@ -236,7 +251,9 @@ def _parse_stl(req: RequirementSpec, signals: Collection[str]) -> StlRequirement
         logging.disable(previous)
     root = monitor.ast.specs[0]
     if type(root).__module__.startswith("rtamt.syntax.node.arithmetic") or type(root).__name__ in (
-            "Variable", "Constant"):
+        "Variable",
+        "Constant",
+    ):
         raise ValueError(f"{where}: {req.expr!r} is a number, not a condition; compare it, e.g. 'color >= 5'")
     if not used:
         raise ValueError(f"{where}: {req.expr!r} reads no signal; signals: {', '.join(signals)}")
@@ -246,8 +263,10 @@ def _parse_stl(req: RequirementSpec, signals: Collection[str]) -> StlRequirement
 def _check_bound(bound: str, where: str) -> None:
     """``lo:hi`` with integers lo <= hi: STL bounds count samples (see the module docstring)."""
     if re.search(r"[A-Za-z]", bound):
-        raise ValueError(f"{where}: bound [{bound}] has a unit; STL bounds count samples of the control "
-                         f"period (at 40 ms, one second is 25 samples), write them as plain integers")
+        raise ValueError(
+            f"{where}: bound [{bound}] has a unit; STL bounds count samples of the control "
+            f"period (at 40 ms, one second is 25 samples), write them as plain integers"
+        )
     parts = [p.strip() for p in bound.split(":")]
     if len(parts) != 2 or not all(p.isdigit() for p in parts):
         raise ValueError(f"{where}: bound [{bound}] must be [lo:hi] with whole numbers of samples")
@@ -272,15 +291,18 @@ class FastForm:
         end = t if self.hi is None else min(self.hi + 1, t)
         if self.lo >= end:  # the window lies beyond the run: vacuous, as rtamt's offline semantics
             return np.full(r, math.inf if self.temporal == "always" else -math.inf)
-        rob = _robust(self.body, {k: v[:, self.lo:end] for k, v in traces.items()})
+        rob = _robust(self.body, {k: v[:, self.lo : end] for k, v in traces.items()})
         return rob.min(axis=1) if self.temporal == "always" else rob.max(axis=1)
 
 
 def fast_form(formula: str, signals: set[str]) -> FastForm | None:
     """The fast form of ``formula``, or None when it has another shape (rtamt checks it then)."""
     m = _TEMPORAL.match(formula)
-    temporal, lo, hi, body_text = (m.group(1), int(m.group(2) or 0), None if m.group(3) is None else int(m.group(3)),
-                                   m.group(4)) if m else (None, 0, None, formula)
+    temporal, lo, hi, body_text = (
+        (m.group(1), int(m.group(2) or 0), None if m.group(3) is None else int(m.group(3)), m.group(4))
+        if m
+        else (None, 0, None, formula)
+    )
     try:
         body = ast.parse(body_text.strip(), mode="eval").body
     except SyntaxError:
@@ -296,8 +318,12 @@ def _is_boolean(node: ast.expr, signals: set[str]) -> bool:
     if isinstance(node, ast.UnaryOp) and isinstance(node.op, ast.Not):
         return _is_boolean(node.operand, signals)
     if isinstance(node, ast.Compare):
-        return (len(node.ops) == 1 and type(node.ops[0]) in COMPARISONS
-                and _is_arith(node.left, signals) and _is_arith(node.comparators[0], signals))
+        return (
+            len(node.ops) == 1
+            and type(node.ops[0]) in COMPARISONS
+            and _is_arith(node.left, signals)
+            and _is_arith(node.comparators[0], signals)
+        )
     return False
 
 
@@ -310,10 +336,16 @@ def _is_arith(node: ast.expr, signals: set[str]) -> bool:
         return isinstance(node.op, ast.USub) and _is_arith(node.operand, signals)
     if isinstance(node, ast.BinOp):
         return isinstance(node.op, (ast.Add, ast.Sub, ast.Mult)) and all(
-            _is_arith(n, signals) for n in (node.left, node.right))
+            _is_arith(n, signals) for n in (node.left, node.right)
+        )
     if isinstance(node, ast.Call):
-        return (isinstance(node.func, ast.Name) and node.func.id == "abs" and len(node.args) == 1
-                and not node.keywords and _is_arith(node.args[0], signals))
+        return (
+            isinstance(node.func, ast.Name)
+            and node.func.id == "abs"
+            and len(node.args) == 1
+            and not node.keywords
+            and _is_arith(node.args[0], signals)
+        )
     return False
 
 

@@ -48,9 +48,16 @@ class SelectionScore:
     sim_runs: int
 
     def to_json(self) -> dict[str, object]:
-        return {"score": self.score, "distance": self.distance, "per_goal": dict(self.per_goal),
-                "sim_divergence": self.sim_divergence, "real_divergence": self.real_divergence,
-                "diverged": self.diverged, "real_runs": self.real_runs, "sim_runs": self.sim_runs}
+        return {
+            "score": self.score,
+            "distance": self.distance,
+            "per_goal": dict(self.per_goal),
+            "sim_divergence": self.sim_divergence,
+            "real_divergence": self.real_divergence,
+            "diverged": self.diverged,
+            "real_runs": self.real_runs,
+            "sim_runs": self.sim_runs,
+        }
 
 
 def default_goals(schema: LogSchema, observed: Mapping[str, tuple[float, float]]) -> tuple[GoalSpec, ...]:
@@ -60,9 +67,11 @@ def default_goals(schema: LogSchema, observed: Mapping[str, tuple[float, float]]
     for ch in schema.states:
         low, high = _effective_range(ch, observed)
         mid = (low + high) / 2.0
-        goals += [GoalSpec(f"mean({ch.name})", "mean", ch.name),
-                  GoalSpec(f"std({ch.name})", "std", ch.name),
-                  GoalSpec(f"max_abs_dev({ch.name}, {mid:g})", "max_abs_dev", ch.name, {"setpoint": mid})]
+        goals += [
+            GoalSpec(f"mean({ch.name})", "mean", ch.name),
+            GoalSpec(f"std({ch.name})", "std", ch.name),
+            GoalSpec(f"max_abs_dev({ch.name}, {mid:g})", "max_abs_dev", ch.name, {"setpoint": mid}),
+        ]
     return tuple(goals)
 
 
@@ -77,16 +86,25 @@ def observed_ranges(runs: Sequence[Runs], names: Sequence[str]) -> dict[str, tup
     return out
 
 
-def selection_score(real: Mapping[Hashable, Runs], sim: Mapping[Hashable, Runs], schema: LogSchema,
-                    goals: Sequence[GoalSpec] = (), observed: Mapping[str, tuple[float, float]] | None = None,
-                    sustain: int | None = None, margin: float = 0.05, tolerance: float = 0.05) -> SelectionScore:
+def selection_score(
+    real: Mapping[Hashable, Runs],
+    sim: Mapping[Hashable, Runs],
+    schema: LogSchema,
+    goals: Sequence[GoalSpec] = (),
+    observed: Mapping[str, tuple[float, float]] | None = None,
+    sustain: int | None = None,
+    margin: float = 0.05,
+    tolerance: float = 0.05,
+) -> SelectionScore:
     """Score simulated runs against real runs of the same controller versions (keys).
 
     ``observed``: each state's range in the training data (default: the real runs given);
     ``sustain``: samples a divergence must last (default a tenth of the scored run, at least 2)."""
     if not real or set(real) != set(sim):
-        raise ValueError(f"real and simulated runs must cover the same controller versions; real: "
-                         f"{sorted(map(str, real))}, simulated: {sorted(map(str, sim))}")
+        raise ValueError(
+            f"real and simulated runs must cover the same controller versions; real: "
+            f"{sorted(map(str, real))}, simulated: {sorted(map(str, sim))}"
+        )
     channels = {c.name: c for c in schema.channels + schema.logged}
     state_names = [c.name for c in schema.states]
     observed = dict(observed) if observed is not None else observed_ranges(list(real.values()), state_names)
@@ -115,8 +133,16 @@ def selection_score(real: Mapping[Hashable, Runs], sim: Mapping[Hashable, Runs],
     sim_frac = diverged_fraction(list(sim.values()), states, observed, sustain, margin)
     real_frac = diverged_fraction(list(real.values()), states, observed, sustain, margin)
     diverged = sim_frac > real_frac + tolerance
-    return SelectionScore(math.inf if diverged else distance, distance, means, sim_frac, real_frac, diverged,
-                          sum(r.count for r in real.values()), sum(r.count for r in sim.values()))
+    return SelectionScore(
+        math.inf if diverged else distance,
+        distance,
+        means,
+        sim_frac,
+        real_frac,
+        diverged,
+        sum(r.count for r in real.values()),
+        sum(r.count for r in sim.values()),
+    )
 
 
 def _effective_range(ch: Channel, observed: Mapping[str, tuple[float, float]]) -> tuple[float, float]:
@@ -143,8 +169,13 @@ def _longest_stretch(mask: np.ndarray) -> np.ndarray:
     return (counts - reset).max(axis=1)
 
 
-def diverged_fraction(runs: Sequence[Runs], states: Sequence[Channel], observed: Mapping[str, tuple[float, float]],
-                       sustain: int | None, margin: float) -> float:
+def diverged_fraction(
+    runs: Sequence[Runs],
+    states: Sequence[Channel],
+    observed: Mapping[str, tuple[float, float]],
+    sustain: int | None,
+    margin: float,
+) -> float:
     """Fraction of runs in which some state sits at a range limit or outside the observed range
     (widened by ``margin`` of its width) for ``sustain`` consecutive scored samples."""
     diverged, total = 0, 0

@@ -36,9 +36,16 @@ class Verdict:
         return self.satisfied / self.runs
 
     def to_json(self) -> dict[str, object]:
-        return {"name": self.name, "probability": self.probability, "satisfied": self.satisfied,
-                "runs": self.runs, "fraction": self.fraction, "interval": [self.low, self.high],
-                "confidence": self.confidence, "verdict": self.verdict}
+        return {
+            "name": self.name,
+            "probability": self.probability,
+            "satisfied": self.satisfied,
+            "runs": self.runs,
+            "fraction": self.fraction,
+            "interval": [self.low, self.high],
+            "confidence": self.confidence,
+            "verdict": self.verdict,
+        }
 
 
 def verdict(req: RequirementSpec, runs: Runs, confidence: float = 0.95) -> Verdict:

@@ -19,18 +19,26 @@ def get_trainer(name: str) -> Trainer:
     """The training function of an algorithm by name; imported lazily so each stays independent."""
     if name == "bc":
         from .bc import train_bc
+
         return train_bc
     if name == "random":
         from .random import train_random
+
         return train_random
     if name in ("gail", "bcxgail"):
         from . import gail
+
         return gail.train_gail if name == "gail" else gail.train_bcxgail
     raise ValueError(f"unknown algorithm {name!r}; known: bc, gail, bcxgail, random")
 
 
-def train(name: str, train_logs: Sequence[Log], val_logs: Sequence[Log] = (),
-          system: SystemDescription | None = None, **kwargs: Any) -> Checkpoint:
+def train(
+    name: str,
+    train_logs: Sequence[Log],
+    val_logs: Sequence[Log] = (),
+    system: SystemDescription | None = None,
+    **kwargs: Any,
+) -> Checkpoint:
     """Train with the named algorithm. The system description the logs were read with is recorded
     in the checkpoint (from their schema when none is given), so the model says what it reads."""
     if not train_logs:

@@ -31,18 +31,38 @@ def bc_loss(model: EnvModel, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
     return nn.functional.gaussian_nll_loss(mean, y, (2 * log_std).exp(), full=False)
 
 
-def train_bc(train_logs: Sequence[Log], val_logs: Sequence[Log] = (), *, epochs: int = 300, lr: float = 5e-5,
-             seed: int = 0, history: int = 10, hidden: Sequence[int] = (256, 256), head: str = "gaussian",
-             eval_every: int = 10, system: SystemDescription | None = None, progress: bool = False,
-             state_path: str | Path | None = None, resume: bool = False, **model_extra: Any) -> Checkpoint:
+def train_bc(
+    train_logs: Sequence[Log],
+    val_logs: Sequence[Log] = (),
+    *,
+    epochs: int = 300,
+    lr: float = 5e-5,
+    seed: int = 0,
+    history: int = 10,
+    hidden: Sequence[int] = (256, 256),
+    head: str = "gaussian",
+    eval_every: int = 10,
+    system: SystemDescription | None = None,
+    progress: bool = False,
+    state_path: str | Path | None = None,
+    resume: bool = False,
+    **model_extra: Any,
+) -> Checkpoint:
     """Train a model by behaviour cloning on ``train_logs``; select on ``val_logs`` by closed-loop error.
 
     With ``state_path`` the whole training state is written there (atomically) after every
     validation, and ``resume`` continues from it: a run killed at any moment and resumed gives
     the same checkpoint as an uninterrupted one (see :class:`.state.TrainingState`)."""
     cfg = model_config(train_logs, history, hidden, head, **model_extra)
-    hyper = {"epochs": epochs, "lr": lr, "history": history, "hidden": list(hidden), "head": head,
-             "eval_every": eval_every, "batch": "one log per step"}
+    hyper = {
+        "epochs": epochs,
+        "lr": lr,
+        "history": history,
+        "hidden": list(hidden),
+        "head": head,
+        "eval_every": eval_every,
+        "batch": "one log per step",
+    }
     ckpt = new_checkpoint("bc", train_logs, val_logs, cfg, seed, hyper, system=system)
     data = ckpt.dataset(train_logs)
     xs = [torch.tensor(x) for x in data.X]

@@ -28,32 +28,58 @@ from ..system import LogSchema, SystemDescription, describe_schema
 def data_record(logs: Sequence[Log]) -> list[dict[str, Any]]:
     """Each log's file, content hash and controller version: enough to read it back exactly, even
     when its version came from a file-name pattern."""
-    return [{"file": str(lg.path) if lg.path else lg.name, "sha256": lg.sha256(), "controller": lg.meta.controller}
-            for lg in logs]
+    return [
+        {"file": str(lg.path) if lg.path else lg.name, "sha256": lg.sha256(), "controller": lg.meta.controller}
+        for lg in logs
+    ]
 
 
 def controllers_of(logs: Sequence[Log]) -> list[dict[str, Any]]:
     return [spec.to_json() for spec in group_by_controller(logs)]
 
 
-def model_config(logs: Sequence[Log], history: int = 10, hidden: Sequence[int] = (256, 256),
-                 head: str = "deterministic", **extra: Any) -> ModelConfig:
-    return ModelConfig(n_state=logs[0].states.shape[1], n_action=logs[0].actions.shape[1], history=history,
-                       hidden=tuple(hidden), head=head, **extra)
+def model_config(
+    logs: Sequence[Log],
+    history: int = 10,
+    hidden: Sequence[int] = (256, 256),
+    head: str = "deterministic",
+    **extra: Any,
+) -> ModelConfig:
+    return ModelConfig(
+        n_state=logs[0].states.shape[1],
+        n_action=logs[0].actions.shape[1],
+        history=history,
+        hidden=tuple(hidden),
+        head=head,
+        **extra,
+    )
 
 
-def new_checkpoint(algorithm: str, train_logs: Sequence[Log], val_logs: Sequence[Log], config: ModelConfig,
-                   seed: int, hyper: dict[str, Any], norm: Normaliser | None = None,
-                   system: SystemDescription | None = None) -> Checkpoint:
+def new_checkpoint(
+    algorithm: str,
+    train_logs: Sequence[Log],
+    val_logs: Sequence[Log],
+    config: ModelConfig,
+    seed: int,
+    hyper: dict[str, Any],
+    norm: Normaliser | None = None,
+    system: SystemDescription | None = None,
+) -> Checkpoint:
     """A freshly initialised model (seeded) with its normaliser fitted on the training logs only; it
     records ``system`` (by default the description matching the logs' schema)."""
     torch.manual_seed(seed)
     norm = norm or Normaliser.fit(train_logs)
     periods = [float(np.median(np.diff(lg.time))) for lg in train_logs if len(lg) > 1]
     period = float(np.median(periods)) if periods else None
-    record = TrainingRecord(algorithm=algorithm, seed=seed, hyper=hyper, data=data_record(train_logs),
-                            validation=data_record(val_logs), controllers=controllers_of(train_logs),
-                            period_ms=period)
+    record = TrainingRecord(
+        algorithm=algorithm,
+        seed=seed,
+        hyper=hyper,
+        data=data_record(train_logs),
+        validation=data_record(val_logs),
+        controllers=controllers_of(train_logs),
+        period_ms=period,
+    )
     if "dt" in config.extras and config.intervals is None:
         config.intervals = interval_quantiles(train_logs, period or 40.0)
     schema = train_logs[0].meta.schema
@@ -106,14 +132,22 @@ class Selector:
         criterion = "closed-loop W1 of the goal metrics on validation logs, divergence excluded"
         if self.best_state is not None:
             ckpt.model.load_state_dict(self.best_state)
-            ckpt.record.selection = {"criterion": criterion, "best_epoch": self.best_epoch,
-                                     "best_score": self.best_score, "curve": self.history,
-                                     "diverged_epochs": self.diverged}
+            ckpt.record.selection = {
+                "criterion": criterion,
+                "best_epoch": self.best_epoch,
+                "best_score": self.best_score,
+                "curve": self.history,
+                "diverged_epochs": self.diverged,
+            }
         elif self.val_logs:
-            ckpt.record.selection = {"criterion": criterion, "best_epoch": last_epoch, "curve": self.history,
-                                     "diverged_epochs": self.diverged,
-                                     "warning": "every evaluated epoch diverged in closed loop on the validation "
-                                                "logs; the last epoch is kept and should not be trusted"}
+            ckpt.record.selection = {
+                "criterion": criterion,
+                "best_epoch": last_epoch,
+                "curve": self.history,
+                "diverged_epochs": self.diverged,
+                "warning": "every evaluated epoch diverged in closed loop on the validation "
+                "logs; the last epoch is kept and should not be trusted",
+            }
         else:
             ckpt.record.selection = {"criterion": "last epoch (no validation logs)", "best_epoch": last_epoch}
         ckpt.model.eval()

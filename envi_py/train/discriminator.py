@@ -39,12 +39,15 @@ class Discriminator(nn.Module):
         return self(window, next_state)
 
 
-def bce_loss(disc: Discriminator, real: tuple[torch.Tensor, torch.Tensor],
-             fake: tuple[torch.Tensor, torch.Tensor]) -> tuple[torch.Tensor, float]:
+def bce_loss(
+    disc: Discriminator, real: tuple[torch.Tensor, torch.Tensor], fake: tuple[torch.Tensor, torch.Tensor]
+) -> tuple[torch.Tensor, float]:
     """Binary cross-entropy with real pairs labelled 1 and model pairs 0 (equal weight to each side),
     and the discriminator's accuracy on this batch."""
     lr, lf = disc(*real), disc(*fake)
-    loss = (nn.functional.binary_cross_entropy_with_logits(lr, torch.ones_like(lr))
-            + nn.functional.binary_cross_entropy_with_logits(lf, torch.zeros_like(lf))) / 2
+    loss = (
+        nn.functional.binary_cross_entropy_with_logits(lr, torch.ones_like(lr))
+        + nn.functional.binary_cross_entropy_with_logits(lf, torch.zeros_like(lf))
+    ) / 2
     acc = ((lr > 0).float().mean() + (lf < 0).float().mean()).item() / 2
     return loss, acc

@@ -66,8 +66,18 @@ class GailConfig:
     eval_every: int = 10  # epochs between closed-loop validation scores
 
 
-CURVE_FIELDS = ("epoch", "disc_loss", "disc_acc", "policy_loss", "value_loss", "bc_loss", "clip_frac",
-                "reward", "std", "val_error")
+CURVE_FIELDS = (
+    "epoch",
+    "disc_loss",
+    "disc_acc",
+    "policy_loss",
+    "value_loss",
+    "bc_loss",
+    "clip_frac",
+    "reward",
+    "std",
+    "val_error",
+)
 
 
 def _policy_log_prob(ckpt: Checkpoint, obs: torch.Tensor, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -99,7 +109,7 @@ class _Trainer:
 
     def _minibatch(self, n: int) -> torch.Tensor:
         """Random indices of one iteration's minibatch out of ``n`` samples (all if fewer)."""
-        return torch.from_numpy(self.rng.permutation(n)[:self.hp.minibatch])
+        return torch.from_numpy(self.rng.permutation(n)[: self.hp.minibatch])
 
     def _real_sample(self, n: int) -> tuple[torch.Tensor, torch.Tensor]:
         idx = torch.from_numpy(self.rng.integers(0, len(self.real_x), n))
@@ -124,7 +134,7 @@ class _Trainer:
         # keeps the critic's targets on one scale across epochs (advantages are normalised anyway).
         var = raw.var().item()
         self.reward_var = var if self.reward_var is None else 0.9 * self.reward_var + 0.1 * var
-        rewards = raw / (self.reward_var ** 0.5 + 1e-8)
+        rewards = raw / (self.reward_var**0.5 + 1e-8)
         with torch.no_grad():
             values = self.value(ro.obs, ro.to_go)
             last = self.value(ro.last_obs, ro.last_to_go)
@@ -196,16 +206,31 @@ def write_curves(rows: list[dict[str, float]], out: Path, title: str) -> tuple[P
     return csv_path, png_path
 
 
-def _train(algorithm: str, train_logs: Sequence[Log], val_logs: Sequence[Log], epochs: int, seed: int,
-           history: int, hidden: Sequence[int], system: SystemDescription | None, progress: bool, curves_dir: str | Path | None,
-           hyper: dict[str, Any]) -> Checkpoint:
+def _train(
+    algorithm: str,
+    train_logs: Sequence[Log],
+    val_logs: Sequence[Log],
+    epochs: int,
+    seed: int,
+    history: int,
+    hidden: Sequence[int],
+    system: SystemDescription | None,
+    progress: bool,
+    curves_dir: str | Path | None,
+    hyper: dict[str, Any],
+) -> Checkpoint:
     known = {f.name for f in fields(GailConfig)}
     model_extra = {k: v for k, v in hyper.items() if k not in known and k != "head"}
     hp = GailConfig(**{k: v for k, v in hyper.items() if k in known})
     cfg = model_config(train_logs, history, hidden, "gaussian", **model_extra)
-    record = {"epochs": epochs, "history": history, "hidden": list(hidden), "head": "gaussian",
-              "reward": "log D - log(1 - D)", **{k: (list(v) if isinstance(v, tuple) else v)
-                                                 for k, v in asdict(hp).items()}}
+    record = {
+        "epochs": epochs,
+        "history": history,
+        "hidden": list(hidden),
+        "head": "gaussian",
+        "reward": "log D - log(1 - D)",
+        **{k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(hp).items()},
+    }
     ckpt = new_checkpoint(algorithm, train_logs, val_logs, cfg, seed, record, system=system)
     trainer = _Trainer(ckpt, train_logs, hp, seed)
     selector = Selector(val_logs)
@@ -222,19 +247,37 @@ def _train(algorithm: str, train_logs: Sequence[Log], val_logs: Sequence[Log], e
     return selector.finish(ckpt, epochs)
 
 
-def train_gail(train_logs: Sequence[Log], val_logs: Sequence[Log] = (), *, epochs: int = 300, seed: int = 0,
-               history: int = 10, hidden: Sequence[int] = (256, 256), system: SystemDescription | None = None,
-               progress: bool = False, curves_dir: str | Path | None = None, **hyper: Any) -> Checkpoint:
+def train_gail(
+    train_logs: Sequence[Log],
+    val_logs: Sequence[Log] = (),
+    *,
+    epochs: int = 300,
+    seed: int = 0,
+    history: int = 10,
+    hidden: Sequence[int] = (256, 256),
+    system: SystemDescription | None = None,
+    progress: bool = False,
+    curves_dir: str | Path | None = None,
+    **hyper: Any,
+) -> Checkpoint:
     """Train a Gaussian environment model by GAIL; ``hyper`` overrides :class:`GailConfig` fields
     (other keywords go to the model config, e.g. ``extras``)."""
-    return _train("gail", train_logs, val_logs, epochs, seed, history, hidden, system, progress, curves_dir,
-                  hyper)
+    return _train("gail", train_logs, val_logs, epochs, seed, history, hidden, system, progress, curves_dir, hyper)
 
 
-def train_bcxgail(train_logs: Sequence[Log], val_logs: Sequence[Log] = (), *, epochs: int = 300, seed: int = 0,
-                  history: int = 10, hidden: Sequence[int] = (256, 256), system: SystemDescription | None = None,
-                  progress: bool = False, curves_dir: str | Path | None = None, **hyper: Any) -> Checkpoint:
+def train_bcxgail(
+    train_logs: Sequence[Log],
+    val_logs: Sequence[Log] = (),
+    *,
+    epochs: int = 300,
+    seed: int = 0,
+    history: int = 10,
+    hidden: Sequence[int] = (256, 256),
+    system: SystemDescription | None = None,
+    progress: bool = False,
+    curves_dir: str | Path | None = None,
+    **hyper: Any,
+) -> Checkpoint:
     """GAIL with the behaviour-cloning loss added to every policy step (``bc_weight``, default 1)."""
     hyper.setdefault("bc_weight", 1.0)
-    return _train("bcxgail", train_logs, val_logs, epochs, seed, history, hidden, system, progress, curves_dir,
-                  hyper)
+    return _train("bcxgail", train_logs, val_logs, epochs, seed, history, hidden, system, progress, curves_dir, hyper)

@@ -59,12 +59,21 @@ class WindowEnv:
             if last < 0:
                 raise ValueError(f"{logs[i].name}: {len(z)} rows, need history {hist} + horizon {horizon}")
             for o in range(0, last + 1, stride):
-                windows.append(z[o:o + hist])
-                starts.append(logs[i].values[o:o + hist])
+                windows.append(z[o : o + hist])
+                starts.append(logs[i].values[o : o + hist])
                 contexts.append(context_of(z[:hist], ns))
                 # 'play' depends on the simulated actions: a placeholder here, filled in by the rollout
-                extras.append(extra_channels(period * np.arange(horizon), cfg.extras, period, cfg.phase_rows,
-                                             o + hist, np.zeros(horizon), cfg.play_width))
+                extras.append(
+                    extra_channels(
+                        period * np.arange(horizon),
+                        cfg.extras,
+                        period,
+                        cfg.phase_rows,
+                        o + hist,
+                        np.zeros(horizon),
+                        cfg.play_width,
+                    )
+                )
                 log_idx.append(i)
         self.window0 = torch.from_numpy(np.stack(windows).astype(np.float32))
         self.start_rows = np.stack(starts)  # physical (B, l, C): what each controller is warmed up on
@@ -72,8 +81,10 @@ class WindowEnv:
         self.extras = torch.from_numpy(np.stack(extras).astype(np.float32))
         log_idx_np = np.array(log_idx)
         pos = {id(lg): i for i, lg in enumerate(logs)}
-        self.groups = [(spec, np.flatnonzero(np.isin(log_idx_np, [pos[id(lg)] for lg in g])))
-                       for spec, g in group_by_controller(logs).items()]
+        self.groups = [
+            (spec, np.flatnonzero(np.isin(log_idx_np, [pos[id(lg)] for lg in g])))
+            for spec, g in group_by_controller(logs).items()
+        ]
         self.centre = torch.from_numpy(ckpt.norm.centre)
         self.half = torch.from_numpy(ckpt.norm.half)
 
@@ -118,11 +129,18 @@ class WindowEnv:
             if "play" in cfg.extras:
                 ex = ex.clone()
                 start = actuator_position(window.numpy(), ns, cfg.channels, cfg.extras)
-                play = play_offsets(z_row[:, ns:ns + 1].numpy(), 2.0 * cfg.play_width, start)
+                play = play_offsets(z_row[:, ns : ns + 1].numpy(), 2.0 * cfg.play_width, start)
                 ex[:, cfg.extras.index("play")] = torch.from_numpy(play[:, 0].astype(np.float32))
             row = torch.cat([z_row, ex], dim=1)
             obs.append(x), acts.append(a), logps.append(logp), nexts.append(z_row[:, :ns])
             window = torch.cat([window[:, 1:], row.unsqueeze(1)], dim=1)
         to_go = 1.0 - torch.arange(h, dtype=torch.float32) / h
-        return Rollout(torch.stack(obs, 1), torch.stack(acts, 1), torch.stack(logps, 1), torch.stack(nexts, 1),
-                       to_go.expand(b, h).contiguous(), self._obs(window), torch.zeros(b))
+        return Rollout(
+            torch.stack(obs, 1),
+            torch.stack(acts, 1),
+            torch.stack(logps, 1),
+            torch.stack(nexts, 1),
+            to_go.expand(b, h).contiguous(),
+            self._obs(window),
+            torch.zeros(b),
+        )

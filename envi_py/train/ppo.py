@@ -31,8 +31,9 @@ class ValueNet(nn.Module):
         return self.net(torch.cat([obs, to_go.unsqueeze(-1)], dim=-1)).squeeze(-1)
 
 
-def gae(rewards: torch.Tensor, values: torch.Tensor, last_value: torch.Tensor, gamma: float = 0.99,
-        lam: float = 0.95) -> tuple[torch.Tensor, torch.Tensor]:
+def gae(
+    rewards: torch.Tensor, values: torch.Tensor, last_value: torch.Tensor, gamma: float = 0.99, lam: float = 0.95
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Generalised advantage estimates and value targets of fixed-horizon rollouts.
 
     ``rewards`` and ``values`` are (B, H): step t of rollout b. The horizon is a truncation, not a
@@ -57,8 +58,9 @@ def normalise(adv: torch.Tensor, eps: float = 1e-8) -> torch.Tensor:
     return (adv - adv.mean()) / (adv.std() + eps)
 
 
-def clipped_surrogate(log_prob: torch.Tensor, old_log_prob: torch.Tensor, adv: torch.Tensor,
-                      clip: float = 0.2) -> tuple[torch.Tensor, torch.Tensor]:
+def clipped_surrogate(
+    log_prob: torch.Tensor, old_log_prob: torch.Tensor, adv: torch.Tensor, clip: float = 0.2
+) -> tuple[torch.Tensor, torch.Tensor]:
     """PPO's clipped objective as a loss to minimise, and the fraction of samples that were clipped."""
     ratio = (log_prob - old_log_prob).exp()
     unclipped = ratio * adv

@@ -12,8 +12,14 @@ from ..system import SystemDescription
 from .common import model_config, new_checkpoint
 
 
-def train_random(train_logs: Sequence[Log], val_logs: Sequence[Log] = (), seed: int = 0, history: int = 10,
-                 system: SystemDescription | None = None, **_: Any) -> Checkpoint:
+def train_random(
+    train_logs: Sequence[Log],
+    val_logs: Sequence[Log] = (),
+    seed: int = 0,
+    history: int = 10,
+    system: SystemDescription | None = None,
+    **_: Any,
+) -> Checkpoint:
     """A random-state model with the normaliser of ``train_logs``."""
     cfg = model_config(train_logs, history=history, hidden=(), kind="random")
     ckpt = new_checkpoint("random", train_logs, val_logs, cfg, seed, {"history": history}, system=system)

@@ -29,8 +29,14 @@ STATE_FORMAT = "envi-training-state"
 def fingerprint(ckpt: Checkpoint) -> str:
     """What must match for a state to continue this training."""
     rec = ckpt.record
-    blob = {"algorithm": rec.algorithm, "seed": rec.seed, "hyper": rec.hyper, "config": asdict(ckpt.config),
-            "data": [d["sha256"] for d in rec.data], "validation": [d["sha256"] for d in rec.validation]}
+    blob = {
+        "algorithm": rec.algorithm,
+        "seed": rec.seed,
+        "hyper": rec.hyper,
+        "config": asdict(ckpt.config),
+        "data": [d["sha256"] for d in rec.data],
+        "validation": [d["sha256"] for d in rec.validation],
+    }
     return hashlib.sha256(json.dumps(blob, sort_keys=True, default=str).encode()).hexdigest()
 
 
@@ -40,14 +46,24 @@ class TrainingState:
     def __init__(self, path: Path, ckpt: Checkpoint) -> None:
         self.path, self.fingerprint = path, fingerprint(ckpt)
 
-    def save(self, epoch: int, ckpt: Checkpoint, opt: torch.optim.Optimizer, rng: np.random.Generator,
-             selector: Selector) -> None:
-        blob = {"format": STATE_FORMAT, "fingerprint": self.fingerprint, "epoch": epoch,
-                "model": ckpt.model.state_dict(), "optimizer": opt.state_dict(),
-                "rng": json.dumps(rng.bit_generator.state),
-                "selector": {"best_score": selector.best_score, "best_epoch": selector.best_epoch,
-                             "best_state": selector.best_state, "history": [list(h) for h in selector.history],
-                             "diverged": list(selector.diverged)}}
+    def save(
+        self, epoch: int, ckpt: Checkpoint, opt: torch.optim.Optimizer, rng: np.random.Generator, selector: Selector
+    ) -> None:
+        blob = {
+            "format": STATE_FORMAT,
+            "fingerprint": self.fingerprint,
+            "epoch": epoch,
+            "model": ckpt.model.state_dict(),
+            "optimizer": opt.state_dict(),
+            "rng": json.dumps(rng.bit_generator.state),
+            "selector": {
+                "best_score": selector.best_score,
+                "best_epoch": selector.best_epoch,
+                "best_state": selector.best_state,
+                "history": [list(h) for h in selector.history],
+                "diverged": list(selector.diverged),
+            },
+        }
         self.path.parent.mkdir(parents=True, exist_ok=True)
         tmp = self.path.with_name("." + self.path.name + ".tmp")
         with open(tmp, "wb") as fh:
@@ -56,8 +72,9 @@ class TrainingState:
             os.fsync(fh.fileno())
         tmp.replace(self.path)
 
-    def restore(self, ckpt: Checkpoint, opt: torch.optim.Optimizer, rng: np.random.Generator,
-                selector: Selector) -> int:
+    def restore(
+        self, ckpt: Checkpoint, opt: torch.optim.Optimizer, rng: np.random.Generator, selector: Selector
+    ) -> int:
         """Load the state into the training's objects; returns the last finished epoch."""
         try:
             blob: Any = torch.load(self.path, map_location="cpu", weights_only=True)
@@ -68,8 +85,10 @@ class TrainingState:
         if not isinstance(blob, dict) or blob.get("format") != STATE_FORMAT:
             raise ValueError(f"{self.path}: not an envi training state")
         if blob.get("fingerprint") != self.fingerprint:
-            raise ValueError(f"{self.path}: the state belongs to another training (different data, seed or "
-                             "settings); remove it or train without --resume")
+            raise ValueError(
+                f"{self.path}: the state belongs to another training (different data, seed or "
+                "settings); remove it or train without --resume"
+            )
         ckpt.model.load_state_dict(blob["model"])
         opt.load_state_dict(blob["optimizer"])
         rng.bit_generator.state = json.loads(blob["rng"])

@@ -2,7 +2,8 @@
 
 The loss is what the project verifies against: per controller version, the Wasserstein-1 distance
 of each of the eight goal metrics and of six run statistics (oscillation period and amplitude, mean
-and spread of the colour, the safety/comfort pair), each divided by its real-vs-real floor (same distance between two random
+and spread of the colour, the safety/comfort pair), each divided by its real-vs-real floor (same distance
+between two random
 halves of the real runs). A loss of 1 means "as close to reality as reality is to itself".
 Sampling jitter and quantisation are estimated directly from the logs, not searched.
 """
@@ -43,7 +44,7 @@ def run_stats(color: np.ndarray, threshold: float = 40.0) -> np.ndarray:
 def features(color: np.ndarray, cfg: MetricConfig) -> np.ndarray:
     """The 14 per-run quantities compared: 8 goal metrics (scaled by their range) and 6 statistics."""
     lo, hi = metric_bounds(color.shape[1] - cfg.skip, cfg)
-    return np.concatenate([driving_metrics(color, cfg) / (hi - lo), run_stats(color[:, cfg.skip:], cfg.centre)], 1)
+    return np.concatenate([driving_metrics(color, cfg) / (hi - lo), run_stats(color[:, cfg.skip :], cfg.centre)], 1)
 
 
 FEATURE_NAMES = METRIC_NAMES + STAT_NAMES
@@ -60,7 +61,7 @@ def w1_floor(feat: np.ndarray, splits: int = 20, seed: int = 0) -> np.ndarray:
     out = []
     for _ in range(splits):
         perm = rng.permutation(n)
-        out.append(w1_all(feat[perm[: n // 2]], feat[perm[n // 2:]]))
+        out.append(w1_all(feat[perm[: n // 2]], feat[perm[n // 2 :]]))
     return np.mean(out, axis=0)
 
 
@@ -100,8 +101,11 @@ def estimate_timing(logs: list[Log]) -> tuple[float, dict[str, float]]:
     period = float(np.percentile(regular, 1))
     mean_extra = max(float(regular.mean() - period), 1e-3)
     scale = 1.0 / math.log1p(1.0 / mean_extra)  # E[floor(Exp(s))] = 1 / (e^(1/s) - 1)
-    return period, {"extra_ms": round(scale, 4), "pause_prob": round(float(pauses.mean()), 6),
-                    "pause_ms": round(float(dt[pauses].mean()) if pauses.any() else 0.0, 1)}
+    return period, {
+        "extra_ms": round(scale, 4),
+        "pause_prob": round(float(pauses.mean()), 6),
+        "pause_ms": round(float(dt[pauses].mean()) if pauses.any() else 0.0, 1),
+    }
 
 
 # The searched parameters: (name, low, high, log-scale). Effect parameters are "effect.param".
@@ -149,8 +153,9 @@ def to_profile(u: np.ndarray, base: TwinProfile) -> TwinProfile:
         if "." in name:
             eff, par = name.split(".")
             searched.setdefault(eff, []).append((par, _neutral(eff, lo, hi)))
-    effects = {k: v for k, v in effects.items()
-               if k not in searched or any(v[p] != neutral for p, neutral in searched[k])}
+    effects = {
+        k: v for k, v in effects.items() if k not in searched or any(v[p] != neutral for p, neutral in searched[k])
+    }
     return base.replace(**phys, effects=effects)
 
 
@@ -193,9 +198,17 @@ def loss_of(r: np.ndarray) -> float:
     return float(r.mean() + 0.25 * r.mean(axis=1).max())
 
 
-def calibrate(logs: list[Log], key: str = "x", cfg: MetricConfig = MetricConfig(), budget_s: float = 420.0,
-              runs: int = 160, seed: int = 0, base: TwinProfile | None = None,
-              start: TwinProfile | None = None, progress: Callable[[str], None] | None = None) -> TwinProfile:
+def calibrate(
+    logs: list[Log],
+    key: str = "x",
+    cfg: MetricConfig = MetricConfig(),
+    budget_s: float = 420.0,
+    runs: int = 160,
+    seed: int = 0,
+    base: TwinProfile | None = None,
+    start: TwinProfile | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> TwinProfile:
     """Random search then a shrinking (1+4) evolution strategy with restarts in the unit cube, common
     random numbers (fixed seed) so the loss is deterministic. Stops at ``budget_s`` seconds.
     ``start`` (e.g. the shipped profile) is the first candidate, so a refit never ends worse than it."""

@@ -99,8 +99,12 @@ def with_options(profile: CarProfile, options: dict[str, Any]) -> CarProfile:
         if key not in current:
             raise ValueError(f"car twin: unknown world parameter {key!r}; known: {', '.join(current)}")
         if isinstance(current[key], list):
-            if (not isinstance(value, (list, tuple)) or len(value) != 2
-                    or not all(_finite(v) for v in value) or not value[0] <= value[1]):
+            if (
+                not isinstance(value, (list, tuple))
+                or len(value) != 2
+                or not all(_finite(v) for v in value)
+                or not value[0] <= value[1]
+            ):
                 raise ValueError(f"car twin: {key} must be a (low, high) pair of numbers, not {value!r:.40}")
             changes[key] = (float(value[0]), float(value[1]))
         elif not _finite(value) or value < 0:
@@ -115,8 +119,16 @@ def with_options(profile: CarProfile, options: dict[str, Any]) -> CarProfile:
     for key in ("dropout_prob", "far_start_prob", "lead_stop_prob", "lead_slow_prob"):
         if getattr(out, key) > 1:
             raise ValueError(f"car twin: {key} is a probability, not {getattr(out, key)}")
-    for key in ("period_ms", "substeps", "wheel_mm", "wheelbase_mm", "spot_mm", "steer_tau_s", "motor_tau_s",
-                "wavelength_m"):
+    for key in (
+        "period_ms",
+        "substeps",
+        "wheel_mm",
+        "wheelbase_mm",
+        "spot_mm",
+        "steer_tau_s",
+        "motor_tau_s",
+        "wavelength_m",
+    ):
         if getattr(out, key) <= 0:
             raise ValueError(f"car twin: {key} must be positive")
     return out
@@ -126,16 +138,19 @@ def _finite(v: Any) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
 
 
-def simulate_car(controller: ControllerSpec, runs: int, steps: int, profile: CarProfile,
-                 rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray, CarBatch]:
+def simulate_car(
+    controller: ControllerSpec, runs: int, steps: int, profile: CarProfile, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, CarBatch]:
     """Raw arrays of ``runs`` car runs: states (R, T, 2), actions (R, T, 2), PID terms (R, T, 6),
     and the world (for its hidden state). See the module docstring for the controller reset."""
     world = CarBatch(profile, runs, rng)
     ctrl = controller.build(n_state=2, n_action=2, period_ms=profile.period_ms)
     loops = getattr(getattr(ctrl, "inner", None), "loops", None)
     if loops is None or len(loops) != 2 or not all(hasattr(lp, "terms") for lp in loops):
-        raise ValueError(f"car twin: controller {controller.label()!r} is not a 'combine' of two PID loops; "
-                         "the logged P, I and D columns need them")
+        raise ValueError(
+            f"car twin: controller {controller.label()!r} is not a 'combine' of two PID loops; "
+            "the logged P, I and D columns need them"
+        )
     ctrl.reset(runs)
     states, actions = np.empty((runs, steps, 2)), np.empty((runs, steps, 2))
     terms = np.empty((runs, steps, 6))
@@ -152,8 +167,14 @@ def simulate_car(controller: ControllerSpec, runs: int, steps: int, profile: Car
     return states, actions, terms, world
 
 
-def generate_car(controller: ControllerSpec, runs: int, steps: int = 100, seed: int = 0,
-                 profile: CarProfile | None = None, **options: Any) -> list[Log]:
+def generate_car(
+    controller: ControllerSpec,
+    runs: int,
+    steps: int = 100,
+    seed: int = 0,
+    profile: CarProfile | None = None,
+    **options: Any,
+) -> list[Log]:
     """``runs`` car logs of ``steps`` rows driven by ``controller`` (a ``combine`` of two loops).
 
     ``options`` override :class:`CarProfile` fields (``dropout_prob=0``, ``far_start_prob=0.5``...).
@@ -171,17 +192,29 @@ def generate_car(controller: ControllerSpec, runs: int, steps: int = 100, seed: 
     version = versions.index(controller) if controller in versions else None
     logs = []
     for r in range(runs):
-        meta = LogMeta(schema=system.schema, controller=controller.to_json(), period_ms=profile.period_ms,
-                       run_id=f"car_{seed}_{r}", source="twin",
-                       provenance={"system": "car", "seed": seed, "run": r, "version": version,
-                                   "world": profile.to_json(), "contact_ticks": int(world.contact_ticks[r]),
-                                   "controller_reset_at_row": 0})
+        meta = LogMeta(
+            schema=system.schema,
+            controller=controller.to_json(),
+            period_ms=profile.period_ms,
+            run_id=f"car_{seed}_{r}",
+            source="twin",
+            provenance={
+                "system": "car",
+                "seed": seed,
+                "run": r,
+                "version": version,
+                "world": profile.to_json(),
+                "contact_ticks": int(world.contact_ticks[r]),
+                "controller_reset_at_row": 0,
+            },
+        )
         logs.append(Log(None, time.copy(), states[r].copy(), actions[r].copy(), meta, terms[r].copy()))
     return logs
 
 
-def generate_car_versions(runs: int, steps: int = 100, seed: int = 0,
-                          versions: list[int] | None = None, **options: Any) -> list[Log]:
+def generate_car_versions(
+    runs: int, steps: int = 100, seed: int = 0, versions: list[int] | None = None, **options: Any
+) -> list[Log]:
     """``runs`` logs of each shipped version (all five by default); version ``i`` uses seed
     ``seed + 1000 * i`` so versions meet different lanes and leads, as field runs would."""
     specs = car_versions()

@@ -30,38 +30,38 @@ class CarProfile:
     the ultrasonic sensor reports); ``(low, high)`` pairs are per-run uniform draws."""
 
     # ego car and lane
-    wheel_mm: float = 56.0            # tyre diameter: 1 deg/s of the wheels = 0.489 mm/s
+    wheel_mm: float = 56.0  # tyre diameter: 1 deg/s of the wheels = 0.489 mm/s
     wheelbase_mm: float = 140.0
-    ahead_mm: float = 60.0            # colour sensor ahead of the rear axle
-    spot_mm: float = 20.0             # width of the black-to-white blend under the sensor
+    ahead_mm: float = 60.0  # colour sensor ahead of the rear axle
+    spot_mm: float = 20.0  # width of the black-to-white blend under the sensor
     black: float = 5.0
     white: float = 75.0
-    white_sd: float = 2.5             # per-run white level (paper, light)
-    color_noise: float = 1.5          # colour sensor noise, sd in %
-    steer_tau_s: float = 0.06         # steering servo, first order
-    steer_limit_deg: float = 45.0     # front-wheel end stops
-    motor_tau_s: float = 0.15         # drive motor + mass, first order from command to wheel speed
+    white_sd: float = 2.5  # per-run white level (paper, light)
+    color_noise: float = 1.5  # colour sensor noise, sd in %
+    steer_tau_s: float = 0.06  # steering servo, first order
+    steer_limit_deg: float = 45.0  # front-wheel end stops
+    motor_tau_s: float = 0.15  # drive motor + mass, first order from command to wheel speed
     curvature_amp_per_m: float = 1.0  # lane curvature: mean + amp * sin(2 pi s / wavelength + phase)
     curvature_mean_sd_per_m: float = 0.3
     wavelength_m: float = 1.5
     # lead vehicle (cm/s)
-    lead_cruise: tuple[float, float] = (4.0, 10.0)     # per-run cruising speed
-    lead_accel: tuple[float, float] = (15.0, 30.0)     # per-run acceleration limit, cm/s^2
-    lead_brake: float = 40.0                            # braking limit, cm/s^2
-    lead_events_per_s: float = 0.5                      # rate of new speed targets
-    lead_stop_prob: float = 0.2                         # a new target is a stop...
-    lead_slow_prob: float = 0.3                         # ...a slow-down to 30-60 % of cruise, else cruise +-25 %
+    lead_cruise: tuple[float, float] = (4.0, 10.0)  # per-run cruising speed
+    lead_accel: tuple[float, float] = (15.0, 30.0)  # per-run acceleration limit, cm/s^2
+    lead_brake: float = 40.0  # braking limit, cm/s^2
+    lead_events_per_s: float = 0.5  # rate of new speed targets
+    lead_stop_prob: float = 0.2  # a new target is a stop...
+    lead_slow_prob: float = 0.3  # ...a slow-down to 30-60 % of cruise, else cruise +-25 %
     # ultrasonic sensor (cm)
-    echo_range: tuple[float, float] = (110.0, 160.0)   # per-run: beyond it no echo, the reading is 255
+    echo_range: tuple[float, float] = (110.0, 160.0)  # per-run: beyond it no echo, the reading is 255
     distance_noise: float = 0.7
-    dropout_prob: float = 0.002                         # a spurious 255 per reading
+    dropout_prob: float = 0.002  # a spurious 255 per reading
     gap_start: tuple[float, float] = (25.0, 70.0)
-    far_start_prob: float = 0.2                         # a run starts with the lead far ahead...
+    far_start_prob: float = 0.2  # a run starts with the lead far ahead...
     far_gap_start: tuple[float, float] = (220.0, 300.0)  # ...here, beyond any echo range
     # timing
     period_ms: float = 40.0
-    warmup: int = 75                  # unlogged ticks before logging starts (3 s)
-    substeps: int = 4                 # Euler sub-steps per control period (10 ms)
+    warmup: int = 75  # unlogged ticks before logging starts (3 s)
+    substeps: int = 4  # Euler sub-steps per control period (10 ms)
 
     @property
     def mm_per_wheel_deg(self) -> float:
@@ -119,9 +119,15 @@ class CarBatch:
         event = self.rng.random(n) < p.lead_events_per_s * dt
         kind = self.rng.random(n)
         scale = self.rng.random(n)
-        target = np.where(kind < p.lead_stop_prob, 0.0,
-                          np.where(kind < p.lead_stop_prob + p.lead_slow_prob, self.cruise * (0.3 + 0.3 * scale),
-                                   self.cruise * (0.75 + 0.5 * scale)))
+        target = np.where(
+            kind < p.lead_stop_prob,
+            0.0,
+            np.where(
+                kind < p.lead_stop_prob + p.lead_slow_prob,
+                self.cruise * (0.3 + 0.3 * scale),
+                self.cruise * (0.75 + 0.5 * scale),
+            ),
+        )
         self.lead_target = np.where(event, target, self.lead_target)
 
     def apply(self, actions: np.ndarray) -> None:
@@ -140,7 +146,8 @@ class CarBatch:
             self.wheel = self.wheel + (wheel_cmd - self.wheel) * a_motor
             v = self.wheel * p.mm_per_wheel_deg  # mm/s
             kappa = self.kappa_mean + p.curvature_amp_per_m * np.sin(
-                2 * math.pi * self.s / (p.wavelength_m * 1000) + self.kappa_phase)
+                2 * math.pi * self.s / (p.wavelength_m * 1000) + self.kappa_phase
+            )
             yaw = -v / p.wheelbase_mm * np.tan(np.radians(self.delta)) - v * kappa / 1000
             self.psi = np.clip(self.psi + yaw * h, -1.3, 1.3)
             self.y = self.y + v * np.sin(self.psi) * h

@@ -43,15 +43,20 @@ def _generate_car(args: argparse.Namespace) -> int:
     ``--param kp_steer=.. kp_speed=..`` on the description's controller (or ``--controller``)."""
     try:
         if args.effects is not None or args.profile is not None:
-            raise ValueError("--effects and --profile apply to the lane-keeping twin; the car's world "
-                             "takes --world name=value (e.g. dropout_prob=0)")
+            raise ValueError(
+                "--effects and --profile apply to the lane-keeping twin; the car's world "
+                "takes --world name=value (e.g. dropout_prob=0)"
+            )
         world = parse_params(args.world)
         if args.param is not None or args.controller is not None:
             if args.version is not None:
                 raise ValueError("give either --version or --param/--controller, not both")
             params = parse_params(args.param)
-            spec = (ControllerSpec(args.controller, params) if args.controller
-                    else load_system("car").controller_for(params))
+            spec = (
+                ControllerSpec(args.controller, params)
+                if args.controller
+                else load_system("car").controller_for(params)
+            )
             if spec is None:
                 raise ValueError("the car system description declares no controller")
             spec.build(n_state=2, n_action=2)  # fail on a bad controller before any work
@@ -84,8 +89,15 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         return 2
     budget = 25.0 if args.quick else args.budget
     start = TwinProfile.load(args.start) if args.start else None
-    prof = calibrate(logs, key=args.key, budget_s=budget, runs=60 if args.quick else 160, seed=args.seed,
-                     start=start, progress=None if args.quiet else print)
+    prof = calibrate(
+        logs,
+        key=args.key,
+        budget_s=budget,
+        runs=60 if args.quick else 160,
+        seed=args.seed,
+        start=start,
+        progress=None if args.quiet else print,
+    )
     out = Path(args.out)
     prof, _ = write_calibration(prof, logs, out, key=args.key)
     path = out / "profile.json"
@@ -101,21 +113,44 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     sub = twin.add_subparsers(dest="twin_command", required=True)
 
     p = sub.add_parser("generate", help="write twin logs with sidecars")
-    p.add_argument("--system", choices=("lane-keeping", "car"), default="lane-keeping",
-                   help="which twin: the lane-keeping robot (default) or the car following a lead vehicle")
-    p.add_argument("--controller", default=None,
-                   help="registered name or package.module:function (default: lane-keeping; for the car, "
-                        "its description's two PIDs)")
-    p.add_argument("--param", nargs="*", default=None,
-                   help="controller parameters, e.g. x=30; for the car its version gains kp_steer=1.2 kp_speed=22")
-    p.add_argument("--version", nargs="*", type=int, default=None,
-                   help="car: shipped versions by index (default: all five; 0-2 train, 3-4 unseen)")
-    p.add_argument("--world", nargs="*", default=None,
-                   help="car: world parameters, e.g. dropout_prob=0 far_start_prob=0.5 (see CarProfile)")
+    p.add_argument(
+        "--system",
+        choices=("lane-keeping", "car"),
+        default="lane-keeping",
+        help="which twin: the lane-keeping robot (default) or the car following a lead vehicle",
+    )
+    p.add_argument(
+        "--controller",
+        default=None,
+        help="registered name or package.module:function (default: lane-keeping; for the car, "
+        "its description's two PIDs)",
+    )
+    p.add_argument(
+        "--param",
+        nargs="*",
+        default=None,
+        help="controller parameters, e.g. x=30; for the car its version gains kp_steer=1.2 kp_speed=22",
+    )
+    p.add_argument(
+        "--version",
+        nargs="*",
+        type=int,
+        default=None,
+        help="car: shipped versions by index (default: all five; 0-2 train, 3-4 unseen)",
+    )
+    p.add_argument(
+        "--world",
+        nargs="*",
+        default=None,
+        help="car: world parameters, e.g. dropout_prob=0 far_start_prob=0.5 (see CarProfile)",
+    )
     p.add_argument("--runs", type=int, default=30)
     p.add_argument("--steps", type=int, default=100)
-    p.add_argument("--effects", default=None,
-                   help="on top of the profile's: delay=2,noise=1.5,jitter.pause_prob=0.01,glitch; =0 turns one off")
+    p.add_argument(
+        "--effects",
+        default=None,
+        help="on top of the profile's: delay=2,noise=1.5,jitter.pause_prob=0.01,glitch; =0 turns one off",
+    )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--profile", default=None, help="profile JSON (default: the shipped calibrated one)")
     p.add_argument("--out", required=True)

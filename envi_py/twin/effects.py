@@ -30,51 +30,129 @@ class Effect:
     primary: str
 
 
-EFFECTS: dict[str, Effect] = {e.name: e for e in (
-    Effect("delay", "actuation delay: the commanded angle reaches the steering k ticks later",
-           {"ticks": Param(1, "ticks", "delay in control periods")}, "ticks"),
-    Effect("lag", "steering actuator lag: the angle follows the command as a first-order system",
-           {"tau_ms": Param(60.0, "ms", "time constant")}, "tau_ms"),
-    Effect("rate_limit", "steering rate limit: the angle moves at most this fast toward the command",
-           {"deg_per_s": Param(600.0, "deg/s", "maximum steering speed")}, "deg_per_s"),
-    Effect("backlash", "steering backlash: the angle does not move until the command leaves a play band",
-           {"width_deg": Param(6.0, "deg", "full width of the play")}, "width_deg"),
-    Effect("deadzone", "steering dead zone: commands within +-width give no angle, larger ones lose width",
-           {"width_deg": Param(5.0, "deg", "half width of the dead zone")}, "width_deg"),
-    Effect("steer_limit", "steering end stops, possibly asymmetric: the wheel angle saturates",
-           {"pos_deg": Param(45.0, "deg", "largest angle toward black (positive commands)"),
-            "neg_deg": Param(45.0, "deg", "largest angle toward white (negative commands), as a magnitude")},
-           "pos_deg"),
-    Effect("noise", "Gaussian sensor noise on the colour reading",
-           {"sigma": Param(1.5, "colour units", "standard deviation")}, "sigma"),
-    Effect("quantise", "sensor quantisation: the reading is rounded to a multiple of step",
-           {"step": Param(1.0, "colour units", "quantisation step")}, "step"),
-    Effect("lowpass", "sensor low-pass response: the reading follows the surface as a first-order system",
-           {"tau_ms": Param(40.0, "ms", "time constant")}, "tau_ms"),
-    Effect("saturation", "the sensor clips readings to its range",
-           {"low": Param(0.0, "colour units", "lowest reading"), "high": Param(100.0, "colour units", "highest reading")},
-           "high"),
-    Effect("battery", "battery sag: speed falls linearly over the run",
-           {"sag": Param(0.2, "fraction", "speed lost by the end of the run")}, "sag"),
-    Effect("run_variation", "run-to-run differences of speed, steering grip and white reflectance",
-           {"speed_sd": Param(0.05, "fraction", "relative sd of speed"),
-            "grip_sd": Param(0.05, "fraction", "relative sd of steering grip"),
-            "white_sd": Param(0.0, "colour units", "sd of the white reflectance")}, "speed_sd"),
-    Effect("patches", "slippery patches along the track reduce the steering grip",
-           {"per_m": Param(2.0, "1/m", "patches per metre travelled"),
-            "length_mm": Param(100.0, "mm", "patch length"),
-            "grip": Param(0.5, "fraction", "steering grip on a patch")}, "per_m"),
-    Effect("curvature", "curved lane: the edge turns under the robot",
-           {"mean_per_m": Param(0.0, "1/m", "mean curvature"),
-            "amp_per_m": Param(2.0, "1/m", "amplitude of the sinusoidal curvature"),
-            "wavelength_m": Param(1.0, "m", "wavelength of the curvature")}, "amp_per_m"),
-    Effect("jitter", "sampling jitter and rare long pauses (the robot stands still during a pause)",
-           {"extra_ms": Param(2.0, "ms", "mean of the exponential extra delay per period (floored to ms)"),
-            "pause_prob": Param(0.0, "1/tick", "probability of a long pause per period"),
-            "pause_ms": Param(11000.0, "ms", "mean pause length (uniform within +-25%)")}, "extra_ms"),
-    Effect("glitch", "rare sensor glitches: a reading replaced by a uniform random value in 0..100",
-           {"prob": Param(0.01, "1/sample", "glitch probability per sample")}, "prob"),
-)}
+EFFECTS: dict[str, Effect] = {
+    e.name: e
+    for e in (
+        Effect(
+            "delay",
+            "actuation delay: the commanded angle reaches the steering k ticks later",
+            {"ticks": Param(1, "ticks", "delay in control periods")},
+            "ticks",
+        ),
+        Effect(
+            "lag",
+            "steering actuator lag: the angle follows the command as a first-order system",
+            {"tau_ms": Param(60.0, "ms", "time constant")},
+            "tau_ms",
+        ),
+        Effect(
+            "rate_limit",
+            "steering rate limit: the angle moves at most this fast toward the command",
+            {"deg_per_s": Param(600.0, "deg/s", "maximum steering speed")},
+            "deg_per_s",
+        ),
+        Effect(
+            "backlash",
+            "steering backlash: the angle does not move until the command leaves a play band",
+            {"width_deg": Param(6.0, "deg", "full width of the play")},
+            "width_deg",
+        ),
+        Effect(
+            "deadzone",
+            "steering dead zone: commands within +-width give no angle, larger ones lose width",
+            {"width_deg": Param(5.0, "deg", "half width of the dead zone")},
+            "width_deg",
+        ),
+        Effect(
+            "steer_limit",
+            "steering end stops, possibly asymmetric: the wheel angle saturates",
+            {
+                "pos_deg": Param(45.0, "deg", "largest angle toward black (positive commands)"),
+                "neg_deg": Param(45.0, "deg", "largest angle toward white (negative commands), as a magnitude"),
+            },
+            "pos_deg",
+        ),
+        Effect(
+            "noise",
+            "Gaussian sensor noise on the colour reading",
+            {"sigma": Param(1.5, "colour units", "standard deviation")},
+            "sigma",
+        ),
+        Effect(
+            "quantise",
+            "sensor quantisation: the reading is rounded to a multiple of step",
+            {"step": Param(1.0, "colour units", "quantisation step")},
+            "step",
+        ),
+        Effect(
+            "lowpass",
+            "sensor low-pass response: the reading follows the surface as a first-order system",
+            {"tau_ms": Param(40.0, "ms", "time constant")},
+            "tau_ms",
+        ),
+        Effect(
+            "saturation",
+            "the sensor clips readings to its range",
+            {
+                "low": Param(0.0, "colour units", "lowest reading"),
+                "high": Param(100.0, "colour units", "highest reading"),
+            },
+            "high",
+        ),
+        Effect(
+            "battery",
+            "battery sag: speed falls linearly over the run",
+            {"sag": Param(0.2, "fraction", "speed lost by the end of the run")},
+            "sag",
+        ),
+        Effect(
+            "run_variation",
+            "run-to-run differences of speed, steering grip and white reflectance",
+            {
+                "speed_sd": Param(0.05, "fraction", "relative sd of speed"),
+                "grip_sd": Param(0.05, "fraction", "relative sd of steering grip"),
+                "white_sd": Param(0.0, "colour units", "sd of the white reflectance"),
+            },
+            "speed_sd",
+        ),
+        Effect(
+            "patches",
+            "slippery patches along the track reduce the steering grip",
+            {
+                "per_m": Param(2.0, "1/m", "patches per metre travelled"),
+                "length_mm": Param(100.0, "mm", "patch length"),
+                "grip": Param(0.5, "fraction", "steering grip on a patch"),
+            },
+            "per_m",
+        ),
+        Effect(
+            "curvature",
+            "curved lane: the edge turns under the robot",
+            {
+                "mean_per_m": Param(0.0, "1/m", "mean curvature"),
+                "amp_per_m": Param(2.0, "1/m", "amplitude of the sinusoidal curvature"),
+                "wavelength_m": Param(1.0, "m", "wavelength of the curvature"),
+            },
+            "amp_per_m",
+        ),
+        Effect(
+            "jitter",
+            "sampling jitter and rare long pauses (the robot stands still during a pause)",
+            {
+                "extra_ms": Param(2.0, "ms", "mean of the exponential extra delay per period (floored to ms)"),
+                "pause_prob": Param(0.0, "1/tick", "probability of a long pause per period"),
+                "pause_ms": Param(11000.0, "ms", "mean pause length (uniform within +-25%)"),
+            },
+            "extra_ms",
+        ),
+        Effect(
+            "glitch",
+            "rare sensor glitches: a reading replaced by a uniform random value in 0..100",
+            {"prob": Param(0.01, "1/sample", "glitch probability per sample")},
+            "prob",
+        ),
+    )
+}
 
 
 def effect_params(name: str, value: Mapping[str, Any] | float | int | bool | None) -> dict[str, float] | None:
@@ -91,8 +169,9 @@ def effect_params(name: str, value: Mapping[str, Any] | float | int | bool | Non
     if isinstance(value, Mapping):
         unknown = set(value) - set(eff.params)
         if unknown:
-            raise ValueError(f"effect {name!r}: unknown parameter(s) {', '.join(sorted(unknown))}; "
-                             f"known: {', '.join(eff.params)}")
+            raise ValueError(
+                f"effect {name!r}: unknown parameter(s) {', '.join(sorted(unknown))}; known: {', '.join(eff.params)}"
+            )
         return {k: float(value.get(k, p.default)) for k, p in eff.params.items()}
     if value is True:
         return {k: float(p.default) for k, p in eff.params.items()}

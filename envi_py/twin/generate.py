@@ -16,8 +16,9 @@ from .profile import TwinProfile, default_profile
 from .world import Batch
 
 
-def sample_periods(effects: dict[str, dict[str, float]], period_ms: float, shape: tuple[int, ...],
-                   rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+def sample_periods(
+    effects: dict[str, dict[str, float]], period_ms: float, shape: tuple[int, ...], rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
     """Logged periods and the periods the robot actually moves (ms). They differ only in a pause:
     the real logs continue smoothly across their 10 s gaps, so the robot stood still."""
     jit = effects.get("jitter")
@@ -30,12 +31,18 @@ def sample_periods(effects: dict[str, dict[str, float]], period_ms: float, shape
     return moving + pause, moving
 
 
-def simulate(controller: ControllerSpec, runs: int, steps: int, effects: dict[str, dict[str, float]],
-             profile: TwinProfile, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def simulate(
+    controller: ControllerSpec,
+    runs: int,
+    steps: int,
+    effects: dict[str, dict[str, float]],
+    profile: TwinProfile,
+    rng: np.random.Generator,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Raw arrays of ``runs`` twin runs: time (R, T) ms from 0, colour (R, T), angle (R, T)."""
     total = profile.warmup + steps
     logged, moving = sample_periods(effects, profile.period_ms, (runs, total), rng)
-    horizon = float(moving[:, profile.warmup:].sum(1).mean()) / 1000
+    horizon = float(moving[:, profile.warmup :].sum(1).mean()) / 1000
     dist = profile.speed * 1.5 * float(moving.sum(1).max()) / 1000
     batch = Batch(profile, effects, runs, rng, horizon, dist)
     ctrl = controller.build()
@@ -49,14 +56,19 @@ def simulate(controller: ControllerSpec, runs: int, steps: int, effects: dict[st
         if i >= profile.warmup:
             color[:, i - profile.warmup], angle[:, i - profile.warmup] = c, a
         batch.apply(a, moving[:, i] / 1000)
-    dt = logged[:, profile.warmup:]
+    dt = logged[:, profile.warmup :]
     time = np.concatenate([np.zeros((runs, 1)), np.cumsum(dt[:, :-1], axis=1)], axis=1)
     return time, color, angle
 
 
-def generate(controller: ControllerSpec, runs: int, steps: int = 100,
-             effects: dict[str, Any] | None = None, seed: int = 0,
-             profile: TwinProfile | None = None) -> list[Log]:
+def generate(
+    controller: ControllerSpec,
+    runs: int,
+    steps: int = 100,
+    effects: dict[str, Any] | None = None,
+    seed: int = 0,
+    profile: TwinProfile | None = None,
+) -> list[Log]:
     """``runs`` twin logs of ``steps`` rows driven by ``controller``.
 
     ``effects`` go on top of the profile's own (a value of ``None``/0 switches a profile effect
@@ -74,10 +86,14 @@ def generate(controller: ControllerSpec, runs: int, steps: int = 100,
     injected = sorted(resolve({}, {k: v for k, v in (effects or {}).items() if v not in (None, False, 0)}))
     logs = []
     for r in range(runs):
-        meta = LogMeta(schema=LANE_KEEPING_SCHEMA, controller=controller.to_json(), period_ms=profile.period_ms,
-                       run_id=f"twin_{seed}_{r}", source="twin",
-                       provenance={"effects": active, "injected": injected, "seed": seed, "run": r,
-                                   "profile": prof})
+        meta = LogMeta(
+            schema=LANE_KEEPING_SCHEMA,
+            controller=controller.to_json(),
+            period_ms=profile.period_ms,
+            run_id=f"twin_{seed}_{r}",
+            source="twin",
+            provenance={"effects": active, "injected": injected, "seed": seed, "run": r, "profile": prof},
+        )
         logs.append(Log(None, time[r].copy(), color[r][:, None].copy(), angle[r][:, None].copy(), meta))
     return logs
 

@@ -31,36 +31,59 @@ def twin_distances(t: Target, profile: TwinProfile, cfg: MetricConfig, seed: int
     parts = []
     for k in range(SPLITS):
         perm = rng.permutation(n)
-        parts.append(distances(t.color[perm[:half]], pool[k * half:(k + 1) * half], cfg))
-    return {"w1": np.mean([d.w1 for d in parts], 0), "ks": np.mean([d.ks for d in parts], 0),
-            "acc": float(np.mean([d.acc for d in parts])), "kld": float(np.mean([d.kld for d in parts]))}, pool
+        parts.append(distances(t.color[perm[:half]], pool[k * half : (k + 1) * half], cfg))
+    return {
+        "w1": np.mean([d.w1 for d in parts], 0),
+        "ks": np.mean([d.ks for d in parts], 0),
+        "acc": float(np.mean([d.acc for d in parts])),
+        "kld": float(np.mean([d.kld for d in parts])),
+    }, pool
 
 
-def fit_summary(profile: TwinProfile, logs: list[Log], key: str = "x", cfg: MetricConfig = MetricConfig(),
-                seed: int = 12345) -> tuple[dict[str, Any], dict[Any, tuple[np.ndarray, np.ndarray]]]:
+def fit_summary(
+    profile: TwinProfile, logs: list[Log], key: str = "x", cfg: MetricConfig = MetricConfig(), seed: int = 12345
+) -> tuple[dict[str, Any], dict[Any, tuple[np.ndarray, np.ndarray]]]:
     """Per version: metric and statistic distributions, distances, floor and their ratios."""
     from envi_py.metrics import driving_metrics
 
-    out: dict[str, Any] = {"seed": seed, "splits": SPLITS, "metric_config": vars(cfg) if hasattr(cfg, "__dict__") else {},
-                           "versions": {}}
+    out: dict[str, Any] = {
+        "seed": seed,
+        "splits": SPLITS,
+        "metric_config": vars(cfg) if hasattr(cfg, "__dict__") else {},
+        "versions": {},
+    }
     traces = {}
     for i, t in enumerate(targets(logs, key, cfg)):
         value = t.spec.params.get(key)
         d, pool = twin_distances(t, profile, cfg, seed + i)
         fl = floor(t.color, cfg, splits=SPLITS, seed=seed)
         mr, mt = driving_metrics(t.color, cfg), driving_metrics(pool, cfg)
-        sr, st = run_stats(t.color[:, cfg.skip:], cfg.centre), run_stats(pool[:, cfg.skip:], cfg.centre)
+        sr, st = run_stats(t.color[:, cfg.skip :], cfg.centre), run_stats(pool[:, cfg.skip :], cfg.centre)
         ratio = d["w1"] / np.maximum(fl.w1, 1e-9)
         out["versions"][str(value)] = {
-            "runs_real": int(t.color.shape[0]), "runs_twin": int(pool.shape[0]),
-            "metrics": {m: {"real_mean": float(mr[:, j].mean()), "real_sd": float(mr[:, j].std()),
-                            "twin_mean": float(mt[:, j].mean()), "twin_sd": float(mt[:, j].std()),
-                            "w1_twin": float(d["w1"][j]), "w1_floor": float(fl.w1[j]), "w1_ratio": float(ratio[j]),
-                            "ks_twin": float(d["ks"][j]), "ks_floor": float(fl.ks[j])}
-                        for j, m in enumerate(METRIC_NAMES)},
-            "stats": {s: {"real": float(sr[:, j].mean()), "twin": float(st[:, j].mean())}
-                      for j, s in enumerate(STAT_NAMES)},
-            "acc_twin": d["acc"], "acc_floor": fl.acc, "kld_twin": d["kld"], "kld_floor": fl.kld,
+            "runs_real": int(t.color.shape[0]),
+            "runs_twin": int(pool.shape[0]),
+            "metrics": {
+                m: {
+                    "real_mean": float(mr[:, j].mean()),
+                    "real_sd": float(mr[:, j].std()),
+                    "twin_mean": float(mt[:, j].mean()),
+                    "twin_sd": float(mt[:, j].std()),
+                    "w1_twin": float(d["w1"][j]),
+                    "w1_floor": float(fl.w1[j]),
+                    "w1_ratio": float(ratio[j]),
+                    "ks_twin": float(d["ks"][j]),
+                    "ks_floor": float(fl.ks[j]),
+                }
+                for j, m in enumerate(METRIC_NAMES)
+            },
+            "stats": {
+                s: {"real": float(sr[:, j].mean()), "twin": float(st[:, j].mean())} for j, s in enumerate(STAT_NAMES)
+            },
+            "acc_twin": d["acc"],
+            "acc_floor": fl.acc,
+            "kld_twin": d["kld"],
+            "kld_floor": fl.kld,
             "within_2x": int((ratio <= 2).sum()),
         }
         traces[value] = (t.color, pool)
@@ -68,26 +91,40 @@ def fit_summary(profile: TwinProfile, logs: list[Log], key: str = "x", cfg: Metr
 
 
 def to_markdown(summary: dict[str, Any], profile: TwinProfile) -> str:
-    lines = ["# Twin calibration report", "",
-             "Twin vs real: W1 of each goal metric (divided by its possible range) between a random half of the",
-             f"real runs and as many twin runs, averaged over {summary['splits']} halvings; floor: the same between",
-             "two real halves. ratio = twin / floor (1 = as close as reality to itself; aim <= 2).", "",
-             "## Profile", "", "```json", json.dumps({k: v for k, v in profile.to_json().items() if k != "fit"},
-                                                     indent=1), "```", ""]
+    lines = [
+        "# Twin calibration report",
+        "",
+        "Twin vs real: W1 of each goal metric (divided by its possible range) between a random half of the",
+        f"real runs and as many twin runs, averaged over {summary['splits']} halvings; floor: the same between",
+        "two real halves. ratio = twin / floor (1 = as close as reality to itself; aim <= 2).",
+        "",
+        "## Profile",
+        "",
+        "```json",
+        json.dumps({k: v for k, v in profile.to_json().items() if k != "fit"}, indent=1),
+        "```",
+        "",
+    ]
     for x, v in summary["versions"].items():
         s = v["stats"]
-        lines += [f"## x = {x}  ({v['runs_real']} real runs, {v['within_2x']}/8 metrics within 2x floor)", "",
-                  f"oscillation period {s['period']['real']:.2f} real / {s['period']['twin']:.2f} twin ticks; "
-                  f"amplitude {s['amplitude']['real']:.1f} / {s['amplitude']['twin']:.1f}; colour mean "
-                  f"{s['colour_mean']['real']:.1f} / {s['colour_mean']['twin']:.1f}, sd {s['colour_sd']['real']:.1f} / "
-                  f"{s['colour_sd']['twin']:.1f}; accuracy twin {v['acc_twin']:.3f} floor {v['acc_floor']:.3f}; "
-                  f"KLD twin {v['kld_twin']:.2f} floor {v['kld_floor']:.2f}", "",
-                  "| metric | real mean±sd | twin mean±sd | W1 twin | W1 floor | ratio | KS twin | KS floor |",
-                  "|---|---|---|---|---|---|---|---|"]
+        lines += [
+            f"## x = {x}  ({v['runs_real']} real runs, {v['within_2x']}/8 metrics within 2x floor)",
+            "",
+            f"oscillation period {s['period']['real']:.2f} real / {s['period']['twin']:.2f} twin ticks; "
+            f"amplitude {s['amplitude']['real']:.1f} / {s['amplitude']['twin']:.1f}; colour mean "
+            f"{s['colour_mean']['real']:.1f} / {s['colour_mean']['twin']:.1f}, sd {s['colour_sd']['real']:.1f} / "
+            f"{s['colour_sd']['twin']:.1f}; accuracy twin {v['acc_twin']:.3f} floor {v['acc_floor']:.3f}; "
+            f"KLD twin {v['kld_twin']:.2f} floor {v['kld_floor']:.2f}",
+            "",
+            "| metric | real mean±sd | twin mean±sd | W1 twin | W1 floor | ratio | KS twin | KS floor |",
+            "|---|---|---|---|---|---|---|---|",
+        ]
         for m, r in v["metrics"].items():
-            lines.append(f"| {m} | {r['real_mean']:.1f}±{r['real_sd']:.1f} | {r['twin_mean']:.1f}±{r['twin_sd']:.1f} | "
-                         f"{r['w1_twin']:.4f} | {r['w1_floor']:.4f} | {r['w1_ratio']:.2f} | {r['ks_twin']:.2f} | "
-                         f"{r['ks_floor']:.2f} |")
+            lines.append(
+                f"| {m} | {r['real_mean']:.1f}±{r['real_sd']:.1f} | {r['twin_mean']:.1f}±{r['twin_sd']:.1f} | "
+                f"{r['w1_twin']:.4f} | {r['w1_floor']:.4f} | {r['w1_ratio']:.2f} | {r['ks_twin']:.2f} | "
+                f"{r['ks_floor']:.2f} |"
+            )
         lines.append("")
     return "\n".join(lines)
 
@@ -99,8 +136,9 @@ def plot(traces: dict[Any, tuple[np.ndarray, np.ndarray]], path: Path, show: int
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(len(traces), 2, figsize=(12, 2.2 * len(traces)), squeeze=False,
-                             gridspec_kw={"width_ratios": [3, 1]})
+    fig, axes = plt.subplots(
+        len(traces), 2, figsize=(12, 2.2 * len(traces)), squeeze=False, gridspec_kw={"width_ratios": [3, 1]}
+    )
     for row, (x, (real, twin)) in enumerate(traces.items()):
         ax = axes[row, 0]
         for k in range(2):
@@ -120,8 +158,14 @@ def plot(traces: dict[Any, tuple[np.ndarray, np.ndarray]], path: Path, show: int
     plt.close(fig)
 
 
-def write_report(profile: TwinProfile, logs: list[Log], out_dir: Path, key: str = "x",
-                 cfg: MetricConfig = MetricConfig(), seed: int = 12345) -> dict[str, Any]:
+def write_report(
+    profile: TwinProfile,
+    logs: list[Log],
+    out_dir: Path,
+    key: str = "x",
+    cfg: MetricConfig = MetricConfig(),
+    seed: int = 12345,
+) -> dict[str, Any]:
     """Write report.md, report.json and traces.png; return the summary."""
     out_dir.mkdir(parents=True, exist_ok=True)
     summary, traces = fit_summary(profile, logs, key, cfg, seed)
@@ -133,14 +177,20 @@ def write_report(profile: TwinProfile, logs: list[Log], out_dir: Path, key: str 
 
 def headline(summary: dict[str, Any]) -> dict[str, dict[str, float]]:
     """The compact figure stored in the profile and re-checked by the tests."""
-    return {x: {"median_w1_ratio": float(np.median([m["w1_ratio"] for m in v["metrics"].values()])),
-                "within_2x": v["within_2x"], "period_twin": v["stats"]["period"]["twin"],
-                "amplitude_twin": v["stats"]["amplitude"]["twin"]}
-            for x, v in summary["versions"].items()}
+    return {
+        x: {
+            "median_w1_ratio": float(np.median([m["w1_ratio"] for m in v["metrics"].values()])),
+            "within_2x": v["within_2x"],
+            "period_twin": v["stats"]["period"]["twin"],
+            "amplitude_twin": v["stats"]["amplitude"]["twin"],
+        }
+        for x, v in summary["versions"].items()
+    }
 
 
-def write_calibration(profile: TwinProfile, logs: list[Log], out_dir: Path, key: str = "x",
-                      cfg: MetricConfig = MetricConfig()) -> tuple[TwinProfile, dict[str, Any]]:
+def write_calibration(
+    profile: TwinProfile, logs: list[Log], out_dir: Path, key: str = "x", cfg: MetricConfig = MetricConfig()
+) -> tuple[TwinProfile, dict[str, Any]]:
     """Report on a fitted profile and save it as ``profile.json`` with its headline fit attached."""
     summary = write_report(profile, logs, out_dir, key, cfg)
     fitted = profile.replace(fit={"seed": summary["seed"], "key": key, "headline": headline(summary)})

@@ -27,8 +27,15 @@ SUBSTEPS = 2  # Euler sub-steps per control period; 2 keeps the 6 mm/period moti
 class Batch:
     """N independent twin runs advanced together; the engine of :func:`generate` and :class:`TwinWorld`."""
 
-    def __init__(self, profile: TwinProfile, effects: dict[str, dict[str, float]], n: int,
-                 rng: np.random.Generator, horizon_s: float, max_distance_mm: float) -> None:
+    def __init__(
+        self,
+        profile: TwinProfile,
+        effects: dict[str, dict[str, float]],
+        n: int,
+        rng: np.random.Generator,
+        horizon_s: float,
+        max_distance_mm: float,
+    ) -> None:
         self.p, self.fx, self.n, self.rng = profile, effects, n, rng
         self.horizon_s = max(horizon_s, 1e-9)
         rv = effects.get("run_variation", {})
@@ -59,12 +66,12 @@ class Batch:
 
     def _surface(self) -> np.ndarray:
         """Reflectance under the sensor spot: a smooth step across the edge, bent by the sensor's
-    non-linearity (the real readings linger longer on the white side than a linear blend would)."""
+        non-linearity (the real readings linger longer on the white side than a linear blend would)."""
         ys = self.y + self.p.ahead * np.sin(self.psi)
         u = np.clip(ys / self.p.spot + 0.5, 0.0, 1.0)
         blend = u * u * (3 - 2 * u)
         if self.p.gamma != 1.0:
-            blend = blend ** self.p.gamma
+            blend = blend**self.p.gamma
         return self.p.black + (self.white_run - self.p.black) * blend
 
     def read(self) -> np.ndarray:
@@ -126,7 +133,8 @@ class Batch:
             if self.curve_phase is not None:
                 cv = fx["curvature"]
                 kappa = cv["mean_per_m"] + cv["amp_per_m"] * np.sin(
-                    2 * math.pi * self.s / (cv["wavelength_m"] * 1000) + self.curve_phase)
+                    2 * math.pi * self.s / (cv["wavelength_m"] * 1000) + self.curve_phase
+                )
                 yaw = yaw - v * kappa / 1000
             self.psi = np.clip(self.psi + yaw * h, -1.3, 1.3)
             self.y = self.y + v * np.sin(self.psi) * h
@@ -147,8 +155,13 @@ class TwinWorld:
     jitter is the brick's own business here (it decides ``dt``), so the ``jitter`` effect is unused.
     """
 
-    def __init__(self, profile: TwinProfile | None = None, effects: dict[str, Any] | None = None,
-                 seed: int = 0, horizon_s: float = 4.0) -> None:
+    def __init__(
+        self,
+        profile: TwinProfile | None = None,
+        effects: dict[str, Any] | None = None,
+        seed: int = 0,
+        horizon_s: float = 4.0,
+    ) -> None:
         self.profile = profile or default_profile()
         self.effects = resolve(self.profile.effects, effects)
         self.horizon_s = horizon_s
@@ -173,5 +186,9 @@ class TwinWorld:
     def state(self) -> dict[str, float]:
         """Hidden state, for tests and plots."""
         b = self.batch
-        return {"y_mm": float(b.y[0]), "psi_rad": float(b.psi[0]), "delta_deg": float(b.delta[0]),
-                "s_mm": float(b.s[0])}
+        return {
+            "y_mm": float(b.y[0]),
+            "psi_rad": float(b.psi[0]),
+            "delta_deg": float(b.delta[0]),
+            "s_mm": float(b.s[0]),
+        }

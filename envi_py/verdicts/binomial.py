@@ -68,9 +68,16 @@ class BinomialDecision:
         return self.k / self.n if self.n else float("nan")
 
     def to_json(self) -> dict[str, Any]:
-        return {"verdict": self.verdict.value, "k": self.k, "n": self.n, "p_hat": self.p_hat if self.n else None,
-                "p_required": self.p_required, "confidence": self.confidence,
-                "interval": [self.low, self.high], "method": "clopper-pearson"}
+        return {
+            "verdict": self.verdict.value,
+            "k": self.k,
+            "n": self.n,
+            "p_hat": self.p_hat if self.n else None,
+            "p_required": self.p_required,
+            "confidence": self.confidence,
+            "interval": [self.low, self.high],
+            "method": "clopper-pearson",
+        }
 
 
 def decide(k: int, n: int, p_required: float, alpha: float = 0.05) -> BinomialDecision:

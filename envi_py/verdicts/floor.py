@@ -110,14 +110,25 @@ class FairFloor:
     permutations: int
 
     def to_json(self) -> dict[str, Any]:
-        return {"sim": self.sim, "floor": self.floor, "ratio": _finite(self.ratio),
-                "ratio_null_band": [_finite(v) for v in self.ratio_null_band], "statistic": self.statistic,
-                "statistic_null_band": list(self.statistic_null_band), "p_value": self.p_value,
-                "level": self.level, "within_floor": self.within_floor, "n_real": self.n_real, "n_sim": self.n_sim,
-                "per_side": self.per_side, "test_per_side": self.n_real, "repetitions": self.repetitions,
-                "permutations": self.permutations,
-                "design": "ratio: d(real half, m sims) / d(real half, other real half), m = n_real // 2 per side; "
-                          "test: d(all real, n_real sims) against relabellings of real and sim runs"}
+        return {
+            "sim": self.sim,
+            "floor": self.floor,
+            "ratio": _finite(self.ratio),
+            "ratio_null_band": [_finite(v) for v in self.ratio_null_band],
+            "statistic": self.statistic,
+            "statistic_null_band": list(self.statistic_null_band),
+            "p_value": self.p_value,
+            "level": self.level,
+            "within_floor": self.within_floor,
+            "n_real": self.n_real,
+            "n_sim": self.n_sim,
+            "per_side": self.per_side,
+            "test_per_side": self.n_real,
+            "repetitions": self.repetitions,
+            "permutations": self.permutations,
+            "design": "ratio: d(real half, m sims) / d(real half, other real half), m = n_real // 2 per side; "
+            "test: d(all real, n_real sims) against relabellings of real and sim runs",
+        }
 
 
 def _finite(x: float) -> float | None:
@@ -130,14 +141,15 @@ def _ratio(sim: float, floor: float) -> float:
     return 1.0 if sim == 0 else np.inf
 
 
-def _matched(real: np.ndarray, sim: np.ndarray, distance: Distance, m: int, repetitions: int,
-             rng: np.random.Generator) -> tuple[float, float, float]:
+def _matched(
+    real: np.ndarray, sim: np.ndarray, distance: Distance, m: int, repetitions: int, rng: np.random.Generator
+) -> tuple[float, float, float]:
     """Steps 1-2 of the design: mean d(A_b, S_b), mean d(A_b, B_b) and T = mean d(real, n sims)."""
     n = real.shape[0]
     d = np.empty((repetitions, 3))
     for b in range(repetitions):
         order = rng.permutation(n)
-        half_a, half_b = real[order[:m]], real[order[m:2 * m]]
+        half_a, half_b = real[order[:m]], real[order[m : 2 * m]]
         sims = sim[rng.choice(sim.shape[0], n, replace=False)]
         d[b] = distance(half_a, sims[:m]), distance(half_a, half_b), distance(real, sims)
     if not np.all(np.isfinite(d)):
@@ -146,8 +158,15 @@ def _matched(real: np.ndarray, sim: np.ndarray, distance: Distance, m: int, repe
     return float(d_sim), float(d_floor), float(t)
 
 
-def fair_floor(real: object, sim: object, distance: Distance, repetitions: int = 20, permutations: int = 199,
-               level: float = 0.05, seed: int = 0) -> FairFloor:
+def fair_floor(
+    real: object,
+    sim: object,
+    distance: Distance,
+    repetitions: int = 20,
+    permutations: int = 199,
+    level: float = 0.05,
+    seed: int = 0,
+) -> FairFloor:
     """Compare simulated with real runs at matched sizes against real-vs-real (design in the module docstring).
 
     ``real`` and ``sim`` are (runs,) or (runs, features) per-run figures (e.g. goal metrics, or the
@@ -162,20 +181,35 @@ def fair_floor(real: object, sim: object, distance: Distance, repetitions: int =
     if m < 1:
         raise ValueError(f"the fair floor needs at least 2 real runs, got {r.shape[0]}")
     if s.shape[0] < r.shape[0]:
-        raise ValueError(f"the fair floor needs at least as many simulated runs as real ones ({r.shape[0]}), "
-                         f"got {s.shape[0]}")
+        raise ValueError(
+            f"the fair floor needs at least as many simulated runs as real ones ({r.shape[0]}), got {s.shape[0]}"
+        )
     rng = np.random.default_rng(seed)
     d_sim, d_floor, observed = _matched(r, s, distance, m, repetitions, rng)
     pool = np.concatenate([r, s])
     null_stat, null_ratio = np.empty(permutations), np.empty(permutations)
     for i in range(permutations):
         order = rng.permutation(pool.shape[0])
-        ns, nf, null_stat[i] = _matched(pool[order[:r.shape[0]]], pool[order[r.shape[0]:]], distance, m,
-                                        repetitions, rng)
+        ns, nf, null_stat[i] = _matched(
+            pool[order[: r.shape[0]]], pool[order[r.shape[0] :]], distance, m, repetitions, rng
+        )
         null_ratio[i] = _ratio(ns, nf)
     p = float((1 + np.sum(null_stat >= observed)) / (1 + permutations))
     q = [level / 2, 1 - level / 2]
     r_band, t_band = np.quantile(null_ratio, q), np.quantile(null_stat, q)
-    return FairFloor(d_sim, d_floor, _ratio(d_sim, d_floor), (float(r_band[0]), float(r_band[1])), observed,
-                     (float(t_band[0]), float(t_band[1])), p, level, p > level, r.shape[0], s.shape[0], m,
-                     repetitions, permutations)
+    return FairFloor(
+        d_sim,
+        d_floor,
+        _ratio(d_sim, d_floor),
+        (float(r_band[0]), float(r_band[1])),
+        observed,
+        (float(t_band[0]), float(t_band[1])),
+        p,
+        level,
+        p > level,
+        r.shape[0],
+        s.shape[0],
+        m,
+        repetitions,
+        permutations,
+    )

@@ -34,8 +34,14 @@ class MeanSummary:
     method: str  # "t" or "bca"
 
     def to_json(self) -> dict[str, Any]:
-        return {"n": self.n, "mean": self.mean, "sd": self.sd, "interval": [self.low, self.high],
-                "confidence": self.confidence, "method": self.method}
+        return {
+            "n": self.n,
+            "mean": self.mean,
+            "sd": self.sd,
+            "interval": [self.low, self.high],
+            "confidence": self.confidence,
+            "method": self.method,
+        }
 
 
 @dataclass(frozen=True)
@@ -52,16 +58,23 @@ class QuantileSummary:
     coverage: float  # exact coverage probability of [X_(rank_low), X_(rank_high)] for continuous metrics
 
     def to_json(self) -> dict[str, Any]:
-        return {"q": self.q, "n": self.n, "estimate": self.estimate, "interval": [_json_float(self.low),
-                _json_float(self.high)], "ranks": [self.rank_low, self.rank_high], "coverage": self.coverage}
+        return {
+            "q": self.q,
+            "n": self.n,
+            "estimate": self.estimate,
+            "interval": [_json_float(self.low), _json_float(self.high)],
+            "ranks": [self.rank_low, self.rank_high],
+            "coverage": self.coverage,
+        }
 
 
 def _json_float(x: float) -> float | None:
     return None if not np.isfinite(x) else float(x)
 
 
-def mean_interval(values: object, confidence: float = 0.95, method: str = "t", n_resamples: int = 9999,
-                  seed: int = 0) -> MeanSummary:
+def mean_interval(
+    values: object, confidence: float = 0.95, method: str = "t", n_resamples: int = 9999, seed: int = 0
+) -> MeanSummary:
     """The mean of ``values`` (one per run) with a two-sided ``confidence`` interval by ``method`` "t" or "bca".
 
     Runs with identical values give the zero-width interval at that value (no spread was observed;
@@ -77,8 +90,14 @@ def mean_interval(values: object, confidence: float = 0.95, method: str = "t", n
     if method == "t":
         lo, hi = stats.ttest_1samp(x, 0.0).confidence_interval(confidence)
     else:
-        res = stats.bootstrap((x,), np.mean, confidence_level=confidence, method="BCa", n_resamples=n_resamples,
-                              random_state=np.random.default_rng(seed))
+        res = stats.bootstrap(
+            (x,),
+            np.mean,
+            confidence_level=confidence,
+            method="BCa",
+            n_resamples=n_resamples,
+            random_state=np.random.default_rng(seed),
+        )
         lo, hi = res.confidence_interval
     return MeanSummary(x.size, mean, sd, float(lo), float(hi), confidence, method)
 
@@ -124,13 +143,26 @@ class MetricSummary:
     quantiles: tuple[QuantileSummary, ...]
 
     def to_json(self) -> dict[str, Any]:
-        return {"name": self.name, "n": self.n, "mean": self.mean.to_json(),
-                "quantiles": [s.to_json() for s in self.quantiles]}
+        return {
+            "name": self.name,
+            "n": self.n,
+            "mean": self.mean.to_json(),
+            "quantiles": [s.to_json() for s in self.quantiles],
+        }
 
 
-def summarise(name: str, values: object, quantiles: Sequence[float] = (0.05, 0.5, 0.95), confidence: float = 0.95,
-              method: str = "t") -> MetricSummary:
+def summarise(
+    name: str,
+    values: object,
+    quantiles: Sequence[float] = (0.05, 0.5, 0.95),
+    confidence: float = 0.95,
+    method: str = "t",
+) -> MetricSummary:
     """Mean and quantiles of one metric, every interval at ``confidence``."""
     x = finite_vector(f"{name} values", values, 2)
-    return MetricSummary(name, x.size, mean_interval(x, confidence, method),
-                         tuple(quantile_interval(x, q, confidence) for q in quantiles))
+    return MetricSummary(
+        name,
+        x.size,
+        mean_interval(x, confidence, method),
+        tuple(quantile_interval(x, q, confidence) for q in quantiles),
+    )

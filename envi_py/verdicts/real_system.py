@@ -65,10 +65,17 @@ class RectifierCheck:
     passed: bool  # p_value > level (p <= level rejects): the real runs do not contradict the model at this level
 
     def to_json(self) -> dict[str, Any]:
-        return {"n": self.n, "mean": self.mean, "sd": self.sd, "interval": [self.low, self.high],
-                "p_value": self.p_value, "level": self.level, "passed": self.passed,
-                "test": "exact two-sided Poisson-binomial test of the count of real runs meeting the goal, "
-                        "paired predictions as probabilities"}
+        return {
+            "n": self.n,
+            "mean": self.mean,
+            "sd": self.sd,
+            "interval": [self.low, self.high],
+            "p_value": self.p_value,
+            "level": self.level,
+            "passed": self.passed,
+            "test": "exact two-sided Poisson-binomial test of the count of real runs meeting the goal, "
+            "paired predictions as probabilities",
+        }
 
 
 def _paired(real_outcomes: object, paired_predictions: object) -> tuple[np.ndarray, np.ndarray]:
@@ -93,8 +100,9 @@ def calibration_p_value(real_outcomes: np.ndarray, probabilities: np.ndarray) ->
     return float(min(1.0, pmf[pmf <= observed * (1 + 1e-7)].sum()))
 
 
-def rectifier_check(real_outcomes: object, paired_predictions: object, level: float = 0.05,
-                    sims_per_start: int | None = None) -> RectifierCheck:
+def rectifier_check(
+    real_outcomes: object, paired_predictions: object, level: float = 0.05, sims_per_start: int | None = None
+) -> RectifierCheck:
     """The model's measured error on paired real runs (at least 2) and the exact calibration test at ``level``.
 
     ``sims_per_start``: how many simulated runs each paired prediction was estimated from (None: the
@@ -131,13 +139,19 @@ class Estimate:
     n_sim: int
 
     def to_json(self) -> dict[str, Any]:
-        return {"method": self.method, "estimate": self.estimate, "se": self.se,
-                "interval": [self.low, self.high], "confidence": self.confidence, "coefficient": self.coefficient,
-                "n_real": self.n_real, "n_sim": self.n_sim}
+        return {
+            "method": self.method,
+            "estimate": self.estimate,
+            "se": self.se,
+            "interval": [self.low, self.high],
+            "confidence": self.confidence,
+            "coefficient": self.coefficient,
+            "n_real": self.n_real,
+            "n_sim": self.n_sim,
+        }
 
 
-def _rectified(method: str, sim: np.ndarray, y: np.ndarray, f: np.ndarray, c: float,
-               confidence: float) -> Estimate:
+def _rectified(method: str, sim: np.ndarray, y: np.ndarray, f: np.ndarray, c: float, confidence: float) -> Estimate:
     """theta = c mean(sim) + mean(Y - c f), variance c^2 var(sim)/N + var(Y - c f)/n, normal interval.
 
     var(Y - c f) is taken as at least mean(f (1 - f)): from 10 runs the sample variance is often far too
@@ -151,20 +165,21 @@ def _rectified(method: str, sim: np.ndarray, y: np.ndarray, f: np.ndarray, c: fl
     se = float(np.sqrt(v_sim + v_real))
     theta = c * float(sim.mean()) + float(r.mean())
     half = float(stats.norm.ppf(0.5 + confidence / 2)) * se
-    return Estimate(method, theta, se, max(0.0, theta - half), min(1.0, theta + half), confidence, c, y.size,
-                    sim.size)
+    return Estimate(method, theta, se, max(0.0, theta - half), min(1.0, theta + half), confidence, c, y.size, sim.size)
 
 
-def ppi(sim_predictions: object, real_outcomes: object, paired_predictions: object,
-        confidence: float = 0.95) -> Estimate:
+def ppi(
+    sim_predictions: object, real_outcomes: object, paired_predictions: object, confidence: float = 0.95
+) -> Estimate:
     """Prediction-powered estimate of the real P(goal) with its normal interval (see the module docstring)."""
     sim = unit_vector("sim_predictions", sim_predictions, 2)
     y, f = _paired(real_outcomes, paired_predictions)
     return _rectified("ppi", sim, y, f, 1.0, probability("confidence", confidence))
 
 
-def control_variate(sim_predictions: object, real_outcomes: object, paired_predictions: object,
-                    confidence: float = 0.95) -> Estimate:
+def control_variate(
+    sim_predictions: object, real_outcomes: object, paired_predictions: object, confidence: float = 0.95
+) -> Estimate:
     """Control-variate estimate: theta = mean(Y) - c (mean(f) - mean(sim)), c = cov(Y, f) / var(f) on the pairs.
 
     c = 0 when the paired predictions do not vary (they carry no information): the real-only mean.
@@ -197,16 +212,32 @@ class RealSystemVerdict:
         return self.basis == "real-only"
 
     def to_json(self) -> dict[str, Any]:
-        return {"verdict": self.verdict.value, "basis": self.basis, "withdrawn": self.withdrawn,
-                "interval": [self.low, self.high], "p_required": self.p_required, "confidence": self.confidence,
-                "n_real": self.model_estimate.n_real, "n_sim": self.model_estimate.n_sim,
-                "model_estimate": self.model_estimate.to_json(), "real_only": self.real_only.to_json(),
-                "check": self.check.to_json(), "reason": self.reason}
+        return {
+            "verdict": self.verdict.value,
+            "basis": self.basis,
+            "withdrawn": self.withdrawn,
+            "interval": [self.low, self.high],
+            "p_required": self.p_required,
+            "confidence": self.confidence,
+            "n_real": self.model_estimate.n_real,
+            "n_sim": self.model_estimate.n_sim,
+            "model_estimate": self.model_estimate.to_json(),
+            "real_only": self.real_only.to_json(),
+            "check": self.check.to_json(),
+            "reason": self.reason,
+        }
 
 
-def ppi_verdict(sim_predictions: object, real_outcomes: object, paired_predictions: object, p_required: float,
-                alpha: float = 0.05, check_level: float = 0.05, estimator: str = "ppi",
-                sims_per_start: int | None = None) -> RealSystemVerdict:
+def ppi_verdict(
+    sim_predictions: object,
+    real_outcomes: object,
+    paired_predictions: object,
+    p_required: float,
+    alpha: float = 0.05,
+    check_level: float = 0.05,
+    estimator: str = "ppi",
+    sims_per_start: int | None = None,
+) -> RealSystemVerdict:
     """PASS / FAIL / UNDECIDED for the real system at confidence 1 - ``alpha``, from sims plus paired real runs.
 
     ``estimator``: "ppi" or "control-variate". If the calibration check rejects at ``check_level`` the
@@ -217,21 +248,37 @@ def ppi_verdict(sim_predictions: object, real_outcomes: object, paired_predictio
         raise ValueError(f"estimator must be 'ppi' or 'control-variate', got {estimator!r}")
     p_required = probability("p_required", p_required, open_interval=False)
     confidence = 1.0 - probability("alpha", alpha)
-    est = (ppi if estimator == "ppi" else control_variate)(sim_predictions, real_outcomes, paired_predictions,
-                                                             confidence)
+    est = (ppi if estimator == "ppi" else control_variate)(
+        sim_predictions, real_outcomes, paired_predictions, confidence
+    )
     y = outcomes("real_outcomes", real_outcomes, 2)
     real = decide(int(y.sum()), y.size, p_required, alpha)
     check = rectifier_check(real_outcomes, paired_predictions, check_level, sims_per_start)
     if not check.passed:
-        reason = (f"claim withdrawn: the {check.n} real runs contradict the model (mean(real - predicted) = "
-                  f"{check.mean:+.3f}, calibration test p = {check.p_value:.3g} <= {check.level:g}); "
-                  f"verdict from the {real.n} real runs alone")
-        return RealSystemVerdict(real.verdict, "real-only", real.low, real.high, p_required, confidence, est, real,
-                                 check, reason)
-    reason = (f"{est.method} from {est.n_sim} simulated starts and {est.n_real} paired real runs; model error "
-              f"{check.mean:+.3f}, calibration test p = {check.p_value:.3g} > {check.level:g}")
-    return RealSystemVerdict(verdict_of(est.low, est.high, p_required), "model+real", est.low, est.high, p_required,
-                             confidence, est, real, check, reason)
+        reason = (
+            f"claim withdrawn: the {check.n} real runs contradict the model (mean(real - predicted) = "
+            f"{check.mean:+.3f}, calibration test p = {check.p_value:.3g} <= {check.level:g}); "
+            f"verdict from the {real.n} real runs alone"
+        )
+        return RealSystemVerdict(
+            real.verdict, "real-only", real.low, real.high, p_required, confidence, est, real, check, reason
+        )
+    reason = (
+        f"{est.method} from {est.n_sim} simulated starts and {est.n_real} paired real runs; model error "
+        f"{check.mean:+.3f}, calibration test p = {check.p_value:.3g} > {check.level:g}"
+    )
+    return RealSystemVerdict(
+        verdict_of(est.low, est.high, p_required),
+        "model+real",
+        est.low,
+        est.high,
+        p_required,
+        confidence,
+        est,
+        real,
+        check,
+        reason,
+    )
 
 
 @dataclass(frozen=True)
@@ -252,14 +299,23 @@ class ModelOnlyVerdict:
     basis: str = "model only"
 
     def to_json(self) -> dict[str, Any]:
-        return {"verdict": self.verdict.value, "basis": self.basis, "model_interval": [self.low, self.high],
-                "interval": [self.widened_low, self.widened_high], "k": self.k, "n_sim": self.n_sim,
-                "p_required": self.p_required, "confidence": self.confidence,
-                "measured_errors": {v: c.to_json() for v, c in self.measured_errors.items()}, "reason": self.reason}
+        return {
+            "verdict": self.verdict.value,
+            "basis": self.basis,
+            "model_interval": [self.low, self.high],
+            "interval": [self.widened_low, self.widened_high],
+            "k": self.k,
+            "n_sim": self.n_sim,
+            "p_required": self.p_required,
+            "confidence": self.confidence,
+            "measured_errors": {v: c.to_json() for v, c in self.measured_errors.items()},
+            "reason": self.reason,
+        }
 
 
-def model_only(sim_outcomes: object, p_required: float, measured_errors: Mapping[str, RectifierCheck],
-               alpha: float = 0.05) -> ModelOnlyVerdict:
+def model_only(
+    sim_outcomes: object, p_required: float, measured_errors: Mapping[str, RectifierCheck], alpha: float = 0.05
+) -> ModelOnlyVerdict:
     """The verdict for a never field-tested version, with the model's measured error carried beside it.
 
     The model's P(goal) interval is Clopper-Pearson over the simulated runs. The real system may differ by
@@ -280,14 +336,19 @@ def model_only(sim_outcomes: object, p_required: float, measured_errors: Mapping
         reason = "rests on the model only, and no version has real runs to measure the model's error: no claim"
     elif failed:
         wl, wh = 0.0, 1.0
-        reason = (f"rests on the model only, and the model failed its validity check on {', '.join(failed)}: "
-                  f"no claim for a version without real runs")
+        reason = (
+            f"rests on the model only, and the model failed its validity check on {', '.join(failed)}: "
+            f"no claim for a version without real runs"
+        )
     else:
         bound = max(max(abs(c.low), abs(c.high)) for c in errors.values())
         wl, wh = max(0.0, lo - bound), min(1.0, hi + bound)
         runs = sum(c.n for c in errors.values())
-        reason = (f"rests on the model only ({n} simulated runs, no real runs of this version); the model's error "
-                  f"measured on {len(errors)} other version(s) ({runs} real runs) is up to +-{bound:.3f}, and the "
-                  f"interval is widened by it assuming the error transfers to this version")
-    return ModelOnlyVerdict(verdict_of(wl, wh, p_required), lo, hi, wl, wh, k, n, p_required, confidence, errors,
-                            reason)
+        reason = (
+            f"rests on the model only ({n} simulated runs, no real runs of this version); the model's error "
+            f"measured on {len(errors)} other version(s) ({runs} real runs) is up to +-{bound:.3f}, and the "
+            f"interval is widened by it assuming the error transfers to this version"
+        )
+    return ModelOnlyVerdict(
+        verdict_of(wl, wh, p_required), lo, hi, wl, wh, k, n, p_required, confidence, errors, reason
+    )

@@ -68,9 +68,17 @@ class SequentialResult:
     looks: list[Look] = field(default_factory=list)
 
     def to_json(self) -> dict[str, Any]:
-        return {"verdict": self.verdict.value, "runs": self.runs, "successes": self.successes,
-                "interval": [self.low, self.high], "confidence": self.confidence, "method": self.method,
-                "max_runs": self.max_runs, "batch": self.batch, "looks": [lk.to_json() for lk in self.looks]}
+        return {
+            "verdict": self.verdict.value,
+            "runs": self.runs,
+            "successes": self.successes,
+            "interval": [self.low, self.high],
+            "confidence": self.confidence,
+            "method": self.method,
+            "max_runs": self.max_runs,
+            "batch": self.batch,
+            "looks": [lk.to_json() for lk in self.looks],
+        }
 
 
 def _draw(sample: Sampler, n: int) -> np.ndarray:
@@ -116,8 +124,14 @@ def _check_budget(max_runs: int, batch: int) -> tuple[int, int]:
     return max_runs, min(batch, max_runs)
 
 
-def confidence_sequence(sample: Sampler, p_required: float, confidence: float = 0.95, max_runs: int = 10_000,
-                        batch: int = 50, method: str = "mixture") -> SequentialResult:
+def confidence_sequence(
+    sample: Sampler,
+    p_required: float,
+    confidence: float = 0.95,
+    max_runs: int = 10_000,
+    batch: int = 50,
+    method: str = "mixture",
+) -> SequentialResult:
     """Simulate in batches until the any-time interval lies wholly above or below ``p_required``.
 
     A wrong verdict (or a final interval missing the true p) has probability at most 1 - ``confidence``
@@ -140,8 +154,9 @@ def confidence_sequence(sample: Sampler, p_required: float, confidence: float = 
         low, high = max(low, lo), min(high, hi)
         looks.append(Look(n, k, low, high))
         verdict = verdict_of(low, high, p_required)
-    return SequentialResult(verdict, n, k, low, high, confidence, f"confidence-sequence/{method}", max_runs, batch,
-                            looks)
+    return SequentialResult(
+        verdict, n, k, low, high, confidence, f"confidence-sequence/{method}", max_runs, batch, looks
+    )
 
 
 @dataclass(frozen=True)
@@ -165,12 +180,26 @@ def _sprt_design(p_required: float, delta: float, alpha: float, beta: float) -> 
         raise ValueError(f"the indifference region p_required +- delta = [{p0:g}, {p1:g}] must lie inside (0, 1)")
     if alpha + beta >= 1.0:
         raise ValueError(f"alpha + beta must be < 1, got {alpha + beta:g}")
-    return _Sprt(p0, p1, math.log((1 - beta) / alpha), math.log(beta / (1 - alpha)),
-                 math.log(p1 / p0), math.log((1 - p1) / (1 - p0)))
+    return _Sprt(
+        p0,
+        p1,
+        math.log((1 - beta) / alpha),
+        math.log(beta / (1 - alpha)),
+        math.log(p1 / p0),
+        math.log((1 - p1) / (1 - p0)),
+    )
 
 
-def sprt(sample: Sampler, p_required: float, delta: float = 0.05, alpha: float = 0.05, beta: float = 0.05,
-         max_runs: int = 10_000, batch: int = 10, confidence: float = 0.95) -> SequentialResult:
+def sprt(
+    sample: Sampler,
+    p_required: float,
+    delta: float = 0.05,
+    alpha: float = 0.05,
+    beta: float = 0.05,
+    max_runs: int = 10_000,
+    batch: int = 10,
+    confidence: float = 0.95,
+) -> SequentialResult:
     """Wald's SPRT of p <= p_required - delta (FAIL) vs p >= p_required + delta (PASS), checked after each batch.
 
     ``alpha``: probability of PASS when p = p_required - delta (and below); ``beta``: probability of FAIL
@@ -199,8 +228,9 @@ def sprt(sample: Sampler, p_required: float, delta: float = 0.05, alpha: float =
     return SequentialResult(verdict, n, k, low, high, confidence, "sprt", max_runs, batch, looks)
 
 
-def sprt_expected_runs(p: float, p_required: float, delta: float = 0.05, alpha: float = 0.05,
-                       beta: float = 0.05) -> float:
+def sprt_expected_runs(
+    p: float, p_required: float, delta: float = 0.05, alpha: float = 0.05, beta: float = 0.05
+) -> float:
     """Wald's approximation of the SPRT's expected number of runs when the true probability is ``p``.
 
     E[N] = (L log B + (1 - L) log A) / E[z], with L = P(FAIL) = (A^h - 1) / (A^h - B^h) where h != 0 solves
@@ -228,8 +258,9 @@ def sprt_expected_runs(p: float, p_required: float, delta: float = 0.05, alpha: 
     return (oc * d.log_b + (1 - oc) * d.log_a) / drift
 
 
-def fixed_sample_size(p_required: float, delta: float = 0.05, alpha: float = 0.05, beta: float = 0.05,
-                      limit: int = 1_000_000) -> tuple[int, int]:
+def fixed_sample_size(
+    p_required: float, delta: float = 0.05, alpha: float = 0.05, beta: float = 0.05, limit: int = 1_000_000
+) -> tuple[int, int]:
     """The smallest n (and its critical count c) of the fixed-size exact test with the SPRT's error rates.
 
     The test passes at >= c successes of n; it needs P(X >= c | p0) <= alpha and P(X < c | p1) <= beta
@@ -237,7 +268,8 @@ def fixed_sample_size(p_required: float, delta: float = 0.05, alpha: float = 0.0
     """
     d = _sprt_design(p_required, delta, alpha, beta)
     z = stats.norm.ppf(1 - alpha) * math.sqrt(d.p0 * (1 - d.p0)) + stats.norm.ppf(1 - beta) * math.sqrt(
-        d.p1 * (1 - d.p1))
+        d.p1 * (1 - d.p1)
+    )
     start = max(1, int(0.5 * (z / (d.p1 - d.p0)) ** 2))  # half the normal-approximation size: below the exact one
     for n in range(start, limit + 1):
         c = int(stats.binom.isf(alpha, n, d.p0)) + 1  # smallest c with P(X >= c | p0) <= alpha

@@ -14,6 +14,7 @@ class PybricksHardware:
     def __init__(self, sensor_port="S1", motor_port="A", speed=500):
         from pybricks.ev3devices import ColorSensor, Motor
         from pybricks.parameters import Port
+
         self.sensor = ColorSensor(getattr(Port, sensor_port))
         self.motor = Motor(getattr(Port, motor_port))
         self.speed = speed
@@ -35,6 +36,7 @@ class Ev3devHardware:
     def __init__(self, sensor_port="in1", motor_port="outA", speed=50):
         from ev3dev2.sensor.lego import ColorSensor
         from ev3dev2.motor import MediumMotor, SpeedPercent
+
         self.sensor = ColorSensor(sensor_port)
         self.motor = MediumMotor(motor_port)
         self.speed = SpeedPercent(speed)

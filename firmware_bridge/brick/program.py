@@ -20,8 +20,18 @@ from .ticker import Ticker
 
 
 class Brick:
-    def __init__(self, port, hardware, controller, period_ms=40, program_hash="", runtime="",
-                 clock_ms=ticks_ms, clock_us=ticks_us, diff=ticks_diff):
+    def __init__(
+        self,
+        port,
+        hardware,
+        controller,
+        period_ms=40,
+        program_hash="",
+        runtime="",
+        clock_ms=ticks_ms,
+        clock_us=ticks_us,
+        diff=ticks_diff,
+    ):
         self.port = port
         self.hw = hardware
         self.ctrl = controller
@@ -61,8 +71,19 @@ class Brick:
                 state = P.RUN_NONE
             else:
                 state = P.RUN_RUNNING if self.running else P.RUN_ENDED
-            self.send(P.HANDSHAKE, (P.VERSION, self.period, state, self.current_run or 0, self.program_hash,
-                                    self.runtime, self.ctrl.NAME, self.ctrl.params()))
+            self.send(
+                P.HANDSHAKE,
+                (
+                    P.VERSION,
+                    self.period,
+                    state,
+                    self.current_run or 0,
+                    self.program_hash,
+                    self.runtime,
+                    self.ctrl.NAME,
+                    self.ctrl.params(),
+                ),
+            )
         elif t == P.PING:
             self.send(P.PONG, msg.fields)
         elif t == P.START:
@@ -148,13 +169,24 @@ class Brick:
             work = min(0xFFFF, self._diff(self._us(), begin))
             if tk.advance(self._ms(), mode != P.MODE_LOCKSTEP):
                 flags |= P.FLAG_OVERRUN
-            self.send(P.TELEMETRY, (run_id, tick, stamp & 0xFFFFFFFF, color, angle, work, flags, min(0xFFFF, max(0, age))))
+            self.send(
+                P.TELEMETRY, (run_id, tick, stamp & 0xFFFFFFFF, color, angle, work, flags, min(0xFFFF, max(0, age)))
+            )
         self.running = False
         skipped = tk.skipped - max(0, tk.tick - n_ticks)  # a skip past the last tick skips no real tick
-        self.last_end = (run_id, P.END_STOPPED if self.stop_requested else P.END_DONE, min(tk.tick, n_ticks),
-                         rows, tk.overruns, skipped, timeouts, self.dec.lost - counters0[0],
-                         self.dec.crc_errors + self.dec.malformed - counters0[1],
-                         self.dec.duplicates - counters0[2], self.late_injects)
+        self.last_end = (
+            run_id,
+            P.END_STOPPED if self.stop_requested else P.END_DONE,
+            min(tk.tick, n_ticks),
+            rows,
+            tk.overruns,
+            skipped,
+            timeouts,
+            self.dec.lost - counters0[0],
+            self.dec.crc_errors + self.dec.malformed - counters0[1],
+            self.dec.duplicates - counters0[2],
+            self.late_injects,
+        )
         self.send(P.RUN_END, self.last_end)
 
     def _wait_inject(self, tick, deadline, timeout):

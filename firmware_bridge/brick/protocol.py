@@ -109,7 +109,7 @@ def unpack_payload(mtype, payload):
         n = payload[i]
         if i + 1 + n > len(payload):
             raise ValueError("string field runs past the payload")
-        fields.append(bytes(payload[i + 1:i + 1 + n]).decode())
+        fields.append(bytes(payload[i + 1 : i + 1 + n]).decode())
         i += 1 + n
     if i != len(payload):
         raise ValueError("trailing bytes after the payload")
@@ -165,8 +165,14 @@ class Decoder:
         self.other_version = None  # the version of the latest frame of another protocol version
 
     def counters(self):
-        return {"frames": self.frames, "lost": self.lost, "crc_errors": self.crc_errors,
-                "malformed": self.malformed, "duplicates": self.duplicates, "discarded_bytes": self.discarded}
+        return {
+            "frames": self.frames,
+            "lost": self.lost,
+            "crc_errors": self.crc_errors,
+            "malformed": self.malformed,
+            "duplicates": self.duplicates,
+            "discarded_bytes": self.discarded,
+        }
 
     def feed(self, data):
         """All complete messages in ``data`` (plus what was buffered before), in order."""

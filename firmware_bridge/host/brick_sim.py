@@ -58,9 +58,17 @@ def make_world(spec: str) -> Any:
     return world
 
 
-def serve(world: Any, period_ms: int = 40, x: float = 30.0, threshold: float = 40.0, link: Path | None = None,
-          faults: FaultSpec | None = None, journal: Path | None = None, seed: int = 0,
-          announce: Callable[[str], None] = print) -> None:
+def serve(
+    world: Any,
+    period_ms: int = 40,
+    x: float = 30.0,
+    threshold: float = 40.0,
+    link: Path | None = None,
+    faults: FaultSpec | None = None,
+    journal: Path | None = None,
+    seed: int = 0,
+    announce: Callable[[str], None] = print,
+) -> None:
     """Run the simulated brick in ``world`` until interrupted; a disconnect starts it over on a new pty."""
     log = open(journal, "a") if journal else None
     disconnected = False
@@ -73,8 +81,14 @@ def serve(world: Any, period_ms: int = 40, x: float = 30.0, threshold: float = 4
             port: FdPort | FaultyPort = FdPort(master)
             if faults is not None or log is not None:  # a journal alone is a port without faults
                 port = FaultyPort(port, faults or FaultSpec(), log, disconnected)
-            brick = Brick(port, SimHardware(world, seed), LaneKeeping(x, threshold), period_ms,
-                          program_hash(str(BRICK_DIR)), runtime() + " (simulated brick)")
+            brick = Brick(
+                port,
+                SimHardware(world, seed),
+                LaneKeeping(x, threshold),
+                period_ms,
+                program_hash(str(BRICK_DIR)),
+                runtime() + " (simulated brick)",
+            )
             try:
                 brick.serve_forever()
             except LinkDown as exc:
@@ -95,14 +109,22 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--x", type=float, default=30.0, help="lane-keeping steering angle x (default 30)")
     p.add_argument("--threshold", type=float, default=40.0, help="lane-keeping threshold (default 40)")
     p.add_argument("--link", type=Path, help="also make this symlink to the pty (stable across restarts)")
-    p.add_argument("--faults", type=FaultSpec.parse, help="inject faults, e.g. 'garbage=0.02,flip=0.01,"
-                   "drop=0.01,dup=0.01,rx_drop=0.01,disconnect=300,seed=1'")
-    p.add_argument("--journal", type=Path, help="write one line per frame sent (for tests; with --faults, "
-                   "what each fault did)")
+    p.add_argument(
+        "--faults",
+        type=FaultSpec.parse,
+        help="inject faults, e.g. 'garbage=0.02,flip=0.01,drop=0.01,dup=0.01,rx_drop=0.01,disconnect=300,seed=1'",
+    )
+    p.add_argument(
+        "--journal", type=Path, help="write one line per frame sent (for tests; with --faults, what each fault did)"
+    )
     p.add_argument("--seed", type=int, default=0, help="seed of the simulated world (run r uses seed*65536+r)")
-    p.add_argument("--world", default=DEFAULT_WORLD, help="the world as package.module:Class "
-                   f"(default {DEFAULT_WORLD}, the physics twin; firmware_bridge.host.world:EdgeWorld "
-                   "is a small stand-in)")
+    p.add_argument(
+        "--world",
+        default=DEFAULT_WORLD,
+        help="the world as package.module:Class "
+        f"(default {DEFAULT_WORLD}, the physics twin; firmware_bridge.host.world:EdgeWorld "
+        "is a small stand-in)",
+    )
 
 
 def run_args(args: argparse.Namespace) -> int:
@@ -111,8 +133,17 @@ def run_args(args: argparse.Namespace) -> int:
 
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))  # clean up the symlink on kill too
     try:
-        serve(make_world(args.world), args.period, args.x, args.threshold, args.link, args.faults, args.journal,
-              args.seed, announce)
+        serve(
+            make_world(args.world),
+            args.period,
+            args.x,
+            args.threshold,
+            args.link,
+            args.faults,
+            args.journal,
+            args.seed,
+            announce,
+        )
     except KeyboardInterrupt:
         return 0
     return 0
@@ -120,8 +151,7 @@ def run_args(args: argparse.Namespace) -> int:
 
 def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     """Add ``brick-sim`` to an ``argparse`` subcommand set (``envi brick-sim``); sets ``func``."""
-    p = subparsers.add_parser("brick-sim", help="run the simulated brick on a pseudo-terminal",
-                              description=__doc__)
+    p = subparsers.add_parser("brick-sim", help="run the simulated brick on a pseudo-terminal", description=__doc__)
     add_arguments(p)
     p.set_defaults(func=run_args)
     return p

@@ -85,7 +85,7 @@ def initial_window(model: EnvironmentModel, init_log: Path | None, info: BrickIn
     """sigma_0: the first ``history`` rows of ``init_log``, or the robot resting on white."""
     if init_log is not None:
         log = read_log(init_log, min_length=model.history)
-        return log.values[:model.history]
+        return log.values[: model.history]
     x = float(info.params.get("x", 0.0))
     return np.tile([[75.0, x]], (model.history, 1))
 
@@ -107,14 +107,31 @@ def _counter_delta(r: RunResult) -> dict[str, int]:
     return {k: r.link_after[k] - r.link_before.get(k, 0) for k in r.link_after}
 
 
-def provenance(r: RunResult, info: BrickInfo, url: str, clock: dict[str, Any], mismatches: int | None,
-               model: EnvironmentModel | None) -> dict[str, Any]:
+def provenance(
+    r: RunResult,
+    info: BrickInfo,
+    url: str,
+    clock: dict[str, Any],
+    mismatches: int | None,
+    model: EnvironmentModel | None,
+) -> dict[str, Any]:
     rx = _counter_delta(r)
     end = r.end
     brick = None
     if end is not None:
-        names = ("run_id", "reason", "ticks", "rows", "overruns", "skipped_ticks", "timeouts", "lost_in", "bad_in",
-                 "duplicates_in", "late_injects")
+        names = (
+            "run_id",
+            "reason",
+            "ticks",
+            "rows",
+            "overruns",
+            "skipped_ticks",
+            "timeouts",
+            "lost_in",
+            "bad_in",
+            "duplicates_in",
+            "late_injects",
+        )
         brick = dict(zip(names, end))
     prov: dict[str, Any] = {
         "collector": f"envi-collect {__version__}",
@@ -124,16 +141,22 @@ def provenance(r: RunResult, info: BrickInfo, url: str, clock: dict[str, Any], m
         "brick_run_id": r.run_id,
         "complete": r.complete,
         "end_reason": r.end_reason,
-        "brick": {"program_hash": info.program_hash, "runtime": info.runtime, "protocol": info.protocol,
-                  "period_ms": info.period_ms},
+        "brick": {
+            "program_hash": info.program_hash,
+            "runtime": info.runtime,
+            "protocol": info.protocol,
+            "period_ms": info.period_ms,
+        },
         "ticks_requested": r.n_ticks,
         "rows": len(r.ticks),
         "rows_sent": r.rows_sent,
         "rows_lost": None if r.rows_sent is None else r.rows_sent - len(r.ticks),
         "foreign_frames_at_host": r.foreign_frames,
-        "timing": {"brick_period_ms": period_stats(r.ticks, r.time_ms),
-                   "host_arrival_period_ms": period_stats(r.ticks, [t * 1000 for t in r.arrival]),
-                   "loop_work_us": summary(r.work_us)},
+        "timing": {
+            "brick_period_ms": period_stats(r.ticks, r.time_ms),
+            "host_arrival_period_ms": period_stats(r.ticks, [t * 1000 for t in r.arrival]),
+            "loop_work_us": summary(r.work_us),
+        },
         "lost_frames": {"brick_to_host": rx["lost"], "host_to_brick": None if brick is None else brick["lost_in"]},
         "crc_errors": {"at_host": rx["crc_errors"], "at_brick": None if brick is None else brick["bad_in"]},
         "malformed_at_host": rx["malformed"],
@@ -142,53 +165,85 @@ def provenance(r: RunResult, info: BrickInfo, url: str, clock: dict[str, Any], m
         "overruns": r.overrun_flags if brick is None else brick["overruns"],
         "skipped_ticks": None if brick is None else brick["skipped_ticks"],
         "gaps": gaps(r.ticks, r.n_ticks if r.complete else (max(r.ticks) + 1 if r.ticks else 0)),
-        "clock": {"ping_rtt_ms": summary(clock["rtt_ms"]), "offset_ms": clock["offset_ms"],
-                  "pings_lost": clock["lost"]},
+        "clock": {
+            "ping_rtt_ms": summary(clock["rtt_ms"]),
+            "offset_ms": clock["offset_ms"],
+            "pings_lost": clock["lost"],
+        },
         "controller_mismatches": mismatches,
         "brick_report": brick,
     }
     if model is not None:
         rtt = np.asarray(r.hil_rtt_ms)
-        prov["hil"] = {"model": model.description, "history": model.history,
-                       "timeouts": len(r.timeouts), "timeout_ticks": r.timeouts, "stale": r.stale,
-                       "inject_to_action_ms": summary(rtt),
-                       "inject_held_at_brick_ms": summary(r.age_ms),
-                       "rtt_ms_per_row": [round(float(v), 3) for v in rtt]}
+        prov["hil"] = {
+            "model": model.description,
+            "history": model.history,
+            "timeouts": len(r.timeouts),
+            "timeout_ticks": r.timeouts,
+            "stale": r.stale,
+            "inject_to_action_ms": summary(rtt),
+            "inject_held_at_brick_ms": summary(r.age_ms),
+            "rtt_ms_per_row": [round(float(v), 3) for v in rtt],
+        }
     return prov
 
 
-def to_log(r: RunResult, info: BrickInfo, url: str, clock: dict[str, Any], run_name: str,
-           model: EnvironmentModel | None) -> Log | None:
+def to_log(
+    r: RunResult, info: BrickInfo, url: str, clock: dict[str, Any], run_name: str, model: EnvironmentModel | None
+) -> Log | None:
     if not r.ticks:
         return None
     color = np.asarray(r.color, dtype=np.float64)
     angle = np.asarray(r.angle, dtype=np.float64)
-    meta = LogMeta(schema=LANE_KEEPING_SCHEMA, controller=info.controller_json(), period_ms=float(r.period_ms),
-                   run_id=run_name, source="fot" if model is None else "hil",
-                   provenance=provenance(r, info, url, clock, controller_mismatches(info, color, angle), model))
+    meta = LogMeta(
+        schema=LANE_KEEPING_SCHEMA,
+        controller=info.controller_json(),
+        period_ms=float(r.period_ms),
+        run_id=run_name,
+        source="fot" if model is None else "hil",
+        provenance=provenance(r, info, url, clock, controller_mismatches(info, color, angle), model),
+    )
     return Log(None, np.asarray(r.time_ms, dtype=np.float64), color[:, None], angle[:, None], meta)
 
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="envi-collect", description=__doc__)
-    p.add_argument("--port", required=True, help="pyserial URL: /dev/ttyACM0, socket://ev3dev.local:7777, "
-                   "or the path printed by 'envi brick-sim'")
+    p.add_argument(
+        "--port",
+        required=True,
+        help="pyserial URL: /dev/ttyACM0, socket://ev3dev.local:7777, or the path printed by 'envi brick-sim'",
+    )
     p.add_argument("--runs", type=int, default=1, help="number of runs (default 1)")
     p.add_argument("--duration", type=parse_duration, default=4.0, help="length of a run, e.g. 4s (default)")
     p.add_argument("--out", type=Path, required=True, help="folder for the logs")
     p.add_argument("--prefix", help="file name prefix (default 'log', or 'hil' with --inject): PREFIX_X_RUN.csv")
-    p.add_argument("--first-run", type=int, help="number of the first run in file names (default: the next "
-                   "one free in --out); a number already used is refused, never overwritten")
-    p.add_argument("--inject", help="hardware in the loop: an envi checkpoint (.pt) or 'module:function' "
-                   "mapping a window to the next colour")
-    p.add_argument("--init-log", type=Path, help="with --inject: sigma_0 from the first rows of this log "
-                   "(default: the robot resting on white)")
-    p.add_argument("--free-running", action="store_true", help="with --inject: the brick does not wait for "
-                   "each colour but uses the newest one and reports its age")
+    p.add_argument(
+        "--first-run",
+        type=int,
+        help="number of the first run in file names (default: the next "
+        "one free in --out); a number already used is refused, never overwritten",
+    )
+    p.add_argument(
+        "--inject",
+        help="hardware in the loop: an envi checkpoint (.pt) or 'module:function' mapping a window to the next colour",
+    )
+    p.add_argument(
+        "--init-log",
+        type=Path,
+        help="with --inject: sigma_0 from the first rows of this log (default: the robot resting on white)",
+    )
+    p.add_argument(
+        "--free-running",
+        action="store_true",
+        help="with --inject: the brick does not wait for each colour but uses the newest one and reports its age",
+    )
     p.add_argument("--reconnect", type=float, default=10.0, help="seconds to keep reopening a lost port")
     p.add_argument("--pings", type=int, default=10, help="pings per run for round trip and clock offset")
-    p.add_argument("--accept-partial", action="store_true", help="exit 0 even when runs were lost or incomplete "
-                   "or rows were lost (what was recorded is kept either way)")
+    p.add_argument(
+        "--accept-partial",
+        action="store_true",
+        help="exit 0 even when runs were lost or incomplete or rows were lost (what was recorded is kept either way)",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
 
@@ -209,8 +264,11 @@ def first_index(args: argparse.Namespace, prefix: str, ledger: Ledger) -> int:
         if i in used:
             name = used[i]
             path = taken(args.out, name)
-            what = f"{path}: exists" if path is not None else \
-                f"{args.out / name}.csv: run {i} was started by an earlier collector (see {LEDGER_NAME})"
+            what = (
+                f"{path}: exists"
+                if path is not None
+                else f"{args.out / name}.csv: run {i} was started by an earlier collector (see {LEDGER_NAME})"
+            )
             raise LogExists(f"{what}; not replacing it (leave out --first-run to continue at {free})")
     return args.first_run
 
@@ -244,12 +302,16 @@ class Session:
         for e in done.entries:
             self.tally.add(e)
             rows = "an unknown number of" if e["rows_sent"] is None else e["rows_sent"]
-            self.bar.write(f"{e['run']}: left unsettled by an earlier collector: {e['status']} "
-                           f"({rows} row(s) sent, {e['rows']} recorded)")
+            self.bar.write(
+                f"{e['run']}: left unsettled by an earlier collector: {e['status']} "
+                f"({rows} row(s) sent, {e['rows']} recorded)"
+            )
         if done.foreign is not None:
             rid, sent = done.foreign
-            self.bar.write(f"stopped run {rid}, which another collector (not of {self.args.out}) left running; "
-                           f"{'its' if sent is None else sent} row(s) are not recorded here")
+            self.bar.write(
+                f"stopped run {rid}, which another collector (not of {self.args.out}) left running; "
+                f"{'its' if sent is None else sent} row(s) are not recorded here"
+            )
 
     def _connect(self) -> tuple[BrickInfo, dict[str, Any]]:
         """Handshake, ping and settle; a link lost while settling is opened again, as in :func:`connect`."""
@@ -275,11 +337,19 @@ class Session:
                 self.bar.reset(total=n_ticks * args.runs)
             self.bar.set_description(f"run {n + 1}/{args.runs}")
             name = run_name(self.prefix, info, first + n)
-            start = self.ledger.start(name, first + n, new_run_id(self.ledger, info), n_ticks,
-                                      P.MODE_NAMES[self.mode])
+            start = self.ledger.start(name, first + n, new_run_id(self.ledger, info), n_ticks, P.MODE_NAMES[self.mode])
             init = initial_window(self.model, args.init_log, info) if self.model is not None else None
-            run = Run(self.link, info, start["run_id"], self.mode, n_ticks, self.model, init,
-                      silence=max(1.0, 10 * info.period_ms / 1000), on_row=lambda _tick: self.bar.update(1))
+            run = Run(
+                self.link,
+                info,
+                start["run_id"],
+                self.mode,
+                n_ticks,
+                self.model,
+                init,
+                silence=max(1.0, 10 * info.period_ms / 1000),
+                on_row=lambda _tick: self.bar.update(1),
+            )
             try:
                 r = run.execute()
             except KeyboardInterrupt:
@@ -304,8 +374,9 @@ class Session:
         if log is None:
             self.bar.write(f"{name}: no rows received ({r.end_reason}); nothing written, {lost} row(s) lost")
         elif status == "incomplete" or entry["rows_lost"] != 0:
-            self.bar.write(f"{name}: {status} ({r.end_reason}), {len(r.ticks)} of {r.n_ticks} rows written, "
-                           f"{lost} row(s) lost")
+            self.bar.write(
+                f"{name}: {status} ({r.end_reason}), {len(r.ticks)} of {r.n_ticks} rows written, {lost} row(s) lost"
+            )
 
     def close(self) -> None:
         if self.link is not None:

@@ -53,8 +53,12 @@ class Ledger:
                 entry = json.loads(line)
             except json.JSONDecodeError:
                 raise ValueError(f"{self.path}: line {no}: not a ledger entry") from None
-            ok = isinstance(entry, dict) and entry.get("event") in ("start", "end") \
-                and isinstance(entry.get("run_id"), int) and isinstance(entry.get("run"), str)
+            ok = (
+                isinstance(entry, dict)
+                and entry.get("event") in ("start", "end")
+                and isinstance(entry.get("run_id"), int)
+                and isinstance(entry.get("run"), str)
+            )
             if not ok or (entry["event"] == "end" and entry.get("status") not in STATUSES):
                 raise ValueError(f"{self.path}: line {no}: not a ledger entry (event, run, run_id, status)")
             out.append(entry)
@@ -76,18 +80,48 @@ class Ledger:
 
     def start(self, run: str, index: int, run_id: int, ticks: int, mode: str) -> dict[str, Any]:
         """Record a run about to be started (before the brick hears of it)."""
-        return self._append({"event": "start", "run": run, "index": index, "run_id": run_id, "ticks": ticks,
-                             "mode": mode, "pid": os.getpid(), "at": _now()})
+        return self._append(
+            {
+                "event": "start",
+                "run": run,
+                "index": index,
+                "run_id": run_id,
+                "ticks": ticks,
+                "mode": mode,
+                "pid": os.getpid(),
+                "at": _now(),
+            }
+        )
 
-    def end(self, start: dict[str, Any], status: str, reason: str, rows_sent: int | None, rows: int,
-            file: str | None, settled_by: str = "collector") -> dict[str, Any]:
+    def end(
+        self,
+        start: dict[str, Any],
+        status: str,
+        reason: str,
+        rows_sent: int | None,
+        rows: int,
+        file: str | None,
+        settled_by: str = "collector",
+    ) -> dict[str, Any]:
         """Record how a run ended; ``rows_lost`` is None when the brick could not say what it sent."""
         if status not in STATUSES:
             raise ValueError(f"run status {status!r} is not one of {', '.join(STATUSES)}")
         lost = None if rows_sent is None else rows_sent - rows
-        return self._append({"event": "end", "run": start["run"], "run_id": start["run_id"], "status": status,
-                             "reason": reason, "rows_sent": rows_sent, "rows": rows, "rows_lost": lost,
-                             "file": file, "settled_by": settled_by, "at": _now()})
+        return self._append(
+            {
+                "event": "end",
+                "run": start["run"],
+                "run_id": start["run_id"],
+                "status": status,
+                "reason": reason,
+                "rows_sent": rows_sent,
+                "rows": rows,
+                "rows_lost": lost,
+                "file": file,
+                "settled_by": settled_by,
+                "at": _now(),
+            }
+        )
 
     def unsettled(self) -> list[dict[str, Any]]:
         """Start entries without an end entry: runs an earlier collector started and did not settle."""

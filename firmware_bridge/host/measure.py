@@ -25,8 +25,9 @@ from .stats import summary
 
 
 def _start_sim(link: Path) -> subprocess.Popen[str]:
-    proc = subprocess.Popen([sys.executable, "-m", "firmware_bridge.host.brick_sim", "--link", str(link)],
-                            stdout=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "firmware_bridge.host.brick_sim", "--link", str(link)], stdout=subprocess.PIPE, text=True
+    )
     ready, _, _ = select.select([proc.stdout], [], [], 30)
     if not ready:
         proc.kill()
@@ -42,7 +43,8 @@ def pooled(folder: Path) -> dict[str, Any]:
     host_sd = [p["timing"]["host_arrival_period_ms"]["sd"] for p in prov]
     host_max = [p["timing"]["host_arrival_period_ms"]["max"] for p in prov]
     out: dict[str, Any] = {
-        "runs": len(logs), "rows": int(sum(len(lg) for lg in logs)),
+        "runs": len(logs),
+        "rows": int(sum(len(lg) for lg in logs)),
         "complete": int(sum(p["complete"] for p in prov)),
         "brick_period_ms": summary(periods),
         "rate_hz": round(1000 / float(periods.mean()), 3),
@@ -54,8 +56,10 @@ def pooled(folder: Path) -> dict[str, Any]:
         "crc_errors": int(sum(p["crc_errors"]["at_host"] + (p["crc_errors"]["at_brick"] or 0) for p in prov)),
         "overruns": int(sum(p["overruns"] for p in prov)),
         "gaps": int(sum(len(p["gaps"]) for p in prov)),
-        "ping_rtt_ms": {"mean_of_means": round(float(np.mean([p["clock"]["ping_rtt_ms"]["mean"] for p in prov])), 3),
-                        "max": max(p["clock"]["ping_rtt_ms"]["max"] for p in prov)},
+        "ping_rtt_ms": {
+            "mean_of_means": round(float(np.mean([p["clock"]["ping_rtt_ms"]["mean"] for p in prov])), 3),
+            "max": max(p["clock"]["ping_rtt_ms"]["max"] for p in prov),
+        },
         "controller_mismatches": int(sum(p["controller_mismatches"] or 0 for p in prov)),
     }
     hil = [p["hil"] for p in prov if "hil" in p]
@@ -70,24 +74,29 @@ def pooled(folder: Path) -> dict[str, Any]:
 
 def table(name: str, m: dict[str, Any]) -> str:
     p = m["brick_period_ms"]
-    rows = [f"### {name}: {m['runs']} runs, {m['rows']} rows, {m['complete']} complete",
-            "| figure | value |", "| --- | --- |",
-            f"| loop rate | {m['rate_hz']} Hz |",
-            f"| brick period mean / sd / p99 / max | {p['mean']} / {p['sd']} / {p['p99']} / {p['max']} ms |",
-            f"| host arrival period sd (mean over runs, worst) / max | {m['host_arrival_period_sd_ms']['mean']}, "
-            f"{m['host_arrival_period_sd_ms']['max']} / {m['host_arrival_period_max_ms']} ms |",
-            f"| lost frames brick->host / host->brick | {m['lost_brick_to_host']} / {m['lost_host_to_brick']} |",
-            f"| CRC errors, overruns, gaps | {m['crc_errors']}, {m['overruns']}, {m['gaps']} |",
-            f"| ping round trip mean / max | {m['ping_rtt_ms']['mean_of_means']} / {m['ping_rtt_ms']['max']} ms |",
-            f"| loop work max | {m['loop_work_us_max']} us |",
-            f"| rows not equal to envi's controller | {m['controller_mismatches']} |"]
+    rows = [
+        f"### {name}: {m['runs']} runs, {m['rows']} rows, {m['complete']} complete",
+        "| figure | value |",
+        "| --- | --- |",
+        f"| loop rate | {m['rate_hz']} Hz |",
+        f"| brick period mean / sd / p99 / max | {p['mean']} / {p['sd']} / {p['p99']} / {p['max']} ms |",
+        f"| host arrival period sd (mean over runs, worst) / max | {m['host_arrival_period_sd_ms']['mean']}, "
+        f"{m['host_arrival_period_sd_ms']['max']} / {m['host_arrival_period_max_ms']} ms |",
+        f"| lost frames brick->host / host->brick | {m['lost_brick_to_host']} / {m['lost_host_to_brick']} |",
+        f"| CRC errors, overruns, gaps | {m['crc_errors']}, {m['overruns']}, {m['gaps']} |",
+        f"| ping round trip mean / max | {m['ping_rtt_ms']['mean_of_means']} / {m['ping_rtt_ms']['max']} ms |",
+        f"| loop work max | {m['loop_work_us_max']} us |",
+        f"| rows not equal to envi's controller | {m['controller_mismatches']} |",
+    ]
     if "hil_inject_to_action_ms" in m:
         h = m["hil_inject_to_action_ms"]
-        rows += [f"| HIL inject->action mean / p99 / max | {h['mean']} / {h['p99']} / {h['max']} ms |",
-                 f"| HIL colour held at brick until its tick (mean) | {m['hil_inject_held_at_brick_ms_mean']} ms |",
-                 f"| HIL net link round trip (mean inject->action minus hold) | "
-                 f"{round(h['mean'] - m['hil_inject_held_at_brick_ms_mean'], 3)} ms |",
-                 f"| HIL timeouts | {m['hil_timeouts']} |"]
+        rows += [
+            f"| HIL inject->action mean / p99 / max | {h['mean']} / {h['p99']} / {h['max']} ms |",
+            f"| HIL colour held at brick until its tick (mean) | {m['hil_inject_held_at_brick_ms_mean']} ms |",
+            f"| HIL net link round trip (mean inject->action minus hold) | "
+            f"{round(h['mean'] - m['hil_inject_held_at_brick_ms_mean'], 3)} ms |",
+            f"| HIL timeouts | {m['hil_timeouts']} |",
+        ]
     return "\n".join(rows)
 
 
@@ -104,8 +113,17 @@ def main(argv: list[str] | None = None) -> int:
         common = ["--port", str(args.out / "brick"), "--duration", args.duration, "--quiet"]
         collect.main([*common, "--runs", str(args.runs), "--out", str(args.out / "field")])
         if args.hil_runs:
-            collect.main([*common, "--runs", str(args.hil_runs), "--out", str(args.out / "hil"),
-                          "--inject", "firmware_bridge.host.inject:WorldModel"])
+            collect.main(
+                [
+                    *common,
+                    "--runs",
+                    str(args.hil_runs),
+                    "--out",
+                    str(args.out / "hil"),
+                    "--inject",
+                    "firmware_bridge.host.inject:WorldModel",
+                ]
+            )
     finally:
         proc.terminate()
         proc.wait(30)

@@ -66,13 +66,20 @@ def handshake(link: Link, timeout: float = 2.0, tries: int = 3) -> BrickInfo:
                 return BrickInfo(version, period, phash, runtime, name, _params(params), state, run_id)
     other = link.decoder.other_version
     if other is not None:  # its frames were dropped as malformed: say why rather than "no answer"
-        raise BrickError(f"{link.url}: the brick speaks protocol {other}, this host {P.VERSION}; "
-                         "update the brick program or the host")
+        raise BrickError(
+            f"{link.url}: the brick speaks protocol {other}, this host {P.VERSION}; "
+            "update the brick program or the host"
+        )
     raise BrickError(f"{link.url}: no handshake from the brick after {tries} tries")
 
 
-def stop_run(link: Link, run_id: int, tries: int = 3, wait: float = 0.3,
-             on_message: Callable[[float, P.Message], None] | None = None) -> tuple[int, ...] | None:
+def stop_run(
+    link: Link,
+    run_id: int,
+    tries: int = 3,
+    wait: float = 0.3,
+    on_message: Callable[[float, P.Message], None] | None = None,
+) -> tuple[int, ...] | None:
     """STOP ``run_id`` until its RUN_END comes back (the brick repeats it for an ended run); None if not.
 
     Other messages on the way (the run's last frames) go to ``on_message``, else are skipped.
@@ -150,9 +157,18 @@ class RunResult:
 class Run:
     """Drives one run; ``model`` is None for a field run, else it supplies the injected colours."""
 
-    def __init__(self, link: Link, info: BrickInfo, run_id: int, mode: int, n_ticks: int,
-                 model: EnvironmentModel | None = None, init_window: np.ndarray | None = None,
-                 silence: float = 1.0, on_row: Callable[[int], None] | None = None) -> None:
+    def __init__(
+        self,
+        link: Link,
+        info: BrickInfo,
+        run_id: int,
+        mode: int,
+        n_ticks: int,
+        model: EnvironmentModel | None = None,
+        init_window: np.ndarray | None = None,
+        silence: float = 1.0,
+        on_row: Callable[[int], None] | None = None,
+    ) -> None:
         self.link = link
         self.info = info
         self.model = model
@@ -186,6 +202,7 @@ class Run:
 
     def _stop(self) -> None:
         """Ask the brick to stop (a STOP also makes it repeat a RUN_END the host missed)."""
+
         def keep_rows(t: float, msg: P.Message) -> None:  # frames sent before the brick saw the STOP
             if msg.type == P.TELEMETRY and msg.fields[0] == self.result.run_id:
                 self._telemetry(t, msg.fields[1:])

@@ -75,6 +75,9 @@ def settle(link: Link, info: BrickInfo, ledger: Ledger, folder: Path) -> Settlem
             entries.append(ledger.end(start, "lost", why, sent, 0, None, settled_by="next collector"))
         else:
             file, status, rows = got
-            entries.append(ledger.end(start, status, "collector died after writing it", sent, rows, file,
-                                      settled_by="next collector"))
+            entries.append(
+                ledger.end(
+                    start, status, "collector died after writing it", sent, rows, file, settled_by="next collector"
+                )
+            )
     return Settlement(entries, foreign)

@@ -12,8 +12,15 @@ def summary(values: Sequence[float] | np.ndarray) -> dict[str, float] | None:
     v = np.asarray(values, dtype=np.float64)
     if v.size == 0:
         return None
-    out = {"n": int(v.size), "mean": float(v.mean()), "sd": float(v.std()), "p50": float(np.percentile(v, 50)),
-           "p99": float(np.percentile(v, 99)), "max": float(v.max()), "min": float(v.min())}
+    out = {
+        "n": int(v.size),
+        "mean": float(v.mean()),
+        "sd": float(v.std()),
+        "p50": float(np.percentile(v, 50)),
+        "p99": float(np.percentile(v, 99)),
+        "max": float(v.max()),
+        "min": float(v.min()),
+    }
     return {k: (x if k == "n" else round(x, 3)) for k, x in out.items()}
 
 

@@ -45,7 +45,7 @@ def used_indices(folder: Path, prefix: str, reserved: set[str]) -> dict[int, str
             if p.name.startswith("."):
                 continue
             if p.name.endswith(".meta.json"):
-                names.add(p.name[:-len(".meta.json")])
+                names.add(p.name[: -len(".meta.json")])
             elif p.suffix == ".csv":
                 names.add(p.stem)
     return {i: n for n in sorted(names) if (i := index_of(n, prefix)) is not None}

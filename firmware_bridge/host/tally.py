@@ -47,6 +47,8 @@ class Tally:
         known = self.rows_sent - self.rows_lost  # recorded rows of the runs whose sent count is known
         rows = f"rows: {known} recorded + {self.rows_lost} lost = {self.rows_sent} sent"
         if self.unknown:
-            rows += (f"; {self.rows - known} more recorded in {self.unknown} run(s) whose sent rows the brick "
-                     "could not report")
+            rows += (
+                f"; {self.rows - known} more recorded in {self.unknown} run(s) whose sent rows the brick "
+                "could not report"
+            )
         return f"{runs}; {rows}"

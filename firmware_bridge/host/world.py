@@ -17,8 +17,14 @@ BLACK, WHITE = 5.0, 75.0
 
 
 class EdgeWorld:
-    def __init__(self, speed_mm_s: float = 200.0, wheelbase_mm: float = 40.0, spot_mm: float = 8.0,
-                 noise: float = 1.0, seed: int = 0) -> None:
+    def __init__(
+        self,
+        speed_mm_s: float = 200.0,
+        wheelbase_mm: float = 40.0,
+        spot_mm: float = 8.0,
+        noise: float = 1.0,
+        seed: int = 0,
+    ) -> None:
         self.speed = speed_mm_s
         self.wheelbase = wheelbase_mm
         self.spot = spot_mm
