@@ -66,8 +66,12 @@ PUBLISHED: dict[str, dict[str, Any]] = {
     "bcxgail": {"n3": 1.60, "n20": 1.34, "per_x_n20": [2.04, 0.20, 1.09, 0.72, 2.40]},
     "gail": {"n3": 6.57, "n20": 4.28, "per_x_n20": None},
     "bc-deterministic": {"n3": 839.0, "n20": 1000.0, "per_x_n20": None},
-    "authors-bcxgail": {"n3": 6.52, "n20": 0.80, "per_x_n20": [1.58, 1.10, 0.51, 0.49, 0.32],
-                        "note": "their 5-fold protocol; n3 is the median over seen x"},
+    "authors-bcxgail": {
+        "n3": 6.52,
+        "n20": 0.80,
+        "per_x_n20": [1.58, 1.10, 0.51, 0.49, 0.32],
+        "note": "their 5-fold protocol; n3 is the median over seen x",
+    },
     "real-vs-real (10 vs 10)": {"per_x_n20": [0.97, 0.60, 0.58, 0.38, 0.65]},
 }
 TARGETS = {"mean_n20": 0.6, "mean_n3": 1.0, "per_x_vs_real": 1.5}
@@ -108,17 +112,19 @@ def blocks(logs: list[Log], fold: int, folds: int, n: int, val: int, test: int, 
     size = len(logs)
     need = test + (1 + val + 1 + n if seen else 0)
     if need > size or test > size // 2:
-        raise ValueError(f"{logs[0].name}: {size} logs of this version cannot hold test {test}"
-                         + (f", validation {val} and training {n} with gaps" if seen else "")
-                         + " and a disjoint real-vs-real block")
+        raise ValueError(
+            f"{logs[0].name}: {size} logs of this version cannot hold test {test}"
+            + (f", validation {val} and training {n} with gaps" if seen else "")
+            + " and a disjoint real-vs-real block"
+        )
     shift = fold * size // folds
     order = logs[shift:] + logs[:shift]
-    twin = (order + order)[size // 2: size // 2 + test]
+    twin = (order + order)[size // 2 : size // 2 + test]
     if not seen:
         return Blocks(order[:test], [], [], twin)
     v0 = test + 1
     t0 = v0 + val + 1
-    return Blocks(order[:test], order[v0:v0 + val], order[t0:t0 + n], twin)
+    return Blocks(order[:test], order[v0 : v0 + val], order[t0 : t0 + n], twin)
 
 
 def colour(logs: list[Log]) -> np.ndarray:
@@ -130,9 +136,12 @@ def compare(real: list[Log], other: list[Log], cfg: MetricConfig) -> dict[str, A
     """Authors' KLD and per-metric W1 (over the metric's possible range) of two samples of runs."""
     r, o = colour(real), colour(other)
     dist = distances(r, o, cfg)
-    return {"kld": authors_kld(safety_comfort(r, cfg), safety_comfort(o, cfg)),
-            "w1": dict(zip(METRIC_NAMES, map(float, dist.w1))), "acc": dist.acc,
-            "runs": [len(real), len(other)]}
+    return {
+        "kld": authors_kld(safety_comfort(r, cfg), safety_comfort(o, cfg)),
+        "w1": dict(zip(METRIC_NAMES, map(float, dist.w1))),
+        "acc": dist.acc,
+        "runs": [len(real), len(other)],
+    }
 
 
 def geomean(values: list[float]) -> float:
@@ -142,8 +151,9 @@ def geomean(values: list[float]) -> float:
     return float(np.exp(np.mean(np.log(np.maximum(values, 1e-12)))))
 
 
-def run_cell(name: str, n: int, fold: int, seed: int, by_x: dict[int, list[Log]], args: argparse.Namespace,
-             cfg: MetricConfig) -> dict[str, Any]:
+def run_cell(
+    name: str, n: int, fold: int, seed: int, by_x: dict[int, list[Log]], args: argparse.Namespace, cfg: MetricConfig
+) -> dict[str, Any]:
     """Train one model and score it on every version's test block."""
     algo, extra = ALGORITHMS[name]
     parts = {x: blocks(by_x[x], fold, args.folds, n, args.val, args.test, x in TRAIN_X) for x in ALL_X}
@@ -157,8 +167,16 @@ def run_cell(name: str, n: int, fold: int, seed: int, by_x: dict[int, list[Log]]
     for x in ALL_X:
         sims = simulate_versions(ckpt, parts[x].test, runs=args.sim_runs, seed=1000 + seed, engine="torch")
         per_x[x] = compare(parts[x].test, sims, cfg)
-    return {"algorithm": name, "n": n, "fold": fold, "seed": seed, "train_seconds": train_s,
-            "train_logs": len(train_logs), "val_logs": len(val_logs), "per_x": per_x}
+    return {
+        "algorithm": name,
+        "n": n,
+        "fold": fold,
+        "seed": seed,
+        "train_seconds": train_s,
+        "train_logs": len(train_logs),
+        "val_logs": len(val_logs),
+        "per_x": per_x,
+    }
 
 
 def real_levels(by_x: dict[int, list[Log]], args: argparse.Namespace, cfg: MetricConfig) -> dict[int, dict]:
@@ -168,15 +186,23 @@ def real_levels(by_x: dict[int, list[Log]], args: argparse.Namespace, cfg: Metri
     between shifts): a steadier level than the few folds' pairs, which one unusual block can move."""
     out = {}
     for x in ALL_X:
-        cells = [compare(b.test, b.real_twin, cfg) for b in
-                 (blocks(by_x[x], f, args.folds, 0, 0, args.test, False) for f in range(args.folds))]
+        cells = [
+            compare(b.test, b.real_twin, cfg)
+            for b in (blocks(by_x[x], f, args.folds, 0, 0, args.test, False) for f in range(args.folds))
+        ]
         size = len(by_x[x])
-        every = [compare(b.test, b.real_twin, cfg)["kld"] for b in
-                 (blocks(by_x[x], s, size, 0, 0, args.test, False) for s in range(size))]
-        out[x] = {"kld_per_fold": [c["kld"] for c in cells], "kld": geomean([c["kld"] for c in cells]),
-                  "kld_every_shift": geomean(every), "shifts": size,
-                  "w1": {m: float(np.mean([c["w1"][m] for c in cells])) for m in METRIC_NAMES},
-                  "runs": cells[0]["runs"]}
+        every = [
+            compare(b.test, b.real_twin, cfg)["kld"]
+            for b in (blocks(by_x[x], s, size, 0, 0, args.test, False) for s in range(size))
+        ]
+        out[x] = {
+            "kld_per_fold": [c["kld"] for c in cells],
+            "kld": geomean([c["kld"] for c in cells]),
+            "kld_every_shift": geomean(every),
+            "shifts": size,
+            "w1": {m: float(np.mean([c["w1"][m] for c in cells])) for m in METRIC_NAMES},
+            "runs": cells[0]["runs"],
+        }
     return out
 
 
@@ -186,18 +212,26 @@ def summarise(cells: list[dict], real: dict[int, dict]) -> list[dict[str, Any]]:
     for key in sorted({(c["algorithm"], c["n"]) for c in cells}, key=lambda k: (list(ALGORITHMS).index(k[0]), k[1])):
         group = [c for c in cells if (c["algorithm"], c["n"]) == key]
         kld = {x: geomean([c["per_x"][x]["kld"] for c in group]) for x in ALL_X}
-        spread = {x: [min(c["per_x"][x]["kld"] for c in group), max(c["per_x"][x]["kld"] for c in group)]
-                  for x in ALL_X}
-        rows.append({
-            "algorithm": key[0], "n": key[1], "models": len(group),
-            "runs_per_comparison": group[0]["per_x"][ALL_X[0]]["runs"],
-            "kld_per_x": kld, "kld_range_per_x": spread, "kld_mean": float(np.mean(list(kld.values()))),
-            "ratio_to_real": {x: kld[x] / real[x]["kld"] for x in ALL_X},
-            "ratio_to_real_every_shift": {x: kld[x] / real[x]["kld_every_shift"] for x in ALL_X},
-            "w1_mean_over_x": {m: float(np.mean([c["per_x"][x]["w1"][m] for c in group for x in ALL_X]))
-                               for m in METRIC_NAMES},
-            "train_seconds": [round(c["train_seconds"], 1) for c in group],
-        })
+        spread = {
+            x: [min(c["per_x"][x]["kld"] for c in group), max(c["per_x"][x]["kld"] for c in group)] for x in ALL_X
+        }
+        rows.append(
+            {
+                "algorithm": key[0],
+                "n": key[1],
+                "models": len(group),
+                "runs_per_comparison": group[0]["per_x"][ALL_X[0]]["runs"],
+                "kld_per_x": kld,
+                "kld_range_per_x": spread,
+                "kld_mean": float(np.mean(list(kld.values()))),
+                "ratio_to_real": {x: kld[x] / real[x]["kld"] for x in ALL_X},
+                "ratio_to_real_every_shift": {x: kld[x] / real[x]["kld_every_shift"] for x in ALL_X},
+                "w1_mean_over_x": {
+                    m: float(np.mean([c["per_x"][x]["w1"][m] for c in group for x in ALL_X])) for m in METRIC_NAMES
+                },
+                "train_seconds": [round(c["train_seconds"], 1) for c in group],
+            }
+        )
     return rows
 
 
@@ -206,32 +240,48 @@ def fmt(v: float) -> str:
 
 
 def print_table(rows: list[dict], real: dict[int, dict], args: argparse.Namespace) -> None:
-    print(f"\nAuthors' KLD (real || sim), geometric mean over {args.folds} folds x {args.seeds} seeds; "
-          f"each comparison: {args.test} real runs vs {args.test * args.sim_runs} simulated runs per version")
+    print(
+        f"\nAuthors' KLD (real || sim), geometric mean over {args.folds} folds x {args.seeds} seeds; "
+        f"each comparison: {args.test} real runs vs {args.test * args.sim_runs} simulated runs per version"
+    )
     head = "algorithm          n  models " + " ".join(f"x={x:<6}" for x in ALL_X) + "  mean   published  train s"
     print(head)
     print("-" * len(head))
     for r in rows:
         pub = PUBLISHED.get(r["algorithm"], {}).get(f"n{r['n']}")
-        print(f"{r['algorithm']:<17} {r['n']:>2} {r['models']:>6}  "
-              + " ".join(f"{fmt(r['kld_per_x'][x]):<8}" for x in ALL_X)
-              + f" {fmt(r['kld_mean']):<6} {fmt(pub) if pub is not None else '-':<10} "
-              + f"{np.mean(r['train_seconds']):.0f}")
-    print(f"{'real vs real':<17} {'':>2} {args.folds:>6}  " + " ".join(f"{fmt(real[x]['kld']):<8}" for x in ALL_X)
-          + f" {fmt(np.mean([real[x]['kld'] for x in ALL_X])):<6} (published, 10 vs 10: "
-          + ", ".join(map(str, PUBLISHED["real-vs-real (10 vs 10)"]["per_x_n20"])) + ")")
-    print(f"{'  every shift':<17} {'':>2} {real[ALL_X[0]]['shifts']:>6}  "
-          + " ".join(f"{fmt(real[x]['kld_every_shift']):<8}" for x in ALL_X)
-          + f" {fmt(np.mean([real[x]['kld_every_shift'] for x in ALL_X])):<6}")
-    print(f"real vs real: {args.test} real runs vs {args.test} other real runs of the same version (half the file "
-          "away), per fold; 'every shift': geometric mean over every rotation of the file (models column: shifts of x=10)")
-    print(f"\nTargets: mean <= {TARGETS['mean_n20']} at n=20, <= {TARGETS['mean_n3']} at n=3, "
-          f"every x <= {TARGETS['per_x_vs_real']} x real-vs-real at n=20")
+        print(
+            f"{r['algorithm']:<17} {r['n']:>2} {r['models']:>6}  "
+            + " ".join(f"{fmt(r['kld_per_x'][x]):<8}" for x in ALL_X)
+            + f" {fmt(r['kld_mean']):<6} {fmt(pub) if pub is not None else '-':<10} "
+            + f"{np.mean(r['train_seconds']):.0f}"
+        )
+    print(
+        f"{'real vs real':<17} {'':>2} {args.folds:>6}  "
+        + " ".join(f"{fmt(real[x]['kld']):<8}" for x in ALL_X)
+        + f" {fmt(np.mean([real[x]['kld'] for x in ALL_X])):<6} (published, 10 vs 10: "
+        + ", ".join(map(str, PUBLISHED["real-vs-real (10 vs 10)"]["per_x_n20"]))
+        + ")"
+    )
+    print(
+        f"{'  every shift':<17} {'':>2} {real[ALL_X[0]]['shifts']:>6}  "
+        + " ".join(f"{fmt(real[x]['kld_every_shift']):<8}" for x in ALL_X)
+        + f" {fmt(np.mean([real[x]['kld_every_shift'] for x in ALL_X])):<6}"
+    )
+    print(
+        f"real vs real: {args.test} real runs vs {args.test} other real runs of the same version (half the file "
+        "away), per fold; 'every shift': geometric mean over every rotation of the file (models column: shifts of x=10)"
+    )
+    print(
+        f"\nTargets: mean <= {TARGETS['mean_n20']} at n=20, <= {TARGETS['mean_n3']} at n=3, "
+        f"every x <= {TARGETS['per_x_vs_real']} x real-vs-real at n=20"
+    )
     for r in rows:
         worst = max(r["ratio_to_real"].values())
         steady = max(r["ratio_to_real_every_shift"].values())
-        print(f"  {r['algorithm']:<17} n={r['n']:<2} mean {fmt(r['kld_mean'])}, worst x / real-vs-real "
-              f"{fmt(worst)} (same folds), {fmt(steady)} (every shift)")
+        print(
+            f"  {r['algorithm']:<17} n={r['n']:<2} mean {fmt(r['kld_mean'])}, worst x / real-vs-real "
+            f"{fmt(worst)} (same folds), {fmt(steady)} (every shift)"
+        )
     print("\nW1 per goal metric (over its possible range), mean over versions, folds and seeds:")
     print(f"{'algorithm':<17} {'n':>2} " + " ".join(f"{m[:10]:>10}" for m in METRIC_NAMES))
     for r in rows:
@@ -240,15 +290,26 @@ def print_table(rows: list[dict], real: dict[int, dict], args: argparse.Namespac
     print(f"{'real vs real':<17} {'':>2} " + " ".join(f"{w1_real[m]:>10.4f}" for m in METRIC_NAMES))
 
 
-def write_report(args: argparse.Namespace, by_x: dict[int, list[Log]], real: dict[int, dict],
-                 cells: list[dict]) -> None:
+def write_report(
+    args: argparse.Namespace, by_x: dict[int, list[Log]], real: dict[int, dict], cells: list[dict]
+) -> None:
     """The JSON report: configuration, targets, published figures, real-vs-real, summary and every cell."""
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    report = {"config": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
-              "logs_per_x": {x: len(by_x[x]) for x in ALL_X}, "targets": TARGETS, "published": PUBLISHED,
-              "real_vs_real": real, "summary": summarise(cells, real), "cells": cells,
-              "machine": {"python": platform.python_version(), "torch": torch.__version__,
-                          "cpus": os.cpu_count(), "load": os.getloadavg()}}
+    report = {
+        "config": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
+        "logs_per_x": {x: len(by_x[x]) for x in ALL_X},
+        "targets": TARGETS,
+        "published": PUBLISHED,
+        "real_vs_real": real,
+        "summary": summarise(cells, real),
+        "cells": cells,
+        "machine": {
+            "python": platform.python_version(),
+            "torch": torch.__version__,
+            "cpus": os.cpu_count(),
+            "load": os.getloadavg(),
+        },
+    }
     args.out.write_text(json.dumps(report, indent=1, default=float))
 
 
@@ -306,8 +367,11 @@ def main(argv: list[str] | None = None) -> int:
                     cells.append(cell)
                     if args.out:  # after every model, so a long run killed early keeps what it measured
                         write_report(args, by_x, real, cells)
-                    print(f"{name} n={n} fold={fold} seed={seed}: train {cell['train_seconds']:.0f} s, KLD per x "
-                          + ", ".join(fmt(cell["per_x"][x]["kld"]) for x in ALL_X), flush=True)
+                    print(
+                        f"{name} n={n} fold={fold} seed={seed}: train {cell['train_seconds']:.0f} s, KLD per x "
+                        + ", ".join(fmt(cell["per_x"][x]["kld"]) for x in ALL_X),
+                        flush=True,
+                    )
     print_table(summarise(cells, real), real, args)
     if args.out:
         print(f"wrote {args.out}")
