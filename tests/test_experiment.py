@@ -4,6 +4,7 @@ report files, resuming, the Dask path, and the car twin (a second system) end to
 from __future__ import annotations
 
 import json
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -295,3 +296,48 @@ def test_cli_names_the_missing_choice_in_one_line(car_logs, tmp_path, capsys) ->
     err = capsys.readouterr().err.strip()
     assert code == 2 and len(err.splitlines()) == 1
     assert err.startswith("envi experiment: error: tmvu: give --unseen-versions") and CAR_NEW[0] in err
+
+
+SCRIPT = """
+import sys, time
+from envi_py.experiments.executor import LocalExecutor
+ex = LocalExecutor(1)
+jobs = ex.map(time.sleep, [60])
+next(jobs, None)
+"""
+
+
+def test_a_killed_experiment_leaves_no_worker_behind(tmp_path) -> None:
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    proc = subprocess.Popen([sys.executable, "-c", SCRIPT])
+    try:
+        deadline = time.monotonic() + 60
+        workers: list[int] = []
+        while not workers and time.monotonic() < deadline:  # the pool's worker: a child of the experiment
+            time.sleep(0.2)
+            children = Path(f"/proc/{proc.pid}/task/{proc.pid}/children")
+            pids = children.read_text().split() if children.exists() else []
+            workers = [int(p) for p in pids if b"spawn_main" in Path(f"/proc/{p}/cmdline").read_bytes()]
+        assert workers, "the pool never started a worker"
+        time.sleep(3.0)  # it has run its initializer (torch imported) and sleeps in the job
+        (worker,) = workers
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait(10)
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline:
+            try:
+                os.kill(worker, 0)
+            except ProcessLookupError:
+                break
+            time.sleep(0.1)
+        else:
+            os.kill(worker, signal.SIGKILL)
+            raise AssertionError(f"worker {worker} outlived its killed parent")
+    finally:
+        if proc.poll() is None:
+            proc.kill()
