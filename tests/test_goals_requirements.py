@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 
 from envi_py.goals.evaluate import Runs
 from envi_py.goals.requirements import MetricRequirement, StlRequirement, parse, satisfied
-from envi_py.goals.verdicts import verdict
+from envi_py.verdicts import BinomialDecision, decide
 from envi_py.system import RequirementSpec, load_system
 
 SIGNALS = ("color", "distance", "steering")
@@ -183,21 +183,25 @@ def test_stl_needs_two_samples() -> None:
 # ---------------------------------------------------------------------- verdicts with their probability
 
 
-@pytest.mark.parametrize(("passing", "n", "word"), [(200, 200, "holds"), (150, 200, "fails"), (18, 20, "undecided")])
-def test_verdict_uses_the_exact_interval(passing: int, n: int, word: str) -> None:
+def _decision(distance: np.ndarray, p: float = 0.9) -> BinomialDecision:
+    ok = satisfied(RequirementSpec("no collision", "min(distance) >= 10", probability=p), runs_of(distance=distance))
+    return decide(int(ok.sum()), ok.size, p)
+
+
+@pytest.mark.parametrize(("passing", "n", "word"), [(200, 200, "PASS"), (150, 200, "FAIL"), (18, 20, "UNDECIDED")])
+def test_requirement_outcomes_decide_with_the_exact_interval(passing: int, n: int, word: str) -> None:
     distance = np.full((n, 5), 30.0)
     distance[passing:, 2] = 5.0
-    v = verdict(RequirementSpec("no collision", "min(distance) >= 10", probability=0.9), runs_of(distance=distance))
-    assert (v.satisfied, v.runs, v.verdict) == (passing, n, word)
-    assert v.low <= v.fraction <= v.high
-    assert v.to_json()["interval"] == [v.low, v.high]
+    v = _decision(distance)
+    assert (v.k, v.n, v.verdict.value) == (passing, n, word)
+    assert v.low <= v.p_hat <= v.high
 
 
-def test_verdict_interval_is_clopper_pearson() -> None:
+def test_requirement_interval_is_clopper_pearson() -> None:
     # 18 of 20: the exact 95% interval is [0.683, 0.988] (Clopper and Pearson 1934, tabulated)
     distance = np.full((20, 5), 30.0)
     distance[18:, 0] = 0.0
-    v = verdict(RequirementSpec("R", "min(distance) >= 10"), runs_of(distance=distance))
+    v = _decision(distance)
     assert v.low == pytest.approx(0.6830, abs=5e-4) and v.high == pytest.approx(0.9877, abs=5e-4)
 
 

@@ -6,7 +6,6 @@
 - :mod:`.registry`: a metric by name, including a user's ``package.module:function``;
 - :mod:`.evaluate`: the runs' signals by name and the table of goal metrics over them;
 - :mod:`.requirements`: metric and STL requirements, parsed and checked per run;
-- :mod:`.verdicts`: whether a requirement holds with its probability (exact binomial interval);
 - :mod:`.selection`: the model-selection score of simulated against real runs, with divergence.
 """
 
@@ -15,13 +14,11 @@ from .presets import goals_of, preset_goals
 from .registry import KNOWN, metric
 from .requirements import parse, satisfied
 from .selection import SelectionScore, default_goals, selection_score
-from .verdicts import Verdict, verdict
 
 __all__ = [
     "KNOWN",
     "Runs",
     "SelectionScore",
-    "Verdict",
     "default_goals",
     "goal_scale",
     "goal_table",
@@ -34,5 +31,4 @@ __all__ = [
     "satisfied",
     "selection_score",
     "signals_of",
-    "verdict",
 ]
