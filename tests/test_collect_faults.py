@@ -2,10 +2,11 @@
 
 A 10-run session against the simulated brick on a pty; the collector is killed 20 times, each
 time at a seeded random tick of its first or second run (counted from the brick's own journal of
-the frames it sent), and restarted, asking for the runs still missing. Afterwards every log must be exactly
-one run's rows as
-the brick sent them, no file may ever have changed once written, and every row the brick sent
-must be either in a log or reported lost in the ledger.
+the frames it sent), and restarted, asking for the runs still missing. A kill that comes late on a loaded
+machine (its run already ended) lands in the next run instead, and the session goes on until all 20
+kills and 10 complete runs happened. Afterwards every log must be exactly one run's rows as the brick
+sent them, no file may ever have changed once written, and every row the brick sent must be either in a
+log or reported lost in the ledger.
 """
 
 from __future__ import annotations
@@ -79,6 +80,13 @@ def complete_logs(out: Path) -> int:
 
 def ledger(out: Path) -> list[dict]:
     return Ledger(out).entries  # as a collector reads it (a line torn by a kill is skipped)
+
+
+def ended_runs(out: Path) -> set[int]:
+    """Run ids the ledger records as settled."""
+    if not (out / LEDGER_NAME).exists():
+        return set()
+    return {e["run_id"] for e in ledger(out) if e["event"] == "end"}
 
 
 def own_runs(out: Path, pid: int) -> list[int]:
@@ -181,7 +189,7 @@ def test_sigkill_at_random_ticks_never_loses_overwrites_or_mixes_a_run(tmp_path:
     rng = random.Random(SEED)
     # (its run 0 or 1, at tick); every other kill early in the run, so that the run is still going
     # when the next collector connects and must be stopped, not just settled
-    plan = [(rng.randrange(2), rng.randrange(1, 5 if j % 2 else TICKS)) for j in range(KILLS)]
+    plan = [(rng.randrange(2), rng.randrange(1, 5 if j % 2 else TICKS - 2)) for j in range(KILLS)]
     journal = Journal(tmp_path / "journal.txt")
     out = tmp_path / "logs"
     sim = BrickSim(
@@ -198,31 +206,42 @@ def test_sigkill_at_random_ticks_never_loses_overwrites_or_mixes_a_run(tmp_path:
     seen: dict[str, str] = {}  # every file ever written, with its hash: none may change or vanish
     seen_ledger = b""
     last_rc = last_err = None
+    interrupted = 0  # kills that landed inside a run (not in the instant its end was recorded)
+    killed = False
     try:
-        for attempt in range(KILLS + 5):  # bounded: each attempt is killed or finishes within 60 s
-            remaining = RUNS - complete_logs(out)
-            if remaining == 0:
+        # bounded: each attempt is killed or finishes within 60 s, and at most one misses its kill
+        for attempt in range(3 * KILLS + 5):
+            complete = complete_logs(out)
+            if kills >= KILLS and complete >= RUNS and not killed:
                 break
+            # while kills are still due, ask for at least one run: a kill that came late (a loaded
+            # machine) let a run complete, and the session must still see all its kills
+            ask = max(RUNS - complete, 1)
             target = plan[kills] if kills < KILLS else None
-            if target is not None and remaining == 1:
+            if target is not None and ask == 1:
                 target = (0, target[1])
             err_path = tmp_path / f"collect_{attempt}.err"
-            proc = launch(sim.link, out, remaining, TICKS * PERIOD_MS, err_path)
+            proc = launch(sim.link, out, ask, TICKS * PERIOD_MS, err_path)
             procs.append(proc)
             deadline = time.monotonic() + 60
             killed = False
             while proc.poll() is None and time.monotonic() < deadline:
                 journal.update()
                 mine = own_runs(out, proc.pid)
-                if (
-                    target is not None
-                    and len(mine) > target[0]
-                    and len(journal.rows.get(mine[target[0]], [])) >= target[1]
-                ):
+                if target is None or len(mine) <= target[0]:
+                    time.sleep(0.002)
+                    continue
+                # kill only inside a run that is still going (at least two ticks left by the brick's
+                # journal): the target tick of the target run, or if that run already ended, at once
+                # in the run after it
+                sent = len(journal.rows.get(mine[-1], []))
+                due = target[1] if len(mine) == target[0] + 1 else 1
+                if due <= sent < TICKS - 2 and mine[-1] not in ended_runs(out):
                     proc.send_signal(signal.SIGKILL)
                     proc.wait(timeout=10)
                     kills += 1
                     killed = True
+                    interrupted += mine[-1] not in ended_runs(out)
                     break
                 time.sleep(0.002)
             assert proc.poll() is not None, f"collector attempt {attempt} did not finish in 60 s"
@@ -238,7 +257,7 @@ def test_sigkill_at_random_ticks_never_loses_overwrites_or_mixes_a_run(tmp_path:
             assert text.startswith(seen_ledger), "the ledger was rewritten, not appended to"
             seen_ledger = text
         else:
-            raise AssertionError("the session did not reach 10 complete runs")
+            raise AssertionError(f"the session did not reach {RUNS} complete runs and {KILLS} kills")
     finally:
         for p in procs:
             if p.poll() is None:
@@ -284,7 +303,8 @@ def test_sigkill_at_random_ticks_never_loses_overwrites_or_mixes_a_run(tmp_path:
         missing = int(np.sum(np.diff(ticks) - 1)) + int(ticks[0]) + TICKS - 1 - int(ticks[-1])
         assert prov["complete"] and missing == prov["skipped_ticks"] == sum(b - a + 1 for a, b in prov["gaps"])
         assert ends[rid]["file"] == name and ends[rid]["status"] == "complete" and ends[rid]["rows"] == len(lg)
-    assert sum(e["status"] == "complete" for e in ends.values()) == RUNS == len(logs)
+    n_complete = sum(e["status"] == "complete" for e in ends.values())
+    assert n_complete == len(logs) >= RUNS
 
     recorded = lost = 0
     for rid, e in ends.items():
@@ -300,7 +320,8 @@ def test_sigkill_at_random_ticks_never_loses_overwrites_or_mixes_a_run(tmp_path:
     assert recorded + lost == journal.total  # per session: every row sent is recorded or reported lost
     # each kill lost the run it hit, which the next collector reported lost; every other run is complete
     lost_runs = [e for e in ends.values() if e["status"] == "lost"]
-    assert len(lost_runs) == KILLS and len(ends) == RUNS + KILLS
+    # (a kill can land in the instant a run's end is recorded: it loses nothing, and few may)
+    assert len(lost_runs) == interrupted >= KILLS - 2 and len(ends) == n_complete + interrupted
     assert all(e["settled_by"] == "next collector" and e["file"] is None for e in lost_runs)
     assert lost > 0 and not list(out.glob(".*"))  # no staging file left behind
     print(
