@@ -56,6 +56,7 @@ def metadata(ckpt: Checkpoint) -> dict[str, str]:
         "envi.head": cfg.head,
         "envi.log_std_range": [LOG_STD_MIN, LOG_STD_MAX],
         "envi.post": post_processing(ckpt),
+        "envi.limit_events": [[i, v] for i, v in cfg.limit_events],
         "envi.config": asdict(cfg),
         "envi.algorithm": rec.algorithm,
         "envi.seed": rec.seed,
@@ -83,7 +84,8 @@ def _dense(nodes: list, inits: list, x: str, weight: np.ndarray, bias: np.ndarra
 
 
 def to_onnx(ckpt: Checkpoint) -> onnx.ModelProto:
-    """The model as an opset-17 graph: ``window`` (N, l*C) normalised -> ``mean`` [and ``log_std``] (N, |s|)."""
+    """The model as an opset-17 graph: ``window`` (N, l*C) normalised -> ``mean`` [and ``log_std``] (N, |s|)
+    [and ``event_logit`` (N, e): the limit events' logits, metadata ``envi.limit_events`` says whose]."""
     cfg = ckpt.config
     if cfg.kind != "mlp":
         raise ValueError(f"only MLP models can be exported, this one is {cfg.kind!r}")
@@ -110,6 +112,12 @@ def to_onnx(ckpt: Checkpoint) -> onnx.ModelProto:
         ]
         nodes.append(helper.make_node("Clip", [s, "log_std_min", "log_std_max"], ["log_std"], name="log_std_head.clip"))
         outputs.append(helper.make_tensor_value_info("log_std", TensorProto.FLOAT, ["N", cfg.n_state]))
+    if cfg.limit_events:
+        if cfg.head != "gaussian":
+            raise ValueError("limit events are exported with a Gaussian head only")
+        e = _dense(nodes, inits, h, sd["event.weight"], sd["event.bias"], "event_head")
+        nodes.append(helper.make_node("Identity", [e], ["event_logit"], name="event_head.out"))
+        outputs.append(helper.make_tensor_value_info("event_logit", TensorProto.FLOAT, ["N", len(cfg.limit_events)]))
     graph = helper.make_graph(
         nodes,
         "envi_env_model",
@@ -146,7 +154,7 @@ def parity(ckpt: Checkpoint, model: onnx.ModelProto, n: int = 4096, seed: int = 
     sess = ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"])
     got = sess.run(None, {INPUT: x})
     with torch.no_grad():
-        want = [t for t in ckpt.model(torch.from_numpy(x)) if t is not None]
+        want = [t for t in ckpt.model.heads(torch.from_numpy(x)) if t is not None]
     return max(float(np.max(np.abs(g - w.numpy()))) for g, w in zip(got, want))
 
 

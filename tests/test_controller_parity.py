@@ -214,7 +214,7 @@ def reference_rollout(ck: Checkpoint, spec: ControllerSpec, init: np.ndarray, st
     ctrl.warmup(out[:, :hist, :ns], out[:, :hist, ns:])
     window = norm.encode(out[:, :hist]).astype(np.float32)
     for t in range(steps):
-        z = ck.model.step(torch.from_numpy(window.reshape(batch, -1)), None).numpy().astype(np.float64)
+        z = ck.model.step(torch.from_numpy(window.reshape(batch, -1)), None)[0].numpy().astype(np.float64)
         s = norm.decode(np.concatenate([z, np.zeros((batch, chans - ns))], axis=1))[:, :ns]
         if post["clamp"]:
             s = np.clip(s, low, high)

@@ -61,19 +61,21 @@ struct Workspace {
   MatF ring;                       // (2 l C) x block: each run's window rows, twice (see below)
   std::vector<float> buf[4];       // hidden activations, ping-pong pairs for trunk and heads
   MatF mean;                       // n_state x block
+  std::vector<unsigned char> events;  // limit events x block: which happen this step
   std::vector<float> scratch;      // the packed layers' input panel
   std::vector<double> rows, states, actions, memory;
 
   Workspace(const Model& m, const Controller& ctrl, int block) {
     long c = m.channels();
     long panel = 1;
-    for (const auto* layers : {&m.trunk, &m.mean, &m.log_std})
+    for (const auto* layers : {&m.trunk, &m.mean, &m.log_std, &m.event})
       for (const Dense& d : *layers)
         if (d.packed) panel = std::max(panel, d.packed->scratch_size());
     scratch.resize(size_t(panel));
     ring.resize(2 * m.history * c, block);
     for (auto& v : buf) v.resize(size_t(m.max_width()) * size_t(block));
     mean.resize(m.n_state(), block);
+    events.resize(size_t(m.limit_events.size()) * size_t(block));
     rows.resize(size_t(block) * size_t(c));
     states.resize(size_t(block) * size_t(m.n_state()));
     actions.resize(size_t(block) * size_t(m.n_action()));
@@ -137,8 +139,11 @@ struct Runner {
           m.trunk.empty() ? x : forward(m.trunk, x, in, stride, count, w.buf[0].data(), w.buf[1].data(), w.scratch.data());
       const long hstride = m.trunk.empty() ? stride : trunk_out;
       const float* mu = forward(m.mean, h, trunk_out, hstride, count, w.buf[2].data(), w.buf[3].data(), w.scratch.data());
-      if (m.gaussian()) {
+      if (m.gaussian() || !m.event.empty()) {
         OutMap(w.mean.data(), ns, count) = Eigen::Map<const MatF>(mu, ns, count);
+        mu = w.mean.data();
+      }
+      if (m.gaussian()) {
         const float* ls = forward(m.log_std, h, trunk_out, hstride, count, w.buf[2].data(), w.buf[3].data(),
                                  w.scratch.data());
         for (int b = 0; b < count; ++b)
@@ -147,7 +152,17 @@ struct Runner {
             float eps = float(normal(job.seed, uint64_t(first + b), uint32_t(t), uint32_t(i)));
             w.mean.data()[k] += std::exp(ls[k]) * eps;
           }
-        mu = w.mean.data();
+      }
+      const size_t ne = m.limit_events.size();
+      if (ne) {  // a limit event happens with probability sigmoid(logit) (where likelier than not when deterministic)
+        const float* lg = forward(m.event, h, trunk_out, hstride, count, w.buf[2].data(), w.buf[3].data(),
+                                  w.scratch.data());
+        for (int b = 0; b < count; ++b)
+          for (size_t e = 0; e < ne; ++e) {
+            double p = 1.0 / (1.0 + std::exp(-double(lg[size_t(b) * ne + e])));
+            double u = m.gaussian() ? uniform(job.seed, uint64_t(first + b), uint32_t(t), uint32_t(e)) : 0.5;
+            w.events[size_t(b) * ne + e] = u < p;
+          }
       }
       for (int b = 0; b < count; ++b)
         for (int i = 0; i < ns; ++i) {
@@ -157,6 +172,10 @@ struct Runner {
           if (!m.round_to.empty()) v = std::nearbyint(v / m.round_to[size_t(i)]) * m.round_to[size_t(i)];  // half to even, as np.round
           w.states[k] = v;
         }
+      for (int b = 0; b < count; ++b)
+        for (size_t e = 0; e < ne; ++e)
+          if (w.events[size_t(b) * ne + e])
+            w.states[size_t(b) * size_t(ns) + size_t(m.limit_events[e].state)] = m.limit_events[e].value;
       ctrl.act(w.states.data(), ns, w.actions.data(), count, w.memory.data());
       for (int b = 0; b < count; ++b) {
         double* row = w.rows.data() + size_t(b) * size_t(c);

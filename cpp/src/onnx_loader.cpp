@@ -2,6 +2,7 @@
 // why not libprotobuf): every length is checked against the bytes that remain, every field of
 // interest against its expected wire type, and only the handful of ONNX messages the model needs
 // are decoded; unknown fields are skipped by their wire type, as protobuf itself does.
+#include <algorithm>
 #include <cmath>
 #include <cstring>
 #include <fstream>
@@ -250,20 +251,27 @@ class Compiler {
     values_[real_inputs[0]] = Value{};
     input_ = real_inputs[0];
     for (const auto& n : g_.nodes) node(n);
-    if (g_.outputs.empty() || g_.outputs.size() > 2)
-      throw ModelError("the model must have one output (mean) or two (mean, log_std), it has " + std::to_string(g_.outputs.size()));
+    if (g_.outputs.empty() || g_.outputs.size() > 3)
+      throw ModelError("the model must have one output (mean), two (mean, log_std) or three (mean, log_std, event_logit), it has " +
+                       std::to_string(g_.outputs.size()));
     Model m;
     auto mean = chain(g_.outputs[0]);
     if (g_.outputs.size() == 1) {
       m.mean = std::move(mean);
     } else {
       auto ls = chain(g_.outputs[1]);
-      size_t k = 0;  // shared prefix: the trunk (both heads start from the same value)
+      size_t k = 0;  // shared prefix: the trunk (every head starts from the same value)
       while (k < mean.size() && k < ls.size() && prefix_[0][k] == prefix_[1][k]) ++k;
       m.trunk.assign(mean.begin(), mean.begin() + long(k));
       m.mean.assign(mean.begin() + long(k), mean.end());
       m.log_std.assign(ls.begin() + long(k), ls.end());
       if (m.mean.empty() || m.log_std.empty()) throw ModelError("the two outputs must be different heads");
+      if (g_.outputs.size() == 3) {
+        auto ev = chain(g_.outputs[2]);
+        if (ev.size() <= k || !std::equal(prefix_[0].begin(), prefix_[0].begin() + long(k), prefix_[2].begin()))
+          throw ModelError("the event output must be a head on the same trunk as the mean");
+        m.event.assign(ev.begin() + long(k), ev.end());
+      }
     }
     return m;
   }
@@ -477,6 +485,13 @@ void read_metadata(Model& m) {
       m.limit_high.push_back(lh[1]);
     }
     if (!post.at("round_to").is_null()) m.round_to = post.at("round_to").as_numbers();
+    if (md.count("envi.limit_events"))
+      for (const auto& e : md["envi.limit_events"].as_array()) {
+        auto iv = e.as_numbers();
+        if (iv.size() != 2 || !(iv[0] >= 0 && iv[0] < double(m.states.size()) && iv[0] == std::floor(iv[0])) || !std::isfinite(iv[1]))
+          throw ModelError("metadata 'envi.limit_events' must hold [state index, reading] pairs");
+        m.limit_events.push_back({int(iv[0]), iv[1]});
+      }
     if (const Json* alg = md.count("envi.algorithm") ? &md["envi.algorithm"] : nullptr)
       if (alg->type == Json::Type::String) m.algorithm = alg->string;
   } catch (const ModelError&) {
@@ -511,6 +526,10 @@ void check_shapes(const Model& m) {
   if (walk(m.mean, t, "mean head") != m.n_state()) throw ModelError("the mean output does not have one value per state");
   if (m.gaussian() && walk(m.log_std, t, "log-std head") != m.n_state())
     throw ModelError("the log-std output does not have one value per state");
+  if (m.event.empty() != m.limit_events.empty())
+    throw ModelError("the event output and metadata 'envi.limit_events' must come together");
+  if (!m.event.empty() && walk(m.event, t, "event head") != long(m.limit_events.size()))
+    throw ModelError("the event output does not have one value per limit event");
   if (m.trunk.empty() && m.mean.empty()) throw ModelError("the model has no layers");
 }
 
@@ -518,7 +537,7 @@ void check_shapes(const Model& m) {
 
 int Model::max_width() const {
   long w = in_features();
-  for (const auto* layers : {&trunk, &mean, &log_std})
+  for (const auto* layers : {&trunk, &mean, &log_std, &event})
     for (const auto& d : *layers) w = std::max<long>(w, d.W.rows());
   return int(w);
 }
@@ -571,7 +590,7 @@ Model load_model(const uint8_t* data, size_t size) {
   m.metadata = std::move(metadata);
   read_metadata(m);
   check_shapes(m);
-  for (auto* layers : {&m.trunk, &m.mean, &m.log_std})
+  for (auto* layers : {&m.trunk, &m.mean, &m.log_std, &m.event})
     for (Dense& d : *layers)
       if (PackedDense::suits(d)) d.packed = std::make_shared<const PackedDense>(d);
   return m;

@@ -152,7 +152,7 @@ PYBIND11_MODULE(ENVI_MODULE_NAME, mod) {
       .def_readonly("metadata", &Model::metadata)
       .def_property_readonly("layers", [](const Model& m) {
         py::list out;
-        for (const auto* part : {&m.trunk, &m.mean, &m.log_std})
+        for (const auto* part : {&m.trunk, &m.mean, &m.log_std, &m.event})
           for (const Dense& d : *part) out.append(py::make_tuple(d.W.rows(), d.W.cols(), int(d.act)));
         return out;
       });

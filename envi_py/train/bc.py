@@ -23,12 +23,22 @@ from .common import Selector, model_config, new_checkpoint
 from .state import TrainingState
 
 
-def bc_loss(model: EnvModel, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-    """MSE for a deterministic head, Gaussian NLL for a stochastic one."""
-    mean, log_std = model(x)
+def bc_loss(model: EnvModel, x: torch.Tensor, y: torch.Tensor, events: torch.Tensor | None = None) -> torch.Tensor:
+    """MSE for a deterministic head, Gaussian NLL for a stochastic one; with limit events
+    (``events`` (N, e): which targets are a saturating sensor's limit reading), binary
+    cross-entropy for the event head, and the value head is not trained on those targets."""
+    mean, log_std, logit = model.heads(x)
     if log_std is None:
-        return nn.functional.mse_loss(mean, y)
-    return nn.functional.gaussian_nll_loss(mean, y, (2 * log_std).exp(), full=False)
+        per = (mean - y) ** 2
+    else:
+        per = nn.functional.gaussian_nll_loss(mean, y, (2 * log_std).exp(), full=False, reduction="none")
+    if logit is None or events is None:
+        return per.mean()
+    keep = torch.ones_like(per, dtype=torch.bool)
+    for k, (i, _) in enumerate(model.config.limit_events):
+        keep[:, i] = ~events[:, k]
+    value = (per * keep).sum() / keep.sum().clamp(min=1)
+    return value + nn.functional.binary_cross_entropy_with_logits(logit, events.float())
 
 
 def train_bc(
@@ -67,6 +77,7 @@ def train_bc(
     data = ckpt.dataset(train_logs)
     xs = [torch.tensor(x) for x in data.X]
     ys = [torch.tensor(y) for y in data.Y]
+    evs = [None if e is None else torch.from_numpy(e) for e in map(ckpt.limit_event_targets, data.Y)]
     opt = torch.optim.Adam(ckpt.model.parameters(), lr=lr)
     rng = np.random.default_rng(seed)
     selector = Selector(val_logs)
@@ -77,7 +88,7 @@ def train_bc(
     for epoch in bar:
         total = 0.0
         for i in rng.permutation(len(xs)):
-            loss = bc_loss(ckpt.model, xs[i], ys[i])
+            loss = bc_loss(ckpt.model, xs[i], ys[i], evs[i])
             opt.zero_grad()
             loss.backward()
             opt.step()

@@ -45,6 +45,7 @@ def model_config(
     head: str = "deterministic",
     **extra: Any,
 ) -> ModelConfig:
+    extra.setdefault("limit_events", limit_events(logs))
     return ModelConfig(
         n_state=logs[0].states.shape[1],
         n_action=logs[0].actions.shape[1],
@@ -53,6 +54,23 @@ def model_config(
         head=head,
         **extra,
     )
+
+
+def limit_events(logs: Sequence[Log]) -> tuple[tuple[int, float], ...]:
+    """(state index, reading) for each state the schema declares a saturating sensor and whose
+    training readings reach a limit of its declared range (the upper one first: an ultrasonic
+    sensor reads its maximum without echo): what :class:`~envi_py.model.EnvModel` predicts as events."""
+    out = []
+    for i, ch in enumerate(logs[0].meta.schema.states):
+        if not ch.saturates:
+            continue
+        tol = ch.resolution / 2 if ch.resolution else 0.0
+        values = np.concatenate([lg.states[:, i] for lg in logs])
+        for limit in (ch.high, ch.low):
+            if np.isfinite(limit) and np.any(np.abs(values - limit) <= tol):
+                out.append((i, float(limit)))
+                break
+    return tuple(out)
 
 
 def new_checkpoint(

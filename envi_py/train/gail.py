@@ -222,7 +222,8 @@ def _train(
     known = {f.name for f in fields(GailConfig)}
     model_extra = {k: v for k, v in hyper.items() if k not in known and k != "head"}
     hp = GailConfig(**{k: v for k, v in hyper.items() if k in known})
-    cfg = model_config(train_logs, history, hidden, "gaussian", **model_extra)
+    # limit events are not trained adversarially yet: a GAIL model keeps the plain Gaussian head
+    cfg = model_config(train_logs, history, hidden, "gaussian", **{"limit_events": (), **model_extra})
     record = {
         "epochs": epochs,
         "history": history,

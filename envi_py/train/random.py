@@ -21,7 +21,7 @@ def train_random(
     **_: Any,
 ) -> Checkpoint:
     """A random-state model with the normaliser of ``train_logs``."""
-    cfg = model_config(train_logs, history=history, hidden=(), kind="random")
+    cfg = model_config(train_logs, history=history, hidden=(), kind="random", limit_events=())
     ckpt = new_checkpoint("random", train_logs, val_logs, cfg, seed, {"history": history}, system=system)
     ckpt.record.selection = {"criterion": "none (random baseline)"}
     return ckpt

@@ -38,6 +38,15 @@ struct Model {
   std::vector<Dense> trunk;    // shared layers
   std::vector<Dense> mean;     // mean head (after the trunk)
   std::vector<Dense> log_std;  // empty for a deterministic model
+  std::vector<Dense> event;    // limit-event logits (after the trunk); empty without events
+
+  // A saturating sensor's jump to its limit, predicted as an event: the next reading of state
+  // `state` is `value` with probability sigmoid(logit), whatever the Gaussian drew.
+  struct LimitEvent {
+    int state;
+    double value;
+  };
+  std::vector<LimitEvent> limit_events;
 
   // From metadata_props.
   std::vector<ChannelInfo> states, actions;

@@ -27,4 +27,13 @@ inline double normal(uint64_t seed, uint64_t run, uint32_t step, uint32_t channe
   return std::sqrt(-2.0 * std::log(u1)) * std::cos(6.283185307179586 * u2);
 }
 
+// A uniform draw in [0, 1) keyed by (seed, run, step, stream), a stream apart from the normals':
+// the limit events of a model use channel numbers from 0x80000000 up.
+inline double uniform(uint64_t seed, uint64_t run, uint32_t step, uint32_t stream) {
+  uint32_t c[4] = {uint32_t(run), uint32_t(run >> 32), step, stream | 0x80000000u};
+  philox4x32(c, uint32_t(seed), uint32_t(seed >> 32));
+  uint64_t a = (uint64_t(c[0]) << 21) ^ c[1];
+  return double(a & ((uint64_t(1) << 53) - 1)) * 0x1p-53;
+}
+
 }  // namespace envi

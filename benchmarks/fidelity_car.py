@@ -1,0 +1,186 @@
+"""Closed-loop fidelity of envi's models of the car twin (issue 14's done-when), per version.
+
+Usage: ``python benchmarks/fidelity_car.py [--quick] [--configs bc,bc-lr1e-3] [--n 20] [--test 20]
+[--test-sets 2] [--out bench_out/fidelity_car.json]``.
+
+Protocol. The car twin (:mod:`envi_py.twin.car`) gives field logs of five controller versions
+(gains): three are trained on (TMVK) and two are never seen (TMVU). A model is trained on ``n``
+logs per trained version (``--n``, 20) with 5 more per version for model selection. It is then
+verified on ``--test-sets`` independent sets of ``--test`` fresh logs of every version (other seeds,
+so other lanes and leads): each test log's sigma_0 starts ``--sims`` simulated runs on the native
+engine, and :func:`envi_py.verify.verify` compares the goal metrics of the car description (lane
+deviation, closest approach, gap error) at matched sizes: W1 between a real half and as many
+simulated runs, over W1 between the two real halves (the fair floor, ``m = test // 2`` runs per
+side, 10 random splits), and the permutation test with all real runs against as many simulated ones.
+
+Target (issue 14): every goal's ratio within 1.5 for every version, TMVK and TMVU, and no simulated
+run diverging (a state held at a limit of its range, or beyond the training data's, for a tenth of
+the run, counted against the real runs by the same rule: :func:`envi_py.goals.selection.diverged_fraction`).
+The ratio is averaged over the test sets, and its spread across them is printed beside it, since
+the floor itself rests on 10 runs per side.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from envi_py.goals.evaluate import signals_of
+from envi_py.goals.selection import diverged_fraction
+from envi_py.logs import Log
+from envi_py.simulate import simulate_versions
+from envi_py.system import LogSchema, load_system
+from envi_py.train import train
+from envi_py.twin.car import CAR_TRAINED, CAR_UNSEEN, generate_car_versions
+from envi_py.verify import verify
+
+#: name -> (envi algorithm, extra training keywords); the first is envi's default
+CONFIGS: dict[str, tuple[str, dict[str, Any]]] = {
+    "bc": ("bc", {}),
+    "bc-lr1e-3": ("bc", {"lr": 1e-3}),
+    "bc-lr1e-3-e600": ("bc", {"lr": 1e-3, "epochs": 600}),
+    "bcxgail": ("bcxgail", {}),
+}
+TARGET = 1.5
+
+
+def versions_logs(runs: int, seed: int, versions: tuple[int, ...]) -> list[Log]:
+    return generate_car_versions(runs, seed=seed, versions=list(versions))
+
+
+def divergence(real: list[Log], sim: list[Log], ckpt: Any) -> tuple[float, float]:
+    """Fractions of simulated and real runs that diverge, by the model selection's rule."""
+    schema = LogSchema(ckpt.schema.states, ckpt.schema.actions)
+    observed = {c.name: (float(ckpt.norm.low[i]), float(ckpt.norm.high[i])) for i, c in enumerate(schema.states)}
+    skip, period = ckpt.config.history, ckpt.period_ms
+    fr = diverged_fraction([signals_of(real, real[0].meta.schema, skip, period)], schema.states, observed, None, 0.05)
+    fs = diverged_fraction([signals_of(sim, sim[0].meta.schema, skip, period)], schema.states, observed, None, 0.05)
+    return float(fs), float(fr)
+
+
+def run_config(name: str, args: argparse.Namespace) -> dict[str, Any]:
+    algorithm, extra = CONFIGS[name]
+    system = load_system("car")
+    trained = tuple(CAR_TRAINED)
+    train_logs = versions_logs(args.n, 100, trained)
+    val_logs = versions_logs(5, 200, trained)
+    kwargs = {"epochs": args.epochs, **extra}
+    t0 = time.perf_counter()
+    ckpt = train(algorithm, train_logs, val_logs, system=system, seed=args.seed, **kwargs)
+    train_s = time.perf_counter() - t0
+    rows: dict[str, dict[str, Any]] = {}
+    for k in range(args.test_sets):
+        real = versions_logs(args.test, 300 + 17 * k, tuple(CAR_TRAINED) + tuple(CAR_UNSEEN))
+        sim = simulate_versions(ckpt, real, runs=args.sims, seed=k, engine="native")
+        for g in verify(real, sim, system, skip=ckpt.config.history, seed=k):
+            row = rows.setdefault(
+                g.version, {"goals": g.goals, "ratio": [], "p": [], "sim_div": [], "real_div": [], "n_real": g.n_real}
+            )
+            row["ratio"].append((g.matched.w1 / g.floor.w1).tolist())
+            row["p"].append(g.tests["goals_w1"]["p_value"])
+            mine = [lg for lg in sim if system.version_label(lg.controller) == g.version]
+            theirs = [lg for lg in real if system.version_label(lg.controller) == g.version]
+            fs, fr = divergence(theirs, mine, ckpt)
+            row["sim_div"].append(fs)
+            row["real_div"].append(fr)
+    trained_labels = {system.version_label(lg.controller) for lg in train_logs}
+    out = []
+    for version, row in rows.items():
+        ratio = np.asarray(row["ratio"])
+        out.append(
+            {
+                "version": version,
+                "role": "TMVK" if version in trained_labels else "TMVU",
+                "goals": row["goals"],
+                "ratio_mean": ratio.mean(axis=0).tolist(),
+                "ratio_min": ratio.min(axis=0).tolist(),
+                "ratio_max": ratio.max(axis=0).tolist(),
+                "p_values": row["p"],
+                "sim_diverged": float(np.mean(row["sim_div"])),
+                "real_diverged": float(np.mean(row["real_div"])),
+                "n_real_per_set": row["n_real"],
+            }
+        )
+    worst = max(max(r["ratio_mean"]) for r in out)
+    return {
+        "config": name,
+        "algorithm": algorithm,
+        "train_kwargs": kwargs,
+        "train_seconds": round(train_s, 1),
+        "selected_epoch": (ckpt.record.selection or {}).get("best_epoch"),
+        "versions": out,
+        "worst_ratio": worst,
+        "meets_target": bool(worst <= TARGET and all(r["sim_diverged"] <= r["real_diverged"] for r in out)),
+    }
+
+
+def print_table(res: dict[str, Any]) -> None:
+    goals = res["versions"][0]["goals"]
+    print(
+        f"\n== {res['config']} ({res['algorithm']} {res['train_kwargs']}, {res['train_seconds']} s, "
+        f"epoch {res['selected_epoch']})"
+    )
+    head = " | ".join(f"{g[:16]:>16}" for g in goals)
+    print(f"{'version':<26} {'role':<5} | {head} | {'p (per set)':<16} | diverged sim/real")
+    for r in res["versions"]:
+        cells = " | ".join(
+            f"{m:>5.2f} [{lo:.2f},{hi:.2f}]".rjust(16)
+            for m, lo, hi in zip(r["ratio_mean"], r["ratio_min"], r["ratio_max"])
+        )
+        ps = ",".join(f"{p:.2f}" for p in r["p_values"])
+        print(
+            f"{r['version']:<26} {r['role']:<5} | {cells} | {ps:<16} | {r['sim_diverged']:.3f}/{r['real_diverged']:.3f}"
+        )
+    verdict = "MET" if res["meets_target"] else "NOT met"
+    print(f"worst goal ratio {res['worst_ratio']:.2f} (target <= {TARGET}): {verdict}")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--configs", default="bc", help=f"comma-separated, of: {', '.join(CONFIGS)}")
+    ap.add_argument("--n", type=int, default=20, help="training logs per trained version")
+    ap.add_argument("--test", type=int, default=20, help="test logs per version and test set")
+    ap.add_argument("--test-sets", type=int, default=2)
+    ap.add_argument("--sims", type=int, default=2, help="simulated runs per test log")
+    ap.add_argument("--epochs", type=int, default=300)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--quick", action="store_true", help="a smoke run: 30 epochs, 10 logs, 1 test set")
+    ap.add_argument("--out", type=Path, default=Path("bench_out/fidelity_car.json"))
+    args = ap.parse_args()
+    if args.quick:
+        args.epochs, args.n, args.test, args.test_sets = 30, 10, 10, 1
+    torch.set_num_threads(1)
+    results = []
+    for name in args.configs.split(","):
+        if name not in CONFIGS:
+            sys.exit(f"fidelity_car: unknown config {name!r}; known: {', '.join(CONFIGS)}")
+        results.append(run_config(name, args))
+        print_table(results[-1])
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    meta = {
+        "machine": platform.platform(),
+        "cpus": os.cpu_count(),
+        "torch": torch.__version__,
+        "argv": sys.argv[1:],
+        "n_train_per_version": args.n,
+        "test_per_version": args.test,
+        "test_sets": args.test_sets,
+        "sims_per_test_log": args.sims,
+    }
+    args.out.write_text(json.dumps({"meta": meta, "results": results}, indent=1))
+    print(f"\nwritten {args.out}")
+
+
+if __name__ == "__main__":
+    main()
