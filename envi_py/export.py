@@ -10,7 +10,6 @@ everything needed to trace the model back to its data goes into ``metadata_props
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 from dataclasses import asdict
@@ -22,6 +21,7 @@ import onnx
 from onnx import TensorProto, helper, numpy_helper
 
 from . import __version__
+from .cli_parser import EnviParser
 from .model import LOG_STD_MAX, LOG_STD_MIN, Checkpoint
 
 OPSET = 17
@@ -172,7 +172,7 @@ def read_metadata(path: str | Path) -> dict[str, Any]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="envi-export", description=__doc__.splitlines()[0])
+    ap = EnviParser(prog="envi-export", description=__doc__.splitlines()[0])
     ap.add_argument("model", help="envi checkpoint (.pt)")
     ap.add_argument("-o", "--output", required=True, help="ONNX file to write")
     ap.add_argument("--no-check", action="store_true", help="skip the onnxruntime parity check")
