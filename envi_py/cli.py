@@ -230,14 +230,14 @@ def cmd_train(args: argparse.Namespace) -> int:
             raise ValueError(f"--head deterministic: {args.algorithm} trains a Gaussian policy (PPO needs one)")
         if args.lr is not None:
             kwargs["lr"] = args.lr
-    if args.algorithm == "bc":
+    if args.algorithm != "random":
         kwargs.update(state_path=Path(args.output).with_suffix(".state"), resume=args.resume)
     elif args.resume:
-        raise ValueError(f"--resume: only bc training keeps a resumable state so far, not {args.algorithm}")
+        raise ValueError("--resume: random training has no epochs, so there is nothing to resume")
     t0 = time.perf_counter()
     ckpt = train(args.algorithm, logs, val, system=system_of(args), **kwargs)
     path = ckpt.save(args.output)
-    if args.algorithm == "bc":
+    if args.algorithm != "random":
         Path(args.output).with_suffix(".state").unlink(missing_ok=True)  # finished: nothing to resume
     sel = ckpt.record.selection
     if sel.get("warning"):
@@ -472,7 +472,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--resume",
         action="store_true",
-        help="continue a killed training from <output>.state (written at every validation; bc)",
+        help="continue a killed training from <output>.state (written at every validation; bc, gail, bcxgail)",
     )
     p.add_argument("-o", "--output", required=True, help="checkpoint file to write")
     p.set_defaults(func=cmd_train)
