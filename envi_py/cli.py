@@ -14,6 +14,7 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Sequence
 
+from .cli_parser import EnviParser
 from .controllers import ControllerSpec, parse_params
 from .dataset import EXTRA_CHANNELS
 from .logs import Log, LogError, load_logs, write_log, write_manifest
@@ -229,14 +230,14 @@ def cmd_train(args: argparse.Namespace) -> int:
             raise ValueError(f"--head deterministic: {args.algorithm} trains a Gaussian policy (PPO needs one)")
         if args.lr is not None:
             kwargs["lr"] = args.lr
-    if args.algorithm == "bc":
+    if args.algorithm != "random":
         kwargs.update(state_path=Path(args.output).with_suffix(".state"), resume=args.resume)
     elif args.resume:
-        raise ValueError(f"--resume: only bc training keeps a resumable state so far, not {args.algorithm}")
+        raise ValueError("--resume: random training has no epochs, so there is nothing to resume")
     t0 = time.perf_counter()
     ckpt = train(args.algorithm, logs, val, system=system_of(args), **kwargs)
     path = ckpt.save(args.output)
-    if args.algorithm == "bc":
+    if args.algorithm != "random":
         Path(args.output).with_suffix(".state").unlink(missing_ok=True)  # finished: nothing to resume
     sel = ckpt.record.selection
     if sel.get("warning"):
@@ -403,36 +404,12 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
-class _Help(argparse.HelpFormatter):
-    """``--help`` shows each option's default, unless it has none or its text already says it."""
-
-    def _get_help_string(self, action: argparse.Action) -> str:
-        text = action.help or ""
-        if (
-            not action.option_strings
-            or action.default is None
-            or action.default is False
-            or action.default == argparse.SUPPRESS
-            or "default" in text.lower()
-        ):
-            return text
-        return f"{text} (default: %(default)s)".strip()
-
-
-class _Parser(argparse.ArgumentParser):
-    """Every (sub)command shows its defaults in ``--help``."""
-
-    def __init__(self, **kwargs: Any) -> None:
-        kwargs.setdefault("formatter_class", _Help)
-        super().__init__(**kwargs)
-
-
 def build_parser() -> argparse.ArgumentParser:
-    parser = _Parser(
+    parser = EnviParser(
         prog="envi", description="Learn an environment model from field logs and verify a controller against it."
     )
     parser.add_argument("--debug", action="store_true", help="show tracebacks")
-    sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=EnviParser)
 
     p = sub.add_parser("init", help="draft a system description (TOML) from a folder of logs")
     p.add_argument("--logs", required=True, help="a folder of CSV logs")
@@ -495,7 +472,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--resume",
         action="store_true",
-        help="continue a killed training from <output>.state (written at every validation; bc)",
+        help="continue a killed training from <output>.state (written at every validation; bc, gail, bcxgail)",
     )
     p.add_argument("-o", "--output", required=True, help="checkpoint file to write")
     p.set_defaults(func=cmd_train)

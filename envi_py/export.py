@@ -5,14 +5,18 @@ the model is a plain chain of ``Gemm`` and ``Tanh`` (the Gaussian head adds a se
 a ``Clip`` for the log-std), which is exactly what the native runtime's loader accepts, and tracing
 would pull in torch's dynamo exporter and onnxscript for no gain. Everything a runtime needs to
 close the loop without the checkpoint (schema, normalisation, history, post-processing) and
-everything needed to trace the model back to its data goes into ``metadata_props`` as JSON.
+everything needed to trace the model back to its data goes into ``metadata_props`` as JSON. The
+last entry, ``envi.content_sha256``, hashes the graph, its weights and that metadata
+(:func:`content_sha256`): the native runtime recomputes it and refuses a file changed after export.
 """
 
 from __future__ import annotations
 
-import argparse
+import hashlib
 import json
+import struct
 import sys
+from collections.abc import Iterator, Sequence
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
@@ -22,6 +26,7 @@ import onnx
 from onnx import TensorProto, helper, numpy_helper
 
 from . import __version__
+from .cli_parser import EnviParser
 from .model import LOG_STD_MAX, LOG_STD_MIN, Checkpoint
 
 OPSET = 17
@@ -29,6 +34,9 @@ FORMAT = "envi-onnx"
 FORMAT_VERSION = 1
 INPUT = "window"
 PARITY_TOL = 1e-5
+#: metadata key of the content hash, and the version tag its canonical serialisation starts with
+CONTENT_KEY = "envi.content_sha256"
+CONTENT_VERSION = "envi-content-v1"
 
 
 def post_processing(ckpt: Checkpoint) -> dict[str, Any]:
@@ -69,6 +77,59 @@ def metadata(ckpt: Checkpoint) -> dict[str, str]:
         "envi.system": None if ckpt.system is None else ckpt.system.to_json(),
     }
     return {k: json.dumps(v, allow_nan=True) for k, v in items.items()}
+
+
+def _canonical_parts(model: onnx.ModelProto) -> Iterator[bytes]:
+    """The bytes :func:`content_sha256` hashes, in order; the C++ loader (cpp/src/onnx_loader.cpp,
+    ``content_digest``) builds the very same sequence. Counts and lengths are little-endian u64."""
+
+    def u64(v: int) -> bytes:
+        return struct.pack("<Q", v & 0xFFFFFFFFFFFFFFFF)
+
+    def text(v: str | bytes) -> bytes:
+        b = v.encode() if isinstance(v, str) else v
+        return u64(len(b)) + b
+
+    def texts(vs: Sequence[str]) -> bytes:
+        return u64(len(vs)) + b"".join(text(v) for v in vs)
+
+    g = model.graph
+    yield text(CONTENT_VERSION)
+    yield texts([v.name for v in g.input])
+    yield texts([v.name for v in g.output])
+    yield u64(len(g.node))
+    for n in g.node:
+        yield text(n.op_type) + text(n.domain) + text(n.name) + texts(n.input) + texts(n.output) + u64(len(n.attribute))
+        for a in n.attribute:
+            yield text(a.name)
+            yield b"\x01" + u64(a.i) if a.HasField("i") else b"\x00"
+            yield b"\x01" + struct.pack("<f", a.f) if a.HasField("f") else b"\x00"
+    yield u64(len(g.initializer))
+    for t in sorted(g.initializer, key=lambda t: t.name.encode()):
+        values = numpy_helper.to_array(t)
+        yield text(t.name) + struct.pack("<I", t.data_type) + u64(len(t.dims)) + b"".join(u64(d) for d in t.dims)
+        raw = np.ascontiguousarray(values, dtype=values.dtype.newbyteorder("<")).tobytes()
+        yield u64(len(raw)) + raw
+    entries = sorted(
+        (p.key.encode(), p.value.encode())
+        for p in model.metadata_props
+        if p.key.startswith("envi.") and p.key != CONTENT_KEY
+    )
+    yield u64(len(entries))
+    for key, value in entries:
+        yield text(key) + text(value)
+
+
+def content_sha256(model: onnx.ModelProto) -> str:
+    """SHA-256 (hex) over a canonical serialisation of the graph (inputs, outputs, nodes in order),
+    its initializers (sorted by name: name, data type, shape, little-endian values) and the
+    ``envi.*`` metadata but the hash itself (sorted by key). Canonical rather than over the file's
+    bytes, because protobuf does not fix one encoding of a message; the runtime recomputes it and
+    refuses a file that was changed after export."""
+    h = hashlib.sha256()
+    for part in _canonical_parts(model):
+        h.update(part)
+    return h.hexdigest()
 
 
 def _dense(nodes: list, inits: list, x: str, weight: np.ndarray, bias: np.ndarray, name: str) -> str:
@@ -130,6 +191,7 @@ def to_onnx(ckpt: Checkpoint) -> onnx.ModelProto:
     )
     model.ir_version = 8  # the newest IR that opset 17 runtimes of 2022 onwards all read
     helper.set_model_props(model, metadata(ckpt))
+    model.metadata_props.add(key=CONTENT_KEY, value=json.dumps(content_sha256(model)))
     onnx.checker.check_model(model, full_check=True)
     return model
 
@@ -180,7 +242,7 @@ def read_metadata(path: str | Path) -> dict[str, Any]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="envi-export", description=__doc__.splitlines()[0])
+    ap = EnviParser(prog="envi-export", description=__doc__.splitlines()[0])
     ap.add_argument("model", help="envi checkpoint (.pt)")
     ap.add_argument("-o", "--output", required=True, help="ONNX file to write")
     ap.add_argument("--no-check", action="store_true", help="skip the onnxruntime parity check")

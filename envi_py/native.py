@@ -123,7 +123,12 @@ def load(model: str | os.PathLike | Checkpoint | bytes) -> Any:
 
     Compiled from a checkpoint, it carries that checkpoint's period for PIDs without ``dt``, so
     both engines integrate over the same period."""
-    compiled = _native().Model(onnx_bytes(model))
+    try:
+        compiled = _native().Model(onnx_bytes(model))
+    except ValueError as exc:  # the engine does not know the file's name: say it, as envi_sim does
+        if isinstance(model, (str, os.PathLike)) and Path(model).suffix == ".onnx":
+            raise ValueError(f"{Path(model)}: {exc}") from None
+        raise
     if isinstance(model, Checkpoint) and period_ms(model) > 0:
         compiled.period_ms = period_ms(model)
     return compiled

@@ -2,15 +2,30 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
+import struct
 
 import numpy as np
 import onnx
 import pytest
 import torch
+from onnx import helper, numpy_helper
 
+from envi_py import native
 from envi_py.dataset import Normaliser
-from envi_py.export import OPSET, PARITY_TOL, export, main, parity, parity_inputs, read_metadata, to_onnx
+from envi_py.export import (
+    CONTENT_KEY,
+    OPSET,
+    PARITY_TOL,
+    content_sha256,
+    export,
+    main,
+    parity,
+    parity_inputs,
+    read_metadata,
+    to_onnx,
+)
 from envi_py.logs import LANE_KEEPING_SCHEMA
 from envi_py.model import Checkpoint, EnvModel, ModelConfig, TrainingRecord
 
@@ -93,3 +108,71 @@ def test_metadata_values_are_json():
     model = to_onnx(paper_ckpt())
     for prop in model.metadata_props:
         json.loads(prop.value)
+
+
+def _tiny_model(weight: np.ndarray, meta: dict[str, str]) -> onnx.ModelProto:
+    """One Gemm with one attribute, one initializer, the given metadata: small enough to serialise by hand."""
+    node = helper.make_node("Gemm", ["x", "w"], ["y"], name="g", transB=1)
+    graph = helper.make_graph(
+        [node],
+        "t",
+        [helper.make_tensor_value_info("x", onnx.TensorProto.FLOAT, [1, 2])],
+        [helper.make_tensor_value_info("y", onnx.TensorProto.FLOAT, [1, 2])],
+        [numpy_helper.from_array(weight, "w")],
+    )
+    model = helper.make_model(graph)
+    helper.set_model_props(model, meta)
+    return model
+
+
+def test_content_hash_is_sha256_of_the_documented_serialisation():
+    """The canonical bytes written out by hand from the format's description, hashed with hashlib."""
+    w = np.array([[1.0, -2.0], [0.5, 3.0]], np.float32)
+    meta = {"envi.b": '"second"', "envi.a": "1", "other": "not hashed", CONTENT_KEY: '"ignored"'}
+
+    def u64(v: int) -> bytes:
+        return struct.pack("<Q", v)
+
+    def s(v: str) -> bytes:
+        return u64(len(v.encode())) + v.encode()
+
+    want = (
+        s("envi-content-v1")
+        + u64(1) + s("x")  # graph inputs
+        + u64(1) + s("y")  # graph outputs
+        + u64(1) + s("Gemm") + s("") + s("g") + u64(2) + s("x") + s("w") + u64(1) + s("y")
+        + u64(1) + s("transB") + b"\x01" + u64(1) + b"\x00"  # attribute: has i = 1, no f
+        + u64(1) + s("w") + struct.pack("<I", 1) + u64(2) + u64(2) + u64(2) + u64(16) + w.astype("<f4").tobytes()
+        + u64(2) + s("envi.a") + s("1") + s("envi.b") + s('"second"')  # sorted by key, the hash left out
+    )  # fmt: skip
+    assert content_sha256(_tiny_model(w, meta)) == hashlib.sha256(want).hexdigest()
+    flipped = w.copy()
+    flipped.view(np.uint32)[0, 0] ^= 1  # the lowest mantissa bit of one weight
+    assert content_sha256(_tiny_model(flipped, meta)) != content_sha256(_tiny_model(w, meta))
+    assert content_sha256(_tiny_model(w, {**meta, "envi.a": "2"})) != content_sha256(_tiny_model(w, meta))
+    assert content_sha256(_tiny_model(w, {**meta, "other": "x"})) == content_sha256(_tiny_model(w, meta))
+
+
+@pytest.mark.parametrize("head", ["deterministic", "gaussian"])
+def test_export_stores_the_content_hash_last(tmp_path, head):
+    model = onnx.load(str(export(paper_ckpt(head), tmp_path / "m.onnx")))
+    assert model.metadata_props[-1].key == CONTENT_KEY
+    assert json.loads(model.metadata_props[-1].value) == content_sha256(model)
+    assert read_metadata(tmp_path / "m.onnx")[CONTENT_KEY] == content_sha256(model)
+
+
+@pytest.mark.skipif(not native.available(), reason="native engine not built")
+def test_the_engines_sha256_is_hashlibs():
+    """The C++ SHA-256 against hashlib on every length across the padding boundaries and a long input."""
+    rng = np.random.default_rng(7)
+    engine = native._native()
+    for n in [*range(0, 200), 447, 448, 1000, 4096, 65_537, 1_000_003]:
+        data = rng.integers(0, 256, n, dtype=np.uint8).tobytes()
+        assert engine.sha256_hex(data) == hashlib.sha256(data).hexdigest(), n
+
+
+@pytest.mark.skipif(not native.available(), reason="native engine not built")
+@pytest.mark.parametrize("head", ["deterministic", "gaussian"])
+def test_the_engine_computes_the_exported_hash(head):
+    model = to_onnx(paper_ckpt(head, seed=3, round_to=(1.0,)))
+    assert native._native().content_sha256(model.SerializeToString()) == content_sha256(model)

@@ -425,3 +425,54 @@ def test_envi_sim_metrics_only_memory_is_flat(tmp_path, real_dir):
     small, large = peak_kib(500), peak_kib(50_000)
     # 50 000 kept traces would be 50000 x 50 x 2 doubles = 40 MB; streaming keeps a chunk's worth
     assert large - small < 8 * 1024, (small, large)
+
+
+def _tampered(tmp_path: Path, how: str) -> Path:
+    """An export changed after the fact: a weight bit flipped, a metadata value edited, or the hash
+    removed (what a file exported before the content hash looks like)."""
+    model = onnx.load(str(export(paper_ckpt(), tmp_path / "m.onnx")))
+    if how == "weight":
+        w = onnx.numpy_helper.to_array(model.graph.initializer[0]).copy()
+        w.view(np.uint32).flat[17] ^= 1 << 3
+        model.graph.initializer[0].CopyFrom(onnx.numpy_helper.from_array(w, model.graph.initializer[0].name))
+    elif how == "metadata":
+        prop = next(p for p in model.metadata_props if p.key == "envi.period_ms")
+        prop.value = "20.0"
+    else:
+        del model.metadata_props[-1]
+    path = tmp_path / f"{how}.onnx"
+    path.write_bytes(model.SerializeToString())
+    return path
+
+
+@pytest.mark.parametrize(
+    "how, reason",
+    [
+        ("weight", "content hash mismatch: the file was changed after export (re-export it with envi-export)"),
+        ("metadata", "content hash mismatch: the file was changed after export (re-export it with envi-export)"),
+        ("no hash", "no content hash ('envi.content_sha256')"),
+    ],
+)
+def test_a_model_changed_after_export_is_refused_by_name(tmp_path, how, reason):
+    path = _tampered(tmp_path, how)
+    with pytest.raises(ValueError) as err:
+        native.load(path)
+    assert str(err.value).startswith(f"{path}: {reason}") and "\n" not in str(err.value)
+    assert str(err.value).endswith("(re-export it with envi-export)")
+    with pytest.raises(ValueError, match="content hash|no content hash"):
+        native.load(path.read_bytes())
+    native.load(tmp_path / "m.onnx")  # the untouched export loads
+
+
+@pytest.mark.skipif(envi_sim() is None, reason="envi_sim binary not built")
+@pytest.mark.parametrize("how", ["weight", "no hash"])
+def test_envi_sim_refuses_a_changed_model_in_one_line(tmp_path, how):
+    path = _tampered(tmp_path, how)
+    init = write_log(make_log(np.linspace(20, 60, 20)), tmp_path / "log_30_0.csv")
+    cmd = [envi_sim(), "--model", str(path), "--init", str(init), "--steps", "5", "--metrics-only", "--metrics", "-"]
+    bad = subprocess.run(cmd, capture_output=True, text=True, check=False)
+    lines = bad.stderr.splitlines()
+    assert bad.returncode == 2 and len(lines) == 1 and bad.stdout == "", bad.stderr
+    assert lines[0].startswith(f"envi_sim: {path}: ") and "re-export it with envi-export" in lines[0]
+    good = subprocess.run(cmd[:2] + [str(tmp_path / "m.onnx")] + cmd[3:], capture_output=True, text=True)
+    assert good.returncode == 0, good.stderr

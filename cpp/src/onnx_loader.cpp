@@ -13,6 +13,7 @@
 #include "envi/json.hpp"
 #include "envi/dense.hpp"
 #include "envi/model.hpp"
+#include "envi/sha256.hpp"
 
 namespace envi {
 namespace {
@@ -533,25 +534,121 @@ void check_shapes(const Model& m) {
   if (m.trunk.empty() && m.mean.empty()) throw ModelError("the model has no layers");
 }
 
-}  // namespace
+// ---------------------------------------------------------------- content hash
 
-int Model::max_width() const {
-  long w = in_features();
-  for (const auto* layers : {&trunk, &mean, &log_std, &event})
-    for (const auto& d : *layers) w = std::max<long>(w, d.W.rows());
-  return int(w);
+constexpr const char* kHashKey = "envi.content_sha256";
+constexpr const char* kReexport = " (re-export it with envi-export)";
+
+// The canonical serialisation envi-export hashes (envi_py/export.py, content_sha256): the graph's
+// inputs, outputs and nodes in file order, its initializers sorted by name (name, data type,
+// shape, little-endian values) and the envi.* metadata but the hash itself sorted by key. Lengths
+// and counts are little-endian u64, so no two different models serialise alike.
+class Canonical {
+ public:
+  void u8(uint8_t v) { h_.update(&v, 1); }
+  void u32(uint32_t v) { le(v, 4); }
+  void u64(uint64_t v) { le(v, 8); }
+  void str(const std::string& s) { u64(s.size()); h_.update(s); }
+  void strs(const std::vector<std::string>& v) {
+    u64(v.size());
+    for (const auto& s : v) str(s);
+  }
+  std::string hex() { return h_.hex(); }
+
+ private:
+  void le(uint64_t v, int n) {
+    uint8_t b[8];
+    for (int i = 0; i < n; ++i) b[i] = uint8_t(v >> (8 * i));
+    h_.update(b, size_t(n));
+  }
+  Sha256 h_;
+};
+
+using Metadata = std::vector<std::pair<std::string, std::string>>;
+
+std::string content_digest(const Graph& g, const Metadata& metadata) {
+  Canonical c;
+  c.str("envi-content-v1");
+  c.strs(g.inputs);
+  c.strs(g.outputs);
+  c.u64(g.nodes.size());
+  for (const Node& n : g.nodes) {
+    c.str(n.op);
+    c.str(n.domain);
+    c.str(n.name);
+    c.strs(n.inputs);
+    c.strs(n.outputs);
+    c.u64(n.attrs.size());
+    for (const Attribute& a : n.attrs) {
+      c.str(a.name);
+      c.u8(a.has_i);
+      if (a.has_i) c.u64(uint64_t(a.i));
+      c.u8(a.has_f);
+      if (a.has_f) { uint32_t u; std::memcpy(&u, &a.f, 4); c.u32(u); }
+    }
+  }
+  std::vector<const Tensor*> inits;
+  for (const Tensor& t : g.inits) inits.push_back(&t);
+  std::stable_sort(inits.begin(), inits.end(), [](const Tensor* a, const Tensor* b) { return a->name < b->name; });
+  c.u64(inits.size());
+  for (const Tensor* t : inits) {
+    c.str(t->name);
+    c.u32(uint32_t(t->data_type));
+    c.u64(t->dims.size());
+    for (int64_t d : t->dims) c.u64(uint64_t(d));
+    c.u64(t->data.size() * 4);
+    for (float v : t->data) { uint32_t u; std::memcpy(&u, &v, 4); c.u32(u); }
+  }
+  Metadata md;
+  for (const auto& kv : metadata)
+    if (kv.first.rfind("envi.", 0) == 0 && kv.first != kHashKey) md.push_back(kv);
+  std::sort(md.begin(), md.end());
+  c.u64(md.size());
+  for (const auto& kv : md) {
+    c.str(kv.first);
+    c.str(kv.second);
+  }
+  return c.hex();
 }
 
-Model load_model(const uint8_t* data, size_t size) {
-  Reader r{data, data + size};
+// A flipped weight or an edited entry must not run silently: the file's hash must match its content.
+void verify_content_hash(const Graph& g, const Metadata& metadata) {
+  const std::string* stored = nullptr;
+  for (const auto& kv : metadata) {
+    if (kv.first != kHashKey) continue;
+    if (stored) throw ModelError(std::string("metadata '") + kHashKey + "' is given twice" + kReexport);
+    stored = &kv.second;
+  }
+  if (!stored)
+    throw ModelError(std::string("no content hash ('") + kHashKey + "'): the file was exported by an envi older than "
+                     "its content check, or edited" + kReexport);
+  std::string want;
+  try {
+    Json j = Json::parse(*stored);
+    if (j.type == Json::Type::String) want = j.string;
+  } catch (const std::exception&) {
+  }
+  if (want.size() != 64 || want.find_first_not_of("0123456789abcdef") != std::string::npos)
+    throw ModelError(std::string("metadata '") + kHashKey + "' is not a SHA-256 hex digest" + kReexport);
+  if (content_digest(g, metadata) != want)
+    throw ModelError(std::string("content hash mismatch: the file was changed after export") + kReexport);
+}
+
+// The wire-level parts of a ModelProto.
+struct File {
   Graph graph;
   bool has_graph = false;
   int64_t opset = -1;
-  std::vector<std::pair<std::string, std::string>> metadata;
+  Metadata metadata;
+};
+
+File parse_file(const uint8_t* data, size_t size) {
+  Reader r{data, data + size};
+  File file;
   uint32_t f, w;
   while (r.next(f, w)) {
     switch (f) {
-      case 7: expect(w, 2, "graph"); graph = read_graph(r.bytes()); has_graph = true; break;
+      case 7: expect(w, 2, "graph"); file.graph = read_graph(r.bytes()); file.has_graph = true; break;
       case 8: {  // opset_import
         expect(w, 2, "opset_import");
         Reader o = r.bytes();
@@ -564,7 +661,7 @@ Model load_model(const uint8_t* data, size_t size) {
           else o.skip(ow);
         }
         if (!domain.empty() && domain != "ai.onnx") throw ModelError("the model imports the foreign operator set '" + domain + "'");
-        opset = version;
+        file.opset = version;
         break;
       }
       case 14: {  // metadata_props
@@ -577,19 +674,41 @@ Model load_model(const uint8_t* data, size_t size) {
           else if (ef == 2) { expect(ew, 2, "metadata value"); v = e.str(); }
           else e.skip(ew);
         }
-        metadata.emplace_back(std::move(k), std::move(v));
+        file.metadata.emplace_back(std::move(k), std::move(v));
         break;
       }
       case 25: throw ModelError("the model defines local functions, which are not supported");
       default: r.skip(w);
     }
   }
-  if (!has_graph) throw ModelError("not an ONNX model: no graph");
-  if (opset < 7 || opset > 21) throw ModelError("unsupported or missing default opset version " + std::to_string(opset));
-  Model m = Compiler(graph).compile();
-  m.metadata = std::move(metadata);
+  if (!file.has_graph) throw ModelError("not an ONNX model: no graph");
+  return file;
+}
+
+}  // namespace
+
+std::string content_sha256(const uint8_t* data, size_t size) {
+  File file = parse_file(data, size);
+  return content_digest(file.graph, file.metadata);
+}
+
+int Model::max_width() const {
+  long w = in_features();
+  for (const auto* layers : {&trunk, &mean, &log_std, &event})
+    for (const auto& d : *layers) w = std::max<long>(w, d.W.rows());
+  return int(w);
+}
+
+Model load_model(const uint8_t* data, size_t size) {
+  File file = parse_file(data, size);
+  if (file.opset < 7 || file.opset > 21) throw ModelError("unsupported or missing default opset version " + std::to_string(file.opset));
+  Model m = Compiler(file.graph).compile();
+  m.metadata = file.metadata;
   read_metadata(m);
   check_shapes(m);
+  // Last, so that a file broken in structure is named by what is wrong with it (and fuzzing
+  // reaches every check above); what passes them must still be the file that was exported.
+  verify_content_hash(file.graph, file.metadata);
   for (auto* layers : {&m.trunk, &m.mean, &m.log_std, &m.event})
     for (Dense& d : *layers)
       if (PackedDense::suits(d)) d.packed = std::make_shared<const PackedDense>(d);

@@ -12,6 +12,7 @@
 #include "envi/metrics.hpp"
 #include "envi/model.hpp"
 #include "envi/peak.hpp"
+#include "envi/sha256.hpp"
 
 namespace py = pybind11;
 using namespace envi;
@@ -184,6 +185,18 @@ PYBIND11_MODULE(ENVI_MODULE_NAME, mod) {
           },
           py::arg("threads") = 0, py::arg("seconds") = 0.5,
           "FLOP/s of register-only fused multiply-adds on this build's widest vectors (a benchmark's ceiling).");
+  mod.def("sha256_hex",
+          [](py::bytes data) {
+            std::string s = data;
+            return sha256_hex(s.data(), s.size());
+          },
+          py::arg("data"), "SHA-256 of bytes as hex: the engine's own implementation, checked against hashlib.");
+  mod.def("content_sha256",
+          [](py::bytes data) {
+            std::string s = data;
+            return content_sha256(reinterpret_cast<const uint8_t*>(s.data()), s.size());
+          },
+          py::arg("onnx_bytes"), "The content hash of an ONNX file as the loader computes it (envi.content_sha256).");
   mod.def("simd", [] { return std::string(Eigen::SimdInstructionSetsInUse()); },
           "Vector instruction sets this build of the engine uses.");
 }

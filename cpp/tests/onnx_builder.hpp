@@ -7,6 +7,8 @@
 #include <string>
 #include <vector>
 
+#include "envi/model.hpp"
+
 namespace pb {
 
 using Bytes = std::string;
@@ -60,6 +62,7 @@ struct Spec {
   bool gaussian = false;
   std::string post = R"({"clamp": true, "limits": [[0.0, 100.0]], "round_to": null})";
   uint32_t seed = 1;
+  bool hash = true;  // write envi.content_sha256, as envi-export does
 };
 
 // A model (history*channels) -> hidden tanh -> n_state tanh [+ log-std head], the lane-keeping
@@ -139,7 +142,9 @@ inline Bytes model(const Spec& s, std::vector<Bytes> extra_nodes = {}) {
     for (int i = 0; i < ns; ++i) limits += std::string(i ? ", " : "") + "[0.0, 100.0]";
     post = R"({"clamp": true, "limits": [)" + limits + R"(], "round_to": null})";
   }
-  meta("envi.post", post);  // required and last: no prefix of the file is a complete model
+  meta("envi.post", post);  // required: no prefix of the file is a complete model
+  // As envi-export does: the content hash over everything above, the last entry.
+  if (s.hash) meta("envi.content_sha256", "\"" + envi::content_sha256(reinterpret_cast<const uint8_t*>(m.data()), m.size()) + "\"");
   return m;
 }
 

@@ -46,6 +46,36 @@ int main() {
   pb::field_bytes(wrapper, 7, graph);  // a second graph field: the loader reads it too
   CHECK_THROWS(ModelError, load(ext + wrapper), "external data");
 
+  // The content hash: a flipped weight bit, an edited metadata value, a missing or malformed hash.
+  const pb::Bytes exported = pb::model(spec);
+  CHECK(exported.find("envi.content_sha256") != pb::Bytes::npos);
+  size_t w0 = exported.find(pb::Bytes("\x42\x02w0\x4a", 5));  // name "w0", then raw_data's key
+  CHECK(w0 != pb::Bytes::npos);
+  pb::Bytes flipped = exported;
+  flipped[w0 + 5 + 2] ^= 1;  // past the two-byte length: the lowest mantissa bit of w0[0]
+  CHECK_THROWS(ModelError, load(flipped), "content hash mismatch: the file was changed after export (re-export it with envi-export)");
+  pb::Bytes edited = exported;
+  size_t period = edited.find("40.0");
+  CHECK(period != pb::Bytes::npos);
+  edited[period + 1] = '1';  // envi.period_ms 41.0: a valid model, not the exported one
+  CHECK_THROWS(ModelError, load(edited), "content hash mismatch");
+  spec.hash = false;
+  CHECK_THROWS(ModelError, load(pb::model(spec)), "no content hash");
+  pb::Bytes bad_hash = pb::model(spec);
+  pb::Bytes entry;
+  pb::field_bytes(entry, 1, "envi.content_sha256");
+  pb::field_bytes(entry, 2, "\"abc\"");
+  pb::field_bytes(bad_hash, 14, entry);
+  CHECK_THROWS(ModelError, load(bad_hash), "not a SHA-256 hex digest");
+  pb::Bytes twice = exported;
+  pb::field_bytes(twice, 14, entry);
+  CHECK_THROWS(ModelError, load(twice), "given twice");
+  spec = pb::Spec{};
+  const uint8_t* ep = reinterpret_cast<const uint8_t*>(exported.data());
+  CHECK(envi::content_sha256(ep, exported.size()) == envi::content_sha256(ep, exported.size()));
+  CHECK(envi::content_sha256(ep, exported.size()) !=
+        envi::content_sha256(reinterpret_cast<const uint8_t*>(flipped.data()), flipped.size()));
+
   CHECK_THROWS(ModelError, load(""), "no graph");
   CHECK_THROWS(ModelError, load(pb::Bytes(16, '\xff')), "malformed");
   const pb::Bytes good = pb::model(spec);

@@ -41,6 +41,7 @@ from .common import Selector, model_config, new_checkpoint
 from .discriminator import Discriminator, bce_loss
 from .gail_env import Rollout, WindowEnv
 from .ppo import ValueNet, clipped_surrogate, gae, normalise, value_loss
+from .state import TrainingState
 
 
 @dataclass
@@ -163,6 +164,30 @@ class _Trainer:
         stats["reward"] = raw.mean().item()
         return stats
 
+    def state(self) -> dict[str, Any]:
+        """What the epochs to come depend on besides the model, its optimiser and ``rng``: critic,
+        discriminator, their optimisers, the rollout generator, torch's global generator and the
+        running reward spread (for :class:`.state.TrainingState`)."""
+        return {
+            "disc": self.disc.state_dict(),
+            "value": self.value.state_dict(),
+            "disc_opt": self.disc_opt.state_dict(),
+            "value_opt": self.value_opt.state_dict(),
+            "rollout_generator": self.gen.get_state(),
+            "torch_rng": torch.get_rng_state(),
+            "reward_var": self.reward_var,
+        }
+
+    def load_state(self, state: dict[str, Any]) -> None:
+        """Continue from :meth:`state`'s result."""
+        self.disc.load_state_dict(state["disc"])
+        self.value.load_state_dict(state["value"])
+        self.disc_opt.load_state_dict(state["disc_opt"])
+        self.value_opt.load_state_dict(state["value_opt"])
+        self.gen.set_state(state["rollout_generator"])
+        torch.set_rng_state(state["torch_rng"])
+        self.reward_var = None if state["reward_var"] is None else float(state["reward_var"])
+
     def epoch(self) -> dict[str, float]:
         self.ckpt.model.train()
         ro = self.env.rollout(self.gen)
@@ -217,6 +242,8 @@ def _train(
     system: SystemDescription | None,
     progress: bool,
     curves_dir: str | Path | None,
+    state_path: str | Path | None,
+    resume: bool,
     hyper: dict[str, Any],
 ) -> Checkpoint:
     known = {f.name for f in fields(GailConfig)}
@@ -235,14 +262,23 @@ def _train(
     ckpt = new_checkpoint(algorithm, train_logs, val_logs, cfg, seed, record, system=system)
     trainer = _Trainer(ckpt, train_logs, hp, seed)
     selector = Selector(val_logs)
-    rows = []
-    bar = tqdm(range(1, epochs + 1), desc=algorithm, disable=not progress, leave=False)
+    rows: list[dict[str, float]] = []
+    saver = TrainingState(Path(state_path), ckpt) if state_path is not None else None
+    start = 1
+    if saver is not None and resume:
+        start = saver.restore(ckpt, trainer.opt, trainer.rng, selector) + 1
+        trainer.load_state(saver.extra)
+        rows = [dict(r) for r in saver.extra["curves"]]
+    bar = tqdm(range(start, epochs + 1), desc=algorithm, disable=not progress, leave=False)
     for epoch in bar:
         row = {"epoch": epoch, **trainer.epoch(), "val_error": float("nan")}
-        if epoch % hp.eval_every == 0 or epoch == epochs:
+        validated = epoch % hp.eval_every == 0 or epoch == epochs
+        if validated:
             row["val_error"] = selector.consider(ckpt, epoch)
             bar.set_postfix(dacc=f"{row['disc_acc']:.2f}", val=f"{row['val_error']:.4f}")
         rows.append(row)
+        if validated and saver is not None:
+            saver.save(epoch, ckpt, trainer.opt, trainer.rng, selector, {**trainer.state(), "curves": rows})
     if curves_dir is not None:
         write_curves(rows, Path(curves_dir), f"{algorithm}: {len(train_logs)} training logs, seed {seed}")
     return selector.finish(ckpt, epochs)
@@ -259,11 +295,29 @@ def train_gail(
     system: SystemDescription | None = None,
     progress: bool = False,
     curves_dir: str | Path | None = None,
+    state_path: str | Path | None = None,
+    resume: bool = False,
     **hyper: Any,
 ) -> Checkpoint:
     """Train a Gaussian environment model by GAIL; ``hyper`` overrides :class:`GailConfig` fields
-    (other keywords go to the model config, e.g. ``extras``)."""
-    return _train("gail", train_logs, val_logs, epochs, seed, history, hidden, system, progress, curves_dir, hyper)
+    (other keywords go to the model config, e.g. ``extras``). With ``state_path`` the whole training
+    state is written there after every validation and ``resume`` continues from it, as for BC
+    (:class:`.state.TrainingState`): a killed run resumed gives the uninterrupted run's checkpoint."""
+    return _train(
+        "gail",
+        train_logs,
+        val_logs,
+        epochs,
+        seed,
+        history,
+        hidden,
+        system,
+        progress,
+        curves_dir,
+        state_path,
+        resume,
+        hyper,
+    )
 
 
 def train_bcxgail(
@@ -277,8 +331,25 @@ def train_bcxgail(
     system: SystemDescription | None = None,
     progress: bool = False,
     curves_dir: str | Path | None = None,
+    state_path: str | Path | None = None,
+    resume: bool = False,
     **hyper: Any,
 ) -> Checkpoint:
-    """GAIL with the behaviour-cloning loss added to every policy step (``bc_weight``, default 1)."""
+    """GAIL with the behaviour-cloning loss added to every policy step (``bc_weight``, default 1);
+    ``state_path`` and ``resume`` as for :func:`train_gail`."""
     hyper.setdefault("bc_weight", 1.0)
-    return _train("bcxgail", train_logs, val_logs, epochs, seed, history, hidden, system, progress, curves_dir, hyper)
+    return _train(
+        "bcxgail",
+        train_logs,
+        val_logs,
+        epochs,
+        seed,
+        history,
+        hidden,
+        system,
+        progress,
+        curves_dir,
+        state_path,
+        resume,
+        hyper,
+    )

@@ -1,11 +1,12 @@
 """Periodic training state, so a killed training resumes to the same result.
 
 What decides the rest of a training run is written after every validation: the model and optimiser
-state, the data-order generator's state, the selector's best weights and curve, and the epoch. It
-is written to a temporary file and renamed, so a ``kill -9`` at any moment leaves either the old
-state or the new one, never half a file. A fingerprint of the training (algorithm, hyper-parameters,
-seed, data hashes) is stored with it: resuming a different training from it is an error, not a
-silent mix.
+state, the data-order generator's state, the selector's best weights and curve, and the epoch, plus
+whatever else the algorithm keeps (``extra``: GAIL's discriminator, critic, their optimisers, the
+torch generators and its learning curve). It is written to a temporary file and renamed, so a
+``kill -9`` at any moment leaves either the old state or the new one, never half a file. A
+fingerprint of the training (algorithm, hyper-parameters, seed, data hashes) is stored with it:
+resuming a different training from it is an error, not a silent mix.
 """
 
 from __future__ import annotations
@@ -44,14 +45,25 @@ class TrainingState:
     """The state file of one training run (``<output>.state`` by the command line)."""
 
     def __init__(self, path: Path, ckpt: Checkpoint) -> None:
-        self.path, self.fingerprint = path, fingerprint(ckpt)
+        self.path, self.fingerprint, self.algorithm = path, fingerprint(ckpt), ckpt.record.algorithm
+        #: the algorithm's own state as saved (tensors, numbers, lists, dicts), set by :meth:`restore`
+        self.extra: dict[str, Any] = {}
 
     def save(
-        self, epoch: int, ckpt: Checkpoint, opt: torch.optim.Optimizer, rng: np.random.Generator, selector: Selector
+        self,
+        epoch: int,
+        ckpt: Checkpoint,
+        opt: torch.optim.Optimizer,
+        rng: np.random.Generator,
+        selector: Selector,
+        extra: dict[str, Any] | None = None,
     ) -> None:
+        """Write the state atomically; ``extra`` must hold only what ``torch.load(weights_only=True)``
+        reads back (tensors, numbers, strings, lists, dicts)."""
         blob = {
             "format": STATE_FORMAT,
             "fingerprint": self.fingerprint,
+            "algorithm": self.algorithm,
             "epoch": epoch,
             "model": ckpt.model.state_dict(),
             "optimizer": opt.state_dict(),
@@ -63,6 +75,7 @@ class TrainingState:
                 "history": [list(h) for h in selector.history],
                 "diverged": list(selector.diverged),
             },
+            "extra": extra or {},
         }
         self.path.parent.mkdir(parents=True, exist_ok=True)
         tmp = self.path.with_name("." + self.path.name + ".tmp")
@@ -75,7 +88,8 @@ class TrainingState:
     def restore(
         self, ckpt: Checkpoint, opt: torch.optim.Optimizer, rng: np.random.Generator, selector: Selector
     ) -> int:
-        """Load the state into the training's objects; returns the last finished epoch."""
+        """Load the state into the training's objects; returns the last finished epoch. The
+        algorithm's own state is left in :attr:`extra` for it to load."""
         try:
             blob: Any = torch.load(self.path, map_location="cpu", weights_only=True)
         except FileNotFoundError:
@@ -84,6 +98,11 @@ class TrainingState:
             raise ValueError(f"{self.path}: not a training state ({type(exc).__name__})") from None
         if not isinstance(blob, dict) or blob.get("format") != STATE_FORMAT:
             raise ValueError(f"{self.path}: not an envi training state")
+        if blob.get("algorithm", "bc") != self.algorithm:
+            raise ValueError(
+                f"{self.path}: the state is from a {blob.get('algorithm', 'bc')} training, not {self.algorithm}; "
+                "remove it or train without --resume"
+            )
         if blob.get("fingerprint") != self.fingerprint:
             raise ValueError(
                 f"{self.path}: the state belongs to another training (different data, seed or "
@@ -97,4 +116,5 @@ class TrainingState:
         selector.best_state = sel["best_state"]
         selector.history = [(int(e), float(v)) for e, v in sel["history"]]
         selector.diverged = [int(e) for e in sel["diverged"]]
+        self.extra = blob.get("extra", {})
         return int(blob["epoch"])

@@ -26,6 +26,7 @@ import serial
 from tqdm import tqdm
 
 from envi_py import __version__
+from envi_py.cli_parser import EnviParser
 from envi_py.controllers import ControllerSpec
 from envi_py.logs import LANE_KEEPING_SCHEMA, Log, LogMeta, read_log
 
@@ -207,7 +208,7 @@ def to_log(
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="envi-collect", description=__doc__)
+    p = EnviParser(prog="envi-collect", description=__doc__)
     p.add_argument(
         "--port",
         required=True,

@@ -71,4 +71,8 @@ struct Model {
 Model load_model(const uint8_t* data, size_t size);
 Model load_model_file(const std::string& path);
 
+// The content hash envi-export stores as 'envi.content_sha256' (hex), computed from the file's
+// graph, initializers and envi.* metadata; load_model refuses a file whose stored hash differs.
+std::string content_sha256(const uint8_t* data, size_t size);
+
 }  // namespace envi
