@@ -9,6 +9,7 @@ instruction sets never meets in one link.
 from __future__ import annotations
 
 import importlib
+import json
 import os
 from functools import cache
 from pathlib import Path
@@ -174,13 +175,21 @@ def rollout_metrics(
     threads: int = 0,
     metric: MetricConfig | None = None,
 ) -> np.ndarray:
-    """The eight driving metrics of every run, (K*runs, 8), scored while simulating: no traces kept."""
+    """The eight driving metrics of every run, (K*runs, 8), scored while simulating: no traces kept.
+    They are the lane-keeping preset's; a model of another system is refused by the engine."""
     metric = metric or MetricConfig()
     if metric.channel != 0:
         raise ValueError("the native engine scores the first state channel")
+    compiled = _compiled(model)
+    system = json.loads(dict(compiled.metadata).get("envi.system", "null"))
+    if system is not None and system.get("preset") != "lane-keeping":
+        raise ValueError(
+            f"the native metrics are the lane-keeping preset's eight, and this model's system "
+            f"{system.get('name', '?')!r} declares other goals: simulate traces and score them with its goals"
+        )
     init = np.ascontiguousarray(init, dtype=np.float64)
     return _native().rollout_metrics(
-        _compiled(model),
+        compiled,
         _spec_json(controller),
         init,
         int(steps),

@@ -476,3 +476,40 @@ def test_envi_sim_refuses_a_changed_model_in_one_line(tmp_path, how):
     assert lines[0].startswith(f"envi_sim: {path}: ") and "re-export it with envi-export" in lines[0]
     good = subprocess.run(cmd[:2] + [str(tmp_path / "m.onnx")] + cmd[3:], capture_output=True, text=True)
     assert good.returncode == 0, good.stderr
+
+
+def test_lane_metrics_are_refused_for_a_model_of_another_system(tmp_path):
+    """The streamed metrics are the lane-keeping preset's: a car model is not scored with them, in
+    the module or in envi_sim (one line, exit 2), and says where its goals are scored instead."""
+    from envi_py.train.bc import train_bc
+    from envi_py.twin.car import generate_car_versions
+
+    logs = generate_car_versions(3, seed=2, versions=[0])
+    ck = train_bc(logs, epochs=1, hidden=(8,), seed=0)
+    init = initial_windows(logs[:2], ck.config.history)
+    with pytest.raises(ValueError, match="system 'car' declares other goals"):
+        native.rollout_metrics(ck, logs[0].controller, init, 20)
+    if envi_sim() is None:
+        return
+    model = export(ck, tmp_path / "car.onnx")
+    for lg in logs[:2]:
+        write_log(lg, tmp_path / f"{lg.meta.run_id}.csv")
+    bad = subprocess.run(
+        [
+            envi_sim(),
+            "--model",
+            str(model),
+            "--init",
+            str(tmp_path / f"{logs[0].meta.run_id}.csv"),
+            "--steps",
+            "5",
+            "--metrics-only",
+            "--metrics",
+            "-",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    lines = bad.stderr.strip().splitlines()
+    assert bad.returncode == 2 and len(lines) == 1 and "declares other goals" in lines[0], bad.stderr

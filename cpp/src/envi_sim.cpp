@@ -229,8 +229,23 @@ struct Group {
   std::vector<long> windows;
 };
 
+// The streamed metrics are the lane-keeping preset's eight (metrics.hpp): a model of another system
+// (its description in the metadata names no such preset) declares other goals, which envi verify
+// and envi check score from traces; scoring it with lane metrics would report figures about nothing.
+void check_metrics_apply(const Model& m, const std::string& path) {
+  Json system = Json::parse(metadata(m, "envi.system"));
+  if (system.is_null()) return;  // exported before descriptions were recorded: the lane-keeping robot
+  const Json* preset = system.find("preset");
+  if (preset && !preset->is_null() && preset->as_string() == "lane-keeping") return;
+  const Json* name = system.find("name");
+  throw std::invalid_argument(path + ": --metrics streams the lane-keeping preset's eight driving metrics, and this model's system '" +
+                              (name && !name->is_null() ? name->as_string() : std::string("?")) +
+                              "' declares other goals: write traces with --out and score them with envi verify or envi check");
+}
+
 int run(const Args& a) {
   Model m = load_model_file(a.model);
+  if (!a.metrics.empty()) check_metrics_apply(m, a.model);
   Json spec = controller_spec(a, m);
   Controller ctrl = Controller::from_json(spec, m.period_ms);
   ctrl.check(m.n_state(), m.n_action());

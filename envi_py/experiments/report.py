@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 from scipy import stats
 
+from ..goals.presets import LANE_KEEPING_SIGNAL
 from .versions import parse_label
 
 #: The paper's accuracies (%), Tables 5-7, for n = 3, 15, 30 (random: one value for every n).
@@ -343,7 +344,7 @@ def plot(
 ) -> list[Path]:
     """Accuracy vs n per algorithm and version (paper Figures 6-8), and real vs simulated traces of
     every state channel. ``ranges``: each state's plotted range (its valid range when finite);
-    ``band``: the lane-keeping steady band, shaded on ``color``."""
+    ``band``: the lane-keeping steady band (given for that preset only), shaded on its signal."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -419,7 +420,7 @@ def _plot_traces(
         for ax in axes[ri]:
             if ranges.get(ch):
                 ax.set_ylim(*ranges[ch])
-            if band is not None and ch == "color":
+            if band is not None and ch == LANE_KEEPING_SIGNAL:
                 ax.axhspan(*band, color="0.9")
     fig.suptitle(f"{uc.upper()}: real vs simulated state traces (same initial windows, n={top}, rep 0)")
     p = out / f"traces_{uc}.png"
