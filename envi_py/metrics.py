@@ -14,8 +14,8 @@ copied from the real log) are not scored: simulation did not produce them.
 
 The verification accuracy normalises each metric by its *possible* range over T scored samples
 (documented in :func:`metric_bounds`); the paper notes this is lenient (random scores ~82%), so
-per-metric Wasserstein-1 and Kolmogorov-Smirnov distances and a real-vs-real floor are reported
-beside it.
+per-metric Wasserstein-1 and Kolmogorov-Smirnov distances are reported beside it, against the one
+fair real-vs-real floor (:func:`envi_py.verify.fair_reference`).
 """
 
 from __future__ import annotations
@@ -160,25 +160,4 @@ def distances(real_traces: np.ndarray, sim_traces: np.ndarray, cfg: MetricConfig
     kld = gaussian_kld(safety_comfort(real_traces, cfg), safety_comfort(sim_traces, cfg))
     return Distances(
         w1, np.array([k.statistic for k in ks]), np.array([k.pvalue for k in ks]), accuracy(mr, ms, scored, cfg), kld
-    )
-
-
-def floor(real_traces: np.ndarray, cfg: MetricConfig = MetricConfig(), splits: int = 20, seed: int = 0) -> Distances:
-    """The FOT-vs-FOT floor: the same distances between two disjoint random halves of the real runs,
-    averaged over ``splits`` halvings (KS p-value: the median). A simulation whose distances lie at
-    or below these is as close to reality as reality is to itself at this sample size."""
-    rng = np.random.default_rng(seed)
-    n = real_traces.shape[0]
-    if n < 4:
-        raise ValueError(f"the real-vs-real floor needs at least 4 real runs, got {n}")
-    parts = []
-    for _ in range(splits):
-        perm = rng.permutation(n)
-        parts.append(distances(real_traces[perm[: n // 2]], real_traces[perm[n // 2 :]], cfg))
-    return Distances(
-        np.mean([d.w1 for d in parts], axis=0),
-        np.mean([d.ks for d in parts], axis=0),
-        np.median([d.ks_p for d in parts], axis=0),
-        float(np.mean([d.acc for d in parts])),
-        float(np.mean([d.kld for d in parts])),
     )

@@ -1,4 +1,4 @@
-"""Goal metrics on hand-made traces with known answers, accuracy, distances, KLD and the floor."""
+"""Goal metrics on hand-made traces with known answers, accuracy, distances and the KLD."""
 
 from __future__ import annotations
 
@@ -10,7 +10,6 @@ from envi_py.metrics import (
     accuracy,
     distances,
     driving_metrics,
-    floor,
     gaussian_kld,
     metric_bounds,
     safety_comfort,
@@ -79,7 +78,7 @@ def test_gaussian_kld_zero_for_same_and_positive_for_shifted():
     assert 1.5 < expected < 2.5  # about |d|^2 / 2 for unit-variance samples
 
 
-def test_distances_and_floor_on_known_difference():
+def test_distances_on_known_difference():
     rng = np.random.default_rng(1)
     base = 40 + 30 * np.sin(np.arange(60) / 2.0)
     real = base + rng.normal(0, 2, size=(40, 60))
@@ -89,6 +88,3 @@ def test_distances_and_floor_on_known_difference():
     assert d_shift.w1.mean() > 3 * d_same.w1.mean()
     assert d_shift.acc < d_same.acc
     assert d_shift.ks_p.min() < 1e-3
-    fl = floor(real, CFG, splits=5)
-    assert fl.w1.mean() < d_shift.w1.mean()
-    assert 0.9 < fl.acc <= 1.0

@@ -1,8 +1,9 @@
 """How well a twin profile matches the real logs: per controller version, real vs twin distributions of
 the goal metrics and oscillation statistics, their distances and the real-vs-real floor.
 
-Fair comparison: the floor compares two halves of the real runs, so the twin is compared at the same
-sample size, a real half against an equal number of twin runs, averaged over the same halvings.
+The floor is the project's one fair reference (:func:`envi_py.verify.fair_reference`): two halves of
+the real runs against each other, and a real half against as many twin runs, over the same random
+halvings, so the twin is compared with reality at the size reality is compared with itself.
 """
 
 from __future__ import annotations
@@ -14,38 +15,19 @@ from typing import Any
 import numpy as np
 
 from envi_py.logs import Log
-from envi_py.metrics import METRIC_NAMES, MetricConfig, distances, floor
+from envi_py.metrics import METRIC_NAMES, MetricConfig, driving_metrics, metric_bounds, safety_comfort
+from envi_py.verify import fair_reference
 
-from .calibrate import STAT_NAMES, Target, run_stats, targets, twin_color
+from .calibrate import STAT_NAMES, run_stats, targets, twin_color
 from .profile import TwinProfile
 
 SPLITS = 20
 
 
-def twin_distances(t: Target, profile: TwinProfile, cfg: MetricConfig, seed: int) -> tuple[dict[str, Any], np.ndarray]:
-    """Mean distances of real halves vs equal-size twin samples, and the twin pool used."""
-    n = t.color.shape[0]
-    half = n // 2
-    pool = twin_color(profile, t.spec, half * SPLITS, t.color.shape[1], seed)
-    rng = np.random.default_rng(seed)
-    parts = []
-    for k in range(SPLITS):
-        perm = rng.permutation(n)
-        parts.append(distances(t.color[perm[:half]], pool[k * half : (k + 1) * half], cfg))
-    return {
-        "w1": np.mean([d.w1 for d in parts], 0),
-        "ks": np.mean([d.ks for d in parts], 0),
-        "acc": float(np.mean([d.acc for d in parts])),
-        "kld": float(np.mean([d.kld for d in parts])),
-    }, pool
-
-
 def fit_summary(
     profile: TwinProfile, logs: list[Log], key: str = "x", cfg: MetricConfig = MetricConfig(), seed: int = 12345
 ) -> tuple[dict[str, Any], dict[Any, tuple[np.ndarray, np.ndarray]]]:
-    """Per version: metric and statistic distributions, distances, floor and their ratios."""
-    from envi_py.metrics import driving_metrics
-
+    """Per version: metric and statistic distributions, distances at matched sizes, floor and their ratios."""
     out: dict[str, Any] = {
         "seed": seed,
         "splits": SPLITS,
@@ -55,13 +37,26 @@ def fit_summary(
     traces = {}
     for i, t in enumerate(targets(logs, key, cfg)):
         value = t.spec.params.get(key)
-        d, pool = twin_distances(t, profile, cfg, seed + i)
-        fl = floor(t.color, cfg, splits=SPLITS, seed=seed)
+        n, length = t.color.shape
+        if n < 4:
+            raise ValueError(f"{key}={value}: the real-vs-real floor needs at least 4 real runs, got {n}")
+        pool = twin_color(profile, t.spec, (n // 2) * SPLITS, length, seed + i)
         mr, mt = driving_metrics(t.color, cfg), driving_metrics(pool, cfg)
+        low, high = metric_bounds(length - cfg.skip, cfg)
+        fl, d, _ = fair_reference(
+            mr,
+            mt,
+            np.maximum(high - low, 1e-12),
+            safety_comfort(t.color, cfg),
+            safety_comfort(pool, cfg),
+            seed + i,
+            repetitions=SPLITS,
+            permutations=1,
+        )
         sr, st = run_stats(t.color[:, cfg.skip :], cfg.centre), run_stats(pool[:, cfg.skip :], cfg.centre)
-        ratio = d["w1"] / np.maximum(fl.w1, 1e-9)
+        ratio = d.w1 / np.maximum(fl.w1, 1e-9)
         out["versions"][str(value)] = {
-            "runs_real": int(t.color.shape[0]),
+            "runs_real": int(n),
             "runs_twin": int(pool.shape[0]),
             "metrics": {
                 m: {
@@ -69,10 +64,10 @@ def fit_summary(
                     "real_sd": float(mr[:, j].std()),
                     "twin_mean": float(mt[:, j].mean()),
                     "twin_sd": float(mt[:, j].std()),
-                    "w1_twin": float(d["w1"][j]),
+                    "w1_twin": float(d.w1[j]),
                     "w1_floor": float(fl.w1[j]),
                     "w1_ratio": float(ratio[j]),
-                    "ks_twin": float(d["ks"][j]),
+                    "ks_twin": float(d.ks[j]),
                     "ks_floor": float(fl.ks[j]),
                 }
                 for j, m in enumerate(METRIC_NAMES)
@@ -80,9 +75,9 @@ def fit_summary(
             "stats": {
                 s: {"real": float(sr[:, j].mean()), "twin": float(st[:, j].mean())} for j, s in enumerate(STAT_NAMES)
             },
-            "acc_twin": d["acc"],
+            "acc_twin": d.acc,
             "acc_floor": fl.acc,
-            "kld_twin": d["kld"],
+            "kld_twin": d.kld,
             "kld_floor": fl.kld,
             "within_2x": int((ratio <= 2).sum()),
         }
