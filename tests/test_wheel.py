@@ -84,9 +84,9 @@ def test_the_build_and_the_ctest_build_pin_the_same_eigen():
 
 
 def clean_env() -> dict[str, str]:
-    """This environment without anything that would let Python or CMake look at the source tree."""
-    env = {k: v for k, v in os.environ.items() if not k.startswith(("PYTHON", "VIRTUAL_ENV", "CMAKE_PREFIX"))}
-    return env
+    """This environment less what could make Python import from elsewhere (PYTHONPATH, ...) or point
+    CMake at another Eigen (CMAKE_PREFIX_PATH)."""
+    return {k: v for k, v in os.environ.items() if not k.startswith(("PYTHON", "VIRTUAL_ENV", "CMAKE_PREFIX"))}
 
 
 @pytest.fixture(scope="module")
