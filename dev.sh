@@ -3,7 +3,8 @@
 #   ./dev.sh demo   set up, then run the main job (twin data -> train -> simulate -> verify)
 #   ./dev.sh test   set up, then run every test (C++, then ruff on the whole tree, then Python)
 #   ./dev.sh setup  only set up
-# Set-up is idempotent: system packages via apt-get, Python packages into ./.venv.
+# Set-up is idempotent: system packages via apt-get (g++, cmake, python3-venv), Python packages into
+# ./.venv (Eigen too: the cmeel-eigen wheel, no libeigen3-dev needed).
 set -euo pipefail
 cd "$(dirname "$0")"
 ROOT=$(pwd)
@@ -16,7 +17,6 @@ setup_system() {
   local need=()
   command -v g++ >/dev/null || need+=(g++)
   command -v cmake >/dev/null || need+=(cmake)
-  [ -f /usr/include/eigen3/Eigen/Core ] || need+=(libeigen3-dev)
   python3 -c 'import venv, ensurepip' 2>/dev/null || need+=(python3-venv)
   if [ ${#need[@]} -gt 0 ]; then
     echo "[setup] apt-get install ${need[*]}"
@@ -34,6 +34,8 @@ setup_python() {
     echo "[setup] installing Python packages into .venv"
     "$PY" -m pip install -q --upgrade pip
     "$PY" -m pip install -q -c constraints.txt torch
+    # Eigen's headers for the CTest build below (pip builds fetch their own, see pyproject.toml)
+    "$PY" -m pip install -q -c constraints.txt cmeel-eigen
     "$PY" -m pip install -q -c constraints.txt -e ".[test]"
     echo "$want" > "$stamp"
   fi
