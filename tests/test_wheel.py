@@ -132,7 +132,15 @@ def test_the_common_code_is_compiled_once_and_the_kernels_per_isa(wheel):
     compiled = re.findall(r" -c (\S+\.cpp)", log)
     per_file = {Path(src).name: compiled.count(src) for src in set(compiled)}
     variants = 3 if re.match(r"x86_64|amd64", os.uname().machine.lower()) else 1
-    for src in ("json.cpp", "onnx_loader.cpp", "controller.cpp", "metrics.cpp", "envi_sim.cpp", "csvlog.cpp"):
+    for src in (
+        "json.cpp",
+        "sha256.cpp",
+        "onnx_loader.cpp",
+        "controller.cpp",
+        "metrics.cpp",
+        "envi_sim.cpp",
+        "csvlog.cpp",
+    ):
         assert per_file.get(src) == 1, (src, per_file)
     for src in ("dense.cpp", "engine.cpp", "peak.cpp", "pymodule.cpp"):
         assert per_file.get(src) == variants, (src, per_file)
