@@ -56,7 +56,7 @@ ALGORITHMS: dict[str, tuple[str, dict[str, Any]]] = {
     "random": ("random", {}),
     "bc-gaussian": ("bc", {"head": "gaussian"}),
     "bc-deterministic": ("bc", {"head": "deterministic"}),
-    "bc-gaussian-lr1e-3": ("bc", {"head": "gaussian", "lr": 1e-3}),
+    "bc-gaussian-lr5e-5": ("bc", {"head": "gaussian", "lr": 5e-5}),  # the paper's lr, envi's default before
     "gail": ("gail", {}),
     "bcxgail": ("bcxgail", {}),
 }

@@ -445,7 +445,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="bc: behaviour cloning; gail, bcxgail: adversarial (PPO); random: the paper's baseline",
     )
     p.add_argument("--epochs", type=int, default=300, help="training epochs")
-    p.add_argument("--lr", type=float, default=None, help="learning rate (default: the algorithm's, BC 5e-5)")
+    p.add_argument(
+        "--lr", type=float, default=None, help="learning rate (default: the algorithm's: BC 1e-3, GAIL/BCxGAIL 5e-5)"
+    )
     p.add_argument("--history", type=int, default=10, help="window length l")
     p.add_argument("--hidden", default="256,256", help="hidden widths")
     p.add_argument(

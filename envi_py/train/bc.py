@@ -1,9 +1,15 @@
 """Behaviour cloning (paper, Algorithm 1): supervised regression of the next state on the window.
 
-As in the paper, one Adam step per log per epoch (each log's windows form one batch), lr 5e-5 and
-300 epochs by default. The loss is MSE for a deterministic model and the Gaussian negative
-log-likelihood for a stochastic one. Every ``eval_every`` epochs the model is simulated in closed
-loop on the validation logs and the best one is kept (see :mod:`.common`).
+As in the paper, one Adam step per log per epoch (each log's windows form one batch) and 300 epochs
+by default, but lr 1e-3, not the paper's 5e-5: at 5e-5 the 300 epochs stop far short of a fit.
+Measured with ``benchmarks/fidelity_real.py`` (2 folds, the authors' KLD, 10 real vs 10 simulated
+runs per version): mean over x = 10..50 of 1.62 at n = 3 and 0.93 at n = 20 training logs per
+version, against 4.14 and 1.70 at 5e-5; on the car twin (``benchmarks/fidelity_car.py``) the
+exchangeability test passes on more versions and goals at 1e-3.
+
+The loss is MSE for a deterministic model and the Gaussian negative log-likelihood for a
+stochastic one. Every ``eval_every`` epochs the model is simulated in closed loop on the
+validation logs and the best one is kept (see :mod:`.common`).
 """
 
 from __future__ import annotations
@@ -46,7 +52,7 @@ def train_bc(
     val_logs: Sequence[Log] = (),
     *,
     epochs: int = 300,
-    lr: float = 5e-5,
+    lr: float = 1e-3,
     seed: int = 0,
     history: int = 10,
     hidden: Sequence[int] = (256, 256),
