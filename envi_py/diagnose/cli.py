@@ -76,7 +76,7 @@ def register(sub: Any) -> None:
     p = sub.add_parser(
         "diagnose",
         help="where the sim-to-real gap lies, which effect causes it, how far it shrinks once added "
-        "(gaps on the system's goals, e.g. the lane-keeping preset's centre from its description)",
+        "(gaps on the goals of the model's system description: its preset's and its declared ones)",
     )
     add_log_args(p, "--real", required=False, help="real logs to diagnose against (choose + confirm)")
     p.add_argument("--model", help="checkpoint to diagnose")

@@ -311,7 +311,7 @@ def test_saturation(res: Residuals, ckpt: Checkpoint) -> tuple[float, float, flo
     edge = float(v[at][0])
     cfg = ckpt.config
     k = res.index
-    z = (edge - ckpt.norm.centre[k]) / ckpt.norm.half[k]
+    z = float((edge - ckpt.norm.low[k]) / ckpt.norm.half[k] - 1.0)  # the edge, normalised as the window is
     seen = np.abs(res.window[:, k :: cfg.row_width] - z) < 1e-5 * max(1.0, abs(z))  # this state, every row
     hit = at | seen.any(axis=1) | (res.predicted > hi) | (res.predicted < lo)
     pr = res.pairs

@@ -106,7 +106,7 @@ def goal_gaps(
 
 
 def _w1_column(a: np.ndarray, b: np.ndarray) -> float:
-    return float(stats.wasserstein_distance(a[:, 0], b[:, 0]))
+    return float(stats.wasserstein_distance(a.ravel(), b.ravel()))
 
 
 def horizon_gap(real: np.ndarray, sim: np.ndarray, skip: int, seed: int = 0) -> dict[str, Any]:

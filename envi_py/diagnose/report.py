@@ -24,7 +24,7 @@ def _residual_map_png(d: Diagnosis, path: Path) -> None:
     """One heat map per state and action: the mean residual over the state's value x the action's."""
     maps = [(ch, m) for ch in d.residual_map for m in ch["by_action"]]
     fig, axes = plt.subplots(len(maps), 1, figsize=(7, 3.2 * len(maps)), squeeze=False)
-    for ax, (ch, m) in zip(axes[:, 0], maps):
+    for ax, (ch, m) in zip(axes.ravel(), maps):
         mean = np.array(m["mean"], dtype=float)
         lim = np.nanmax(np.abs(mean)) if np.isfinite(mean).any() else 1.0
         im = ax.imshow(mean, aspect="auto", cmap="RdBu_r", vmin=-lim, vmax=lim)
@@ -52,7 +52,7 @@ def _signal(name: str, unit: str) -> str:
 def _horizon_png(d: Diagnosis, path: Path) -> None:
     signals = list(dict.fromkeys(h["signal"] for h in d.horizon))
     fig, axes = plt.subplots(len(signals), 1, figsize=(7, 3.2 * len(signals)), squeeze=False)
-    for ax, sig in zip(axes[:, 0], signals):
+    for ax, sig in zip(axes.ravel(), signals):
         for h in (h for h in d.horizon if h["signal"] == sig):
             ax.plot(h["step"], h["w1"], label=f"{h['controller']} sim vs real")
             ax.plot(h["step"], h["floor"], "--", alpha=0.6, label=f"{h['controller']} real vs real")
@@ -95,11 +95,11 @@ def _shrink_png(d: Diagnosis, path: Path) -> None:
         ax.bar(x + i * width, [summ["goals"][m]["w1"] for m in labels], width, label=name)
     before = s["before"]["goals"]
     floor = np.array([before[m]["floor"] for m in labels])
-    band = np.array([before[m]["floor_band"] for m in labels])
+    low, high = np.array([before[m]["floor_band"] for m in labels]).T
     ax.errorbar(
         x + width * len(series) / 2 - width / 2,
         floor,
-        yerr=[np.maximum(floor - band[:, 0], 0), np.maximum(band[:, 1] - floor, 0)],
+        yerr=[np.maximum(floor - low, 0), np.maximum(high - floor, 0)],
         fmt="k_",
         markersize=18,
         capsize=3,

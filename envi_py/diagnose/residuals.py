@@ -224,7 +224,8 @@ def one_step_residuals(ckpt: Checkpoint, logs: Sequence[Log]) -> ResidualSet:
     gaussian = cfg.head == "gaussian"
     pairs = Pairs.match(s["window"], s["run"])
     actions = tuple(c.name for c in ckpt.schema.actions)
-    others = [s["play"][:, a] for a in range(1, cfg.n_action)]
+    first = 0  # each state is first seen against the first action; ResidualSet.view gives the others
+    others = [s["play"][:, a] for a in range(cfg.n_action) if a != first]
     states = tuple(
         Residuals(
             r=p["r"][:, k],
@@ -232,17 +233,18 @@ def one_step_residuals(ckpt: Checkpoint, logs: Sequence[Log]) -> ResidualSet:
             predicted=p["predicted"][:, k],
             real_next=p["real_next"][:, k],
             state=p["state"][:, k],
-            action=s["acts"][:, 0],
+            action=s["acts"][:, first],
             run=s["run"],
             row=s["row"],
             dt=s["dt"],
             window=s["window"],
             beyond=s["beyond"],
-            play=s["play"][:, 0],
+            play=s["play"][:, first],
             other_play=np.column_stack(others) if others else None,
             name=c.name,
             index=k,
-            action_name=actions[0],
+            action_name=actions[first],
+            action_index=first,
             unit=c.unit,
             scale=channel_scale(c.low, c.high, float(half[k])),
             shared_pairs=pairs,

@@ -9,9 +9,11 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from ..controllers import ControllerSpec
 from ..logs import Log, group_by_controller
 from ..model import Checkpoint
 from ..simulate import simulate_logs
+from ..system import SystemDescription
 from ..train import train
 from ..verify import Scoring
 from .effects import Finding
@@ -38,14 +40,21 @@ def retrain_with(ckpt: Checkpoint, finding: Finding, train_logs: Sequence[Log], 
 
 def simulate_groups(ckpt: Checkpoint, logs: Sequence[Log], runs: int, seed: int) -> list[Group]:
     """(version label, real logs, simulated logs) per controller version, cut to one length."""
-    system = ckpt.system
     out = []
     for spec, group in group_by_controller(logs).items():
         sims = simulate_logs(ckpt, spec, group, runs=runs, seed=seed)
         t = min(min(len(lg) for lg in group), min(len(lg) for lg in sims))
-        label = system.version_label(spec) if system is not None else spec.label()
-        out.append((label, cut_logs(group, t), cut_logs(sims, t)))
+        out.append((version_label(ckpt.system, spec), cut_logs(group, t), cut_logs(sims, t)))
     return out
+
+
+def version_label(system: SystemDescription | None, spec: ControllerSpec) -> str:
+    """The version as the system names it (``kp_steer=0.8,kp_speed=18``); the controller's own label
+    when the system has no description or names parameters this controller lacks (a PID steering
+    the lane-keeping twin has no ``x``)."""
+    if system is None or any(p not in system.version_of(spec) for p in system.versions.params):
+        return spec.label()
+    return system.version_label(spec)
 
 
 def gap_summary(groups: Sequence[Group], scoring: Scoring, seed: int) -> dict[str, Any]:

@@ -68,7 +68,7 @@ ACTUATOR_LAGS: tuple[Transform, ...] = tuple(
 
 def _on_column(a: np.ndarray, j: int, fn: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
     out = np.array(a, dtype=np.float64)
-    out[:, j] = fn(out[:, j : j + 1])[:, 0]
+    out[:, j] = fn(out[:, j : j + 1]).ravel()
     return out
 
 
