@@ -355,7 +355,9 @@ def test_run_to_run(res: Residuals, ckpt: Checkpoint) -> tuple[float, float, flo
 
 def _best_play(res: Residuals) -> tuple[float, float, float, int]:
     """F, p (uncorrected), share and index into :data:`PLAY_WIDTHS` of the play width that explains
-    the most of the residual differences beyond the rows before the window."""
+    the most of the residual differences beyond the rows before the window (searched once per view)."""
+    if "play" in res.memo:
+        return res.memo["play"]
     best = (0.0, 1.0, 0.0, 0)
     for k in range(res.play.shape[1]):
         f, p, share = _f_test(
@@ -363,6 +365,7 @@ def _best_play(res: Residuals) -> tuple[float, float, float, int]:
         )
         if share > best[2] or (best[2] == 0 and p < best[1]):
             best = (f, p, share, k)
+    res.memo["play"] = best
     return best
 
 

@@ -13,7 +13,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field, replace
 from functools import cached_property
-from typing import Sequence
+from typing import Any, Sequence
 
 import numpy as np
 import torch
@@ -56,6 +56,7 @@ class Residuals:
     unit: str = ""
     scale: float = 1.0  # the channel's range: declared, or the training data's where unbounded
     shared_pairs: Pairs | None = field(default=None, repr=False)  # the pairs, when computed for another view
+    memo: dict[str, Any] = field(default_factory=dict, repr=False, compare=False)  # a test's costly search
 
     def __len__(self) -> int:
         return int(self.r.shape[0])
@@ -158,6 +159,7 @@ class ResidualSet:
             action_name=self.actions[j],
             action_index=j,
             shared_pairs=base.pairs,
+            memo={},
         )
 
     def sq(self) -> np.ndarray:
@@ -210,14 +212,10 @@ def one_step_residuals(ckpt: Checkpoint, logs: Sequence[Log]) -> ResidualSet:
             if len(block):
                 beyond[j, (BEYOND - len(block)) * ch :] = block.ravel()
         shared["beyond"].append(beyond)
-        # play of each action, as a fraction of its training range
-        play = np.stack(
-            [
-                np.stack([play_offsets(lg.actions[:, a], f * 2 * float(half[ns + a])) for f in PLAY_WIDTHS], axis=1)
-                for a in range(cfg.n_action)
-            ],
-            axis=1,
-        )  # (T, |a|, widths)
+        # play of each action at each width (a fraction of the action's training range), in one pass
+        widths = np.outer(2 * half[ns:], PLAY_WIDTHS)  # (|a|, widths)
+        commands = np.broadcast_to(lg.actions.T[:, None, :], (*widths.shape, len(lg)))
+        play = play_offsets(commands, widths).transpose(2, 0, 1)  # (T, |a|, widths)
         shared["play"].append(play[hist - 1 : -1])
     s = {k: np.concatenate(v) for k, v in shared.items()}
     p = {k: np.concatenate(v) for k, v in per.items()}
