@@ -106,7 +106,8 @@ def _shrink_png(d: Diagnosis, path: Path) -> None:
         label="real-vs-real floor (95% range of sim if it were real)",
     )
     ax.set_xticks(x + width * (len(series) - 1) / 2, labels, rotation=25, fontsize=7)
-    ax.set_ylabel("normalised W1, matched sizes (confirmation logs)")
+    ax.set_ylabel("normalised W1 (matched sizes)")
+    ax.set_title("goal gaps on the confirmation logs, before and after each fix")
     ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
