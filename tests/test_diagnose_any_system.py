@@ -7,6 +7,7 @@ import json
 import math
 
 import numpy as np
+import pytest
 
 from envi_py.cli import main
 from envi_py.logs import load_logs
@@ -65,3 +66,18 @@ def test_car_diagnosis_scores_every_goal_against_the_fair_floor_and_every_state(
     for goal in car_goals:
         assert f"| {goal} |" in md
     assert "### distance [cm]" in md and "The largest closed-loop gap is in" in verdict
+
+
+def test_diagnose_takes_no_lane_only_centre_or_band(tmp_path, capsys):
+    """The lane-keeping preset takes its centre from the system description; the command line has
+    no lane-only option left to contradict it on another system."""
+    with pytest.raises(SystemExit) as exit_:
+        main(["diagnose", "--help"])
+    assert exit_.value.code == 0
+    usage = capsys.readouterr().out
+    assert "--model" in usage and "--centre" not in usage and "--band" not in usage
+    for option in ("--centre=40", "--band=10"):
+        with pytest.raises(SystemExit) as exit_:
+            main(["diagnose", "--model", str(tmp_path / "car.pt"), "--real", str(tmp_path), option])
+        assert exit_.value.code == 2
+        assert f"unrecognized arguments: {option}" in capsys.readouterr().err
