@@ -37,6 +37,12 @@ def floor_ratio(value: float, floor: float) -> float:
     return 0.0 if value == 0 else float("inf")
 
 
+def gap_rank(row: dict[str, Any]) -> tuple[bool, float, float]:
+    """Goals beyond the floor by their permutation test first, each group by its ratio to the floor,
+    largest first: a large ratio resting on a few runs that chance explains does not lead."""
+    return (not row["beyond_floor"], -row["ratio"], row["p"])
+
+
 def cut_logs(logs: Sequence[Log], t: int) -> list[Log]:
     """The first ``t`` rows of each log: real and simulated runs are scored over the same span."""
     return [
@@ -57,7 +63,7 @@ def _bootstrap_ci(mr: np.ndarray, ms: np.ndarray, scale: float, rng: np.random.G
 def goal_gaps(
     scoring: Scoring, real: Sequence[Log], sim: Sequence[Log], seed: int = 0, boot: int = 200
 ) -> dict[str, Any]:
-    """The gap of one controller version on every goal, ranked by the ratio to the floor, largest first.
+    """The gap of one controller version on every goal, ranked by :func:`gap_rank`.
 
     Per goal: the matched W1 (a real half against m simulated runs) over the fair floor (a real half
     against the other), both from :func:`~envi_py.verify.fair_reference` (the figures ``envi verify``
@@ -94,7 +100,7 @@ def goal_gaps(
                 "sim": ms[:, j].tolist(),
             }
         )
-    rows.sort(key=lambda r: (-r["ratio"], r["p"]))
+    rows.sort(key=gap_rank)
     return {
         "gaps": rows,
         "n_real": int(mr.shape[0]),

@@ -121,7 +121,8 @@ def _gap_lines(d: Diagnosis) -> list[str]:
         "floor between the two real halves (m = n_real // 2 runs per side, 10 random splits); their ratio and the "
         "range the ratio takes when simulated runs are exchangeable with real ones (95%); the permutation test's "
         "p-value (99 relabellings, all real runs against as many simulated); and the W1 of all simulated against "
-        "all real runs with a bootstrap 95% interval."
+        "all real runs with a bootstrap 95% interval. Ranked: goals beyond the floor (p <= 0.05) first, each group by "
+        "its ratio, largest first."
     )
     lines.append("")
     for g in d.gaps:

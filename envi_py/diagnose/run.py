@@ -12,7 +12,7 @@ from ..logs import Log, group_by_controller
 from ..model import Checkpoint
 from ..simulate import initial_windows, rollout
 from .effects import MIN_SHARE, Finding, misfit_share, run_candidates
-from .gap import LEVEL, by_run, by_version, coverage, goal_gaps, horizon_gap, residual_map, windows_of
+from .gap import LEVEL, by_run, gap_rank, by_version, coverage, goal_gaps, horizon_gap, residual_map, windows_of
 from .residuals import ResidualSet, one_step_residuals
 from .shrink import scoring_of, shrink, simulate_groups
 
@@ -49,7 +49,7 @@ class Diagnosis:
         return not has_gap(self.gaps)
 
     def _gap_text(self) -> str:
-        version, worst = max(((g, r) for g in self.gaps for r in g["gaps"]), key=lambda x: (x[1]["ratio"], -x[1]["p"]))
+        version, worst = min(((g, r) for g in self.gaps for r in g["gaps"]), key=lambda x: gap_rank(x[1]))
         beyond = sum(r["beyond_floor"] for g in self.gaps for r in g["gaps"])
         tested = sum(len(g["gaps"]) for g in self.gaps)
         name = f"{worst['goal']} of {version['controller']}" if len(self.gaps) > 1 else worst["goal"]
@@ -58,9 +58,14 @@ class Diagnosis:
             if worst["ratio"] == float("inf")
             else f"{worst['ratio']:.1f}x the fair real-vs-real floor"
         )
+        lead = (
+            "The largest closed-loop gap beyond the floor is in"
+            if worst["beyond_floor"]
+            else f"No goal's gap is beyond the floor by its permutation test (p > {LEVEL:g}); the largest is in"
+        )
         return (
-            f"The largest closed-loop gap is in {name} ({size}: normalised W1 {worst['w1']:.4f} against "
-            f"{worst['floor']:.4f} at {version['per_side']} runs per side; permutation test p={worst['p']:.2g}). "
+            f"{lead} {name} ({size}: normalised W1 {worst['w1']:.4f} against {worst['floor']:.4f} at "
+            f"{version['per_side']} runs per side; permutation test p={worst['p']:.2g}). "
             f"{beyond} of {tested} goal gaps ({len(self.gaps)} controller version{'s' * (len(self.gaps) > 1)}) "
             f"are beyond the floor (p <= {LEVEL:g}). "
         )
