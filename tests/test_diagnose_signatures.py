@@ -16,7 +16,7 @@ from envi_py.diagnose.effects import (
     run_candidates,
 )
 from envi_py.dataset import play_offsets
-from envi_py.diagnose.residuals import BEYOND, PLAY_WIDTHS, Residuals
+from envi_py.diagnose.residuals import BEYOND, PLAY_WIDTHS, Residuals, ResidualSet
 from envi_py.logs import LANE_KEEPING_SCHEMA
 from envi_py.model import Checkpoint, EnvModel, ModelConfig, TrainingRecord
 
@@ -84,13 +84,13 @@ CASES = {
 @pytest.mark.parametrize("effect", sorted(CASES))
 def test_injected_effect_is_ranked_first(effect):
     res = synthetic(CASES[effect])
-    findings = run_candidates(res, ckpt())
+    findings = run_candidates(ResidualSet.of(res), ckpt())
     assert findings[0].effect == effect and findings[0].significant, [(f.effect, f.p_holm, f.share) for f in findings]
 
 
 def test_clean_residuals_show_no_significant_effect():
     for seed in range(5):
-        findings = run_candidates(synthetic(seed=seed), ckpt())
+        findings = run_candidates(ResidualSet.of(synthetic(seed=seed)), ckpt())
         assert not any(f.significant for f in findings), [(f.effect, f.p_holm, f.share) for f in findings]
 
 
@@ -109,7 +109,7 @@ def test_quantisation_finds_the_lattice_step_and_fixes_with_it():
     res = synthetic(lambda res, rng: rng.normal(0, 1.0, len(res)))
     res.real_next = np.round(res.real_next / 4) * 4
     res.r = res.real_next - res.predicted
-    finding = run_candidates(res, ckpt())[0]
+    finding = run_candidates(ResidualSet.of(res), ckpt())[0]
     assert finding.effect == "quantisation" and finding.significant and finding.fix == {"round_to": (4.0,)}
     assert lattice_step(res.predicted) is None
 
@@ -118,22 +118,22 @@ def test_saturation_when_real_readings_pile_up_at_a_limit():
     res = synthetic()
     res.real_next = np.clip(res.predicted + res.r, 20, 60)
     res.r = res.real_next - res.predicted
-    finding = next(f for f in run_candidates(res, ckpt()) if f.effect == "saturation")
+    finding = next(f for f in run_candidates(ResidualSet.of(res), ckpt()) if f.effect == "saturation")
     assert finding.significant and finding.fix == {"limits": ((20.0, 60.0),), "history": 20}
 
 
 def test_no_saturation_for_a_smooth_response_reaching_its_extremes():
-    finding = next(f for f in run_candidates(synthetic(), ckpt()) if f.effect == "saturation")
+    finding = next(f for f in run_candidates(ResidualSet.of(synthetic()), ckpt()) if f.effect == "saturation")
     assert not finding.significant and finding.p > 0.05
 
 
 def test_gaussian_model_calibrated_noise_is_not_flagged():
     res = synthetic(lambda res, rng: rng.normal(0, 2.0, len(res)))
     res.pred_std = np.full(len(res), 2.0)
-    noise = next(f for f in run_candidates(res, ckpt()) if f.effect == "noise")
+    noise = next(f for f in run_candidates(ResidualSet.of(res), ckpt()) if f.effect == "noise")
     assert not noise.significant
     res.pred_std = np.full(len(res), 0.5)  # under-dispersed model
-    noise = next(f for f in run_candidates(res, ckpt()) if f.effect == "noise")
+    noise = next(f for f in run_candidates(ResidualSet.of(res), ckpt()) if f.effect == "noise")
     assert noise.significant
 
 
@@ -168,7 +168,7 @@ def test_misfit_share_separates_a_wrong_model_from_noise():
 
 def test_backlash_is_fixed_with_a_play_channel_of_the_width_found():
     res = synthetic(CASES["backlash"])
-    finding = next(f for f in run_candidates(res, ckpt()) if f.effect == "backlash")
+    finding = next(f for f in run_candidates(ResidualSet.of(res), ckpt()) if f.effect == "backlash")
     assert finding.fix == {"extras": ("play",), "play_width": PLAY_WIDTHS[3]}
 
 

@@ -39,7 +39,7 @@ def test_a_lagging_actuator_is_found_by_feeding_the_model_lagged_commands(clean_
     fitted = []
     for tau_ms in (60.0, 120.0, 240.0):
         lagging = generate(LANE, 12, 100, {"lag": tau_ms}, seed=1, profile=TwinProfile())
-        w = input_what_if(clean_model, lagging, one_step_residuals(clean_model, lagging), ACTUATOR_LAGS)
+        (w,) = input_what_if(clean_model, lagging, one_step_residuals(clean_model, lagging), ACTUATOR_LAGS)
         assert w.share > 0.5 and w.p < 1e-3, (tau_ms, w)
         assert "first-order lag" in w.label, (tau_ms, w)
         fitted.append(float(w.label.split("lag of ")[1].split()[0]))
@@ -48,5 +48,5 @@ def test_a_lagging_actuator_is_found_by_feeding_the_model_lagged_commands(clean_
 
 def test_logs_of_the_world_the_model_knows_gain_nothing_from_a_what_if(clean_model):
     same = generate(LANE, 12, 100, {}, seed=1, profile=TwinProfile())
-    w = input_what_if(clean_model, same, one_step_residuals(clean_model, same), ACTUATOR_LAGS)
+    (w,) = input_what_if(clean_model, same, one_step_residuals(clean_model, same), ACTUATOR_LAGS)
     assert w.share < WHAT_IF_BAR and w.p > 0.05, w

@@ -10,7 +10,7 @@ from typing import Any
 
 
 def _cmd_diagnose(args: argparse.Namespace) -> int:
-    from ..cli import metric_config, read_logs
+    from ..cli import read_logs
     from ..model import Checkpoint
     from .report import write_diagnosis
     from .run import diagnose
@@ -27,7 +27,6 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
         real,
         confirm,
         train_logs,
-        metric=metric_config(args, hist),
         runs=args.runs,
         top=args.top,
         retrain=not args.no_retrain,
@@ -72,10 +71,12 @@ def _cmd_validate(args: argparse.Namespace) -> int:
 
 def register(sub: Any) -> None:
     """Add ``diagnose`` to the ``envi`` subcommands."""
-    from ..cli import add_log_args, add_metric_args
+    from ..cli import add_log_args
 
     p = sub.add_parser(
-        "diagnose", help="where the sim-to-real gap lies, which effect causes it, how far it shrinks once added"
+        "diagnose",
+        help="where the sim-to-real gap lies, which effect causes it, how far it shrinks once added "
+        "(gaps on the goals of the model's system description: its preset's and its declared ones)",
     )
     add_log_args(p, "--real", required=False, help="real logs to diagnose against (choose + confirm)")
     p.add_argument("--model", help="checkpoint to diagnose")
@@ -96,7 +97,6 @@ def register(sub: Any) -> None:
     p.add_argument("--top", type=int, default=2, help="how many significant effects to retrain with")
     p.add_argument("--no-retrain", action="store_true", help="skip the retraining (step 3)")
     p.add_argument("--seed", type=int, default=0)
-    add_metric_args(p)
     p.add_argument("--out", default="diagnosis", help="output folder")
     p.set_defaults(func=_cmd_diagnose, parser=p)
 

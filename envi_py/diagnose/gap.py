@@ -1,5 +1,13 @@
-"""Where the closed-loop gap lies: by goal metric, by horizon, by region of state x action, by
-controller version, and where simulated windows leave the region the training data covers."""
+"""Where the closed-loop gap lies: by goal, by horizon, by region of state x action, by controller
+version, and where simulated windows leave the region the training data covers.
+
+The goals are the system's (:func:`envi_py.verify.goals_for` through :class:`envi_py.verify.Scoring`:
+the paper's eight metrics for the lane-keeping preset, the declared goals otherwise, default goals
+on every state for a system declaring none). Every gap is measured against the project's one fair
+floor (:func:`envi_py.verify.fair_reference`, :func:`envi_py.verdicts.fair_floor`): a real half
+against as many simulated runs beside a real half against the other, m = n_real // 2 runs per side,
+with the permutation test of "simulated runs are exchangeable with real ones".
+"""
 
 from __future__ import annotations
 
@@ -8,70 +16,120 @@ from typing import Any, Sequence
 import numpy as np
 from scipy import stats
 
-from ..metrics import METRIC_NAMES, MetricConfig, driving_metrics, metric_bounds
+from ..goals.evaluate import goal_unit
+from ..logs import Log
+from ..verdicts import fair_floor, w1_normalised
+from ..verify import Scoring, fair_reference
 from .effects import n_eff
-from .residuals import Residuals
+from .residuals import Residuals, ResidualSet
 
-
-def _w1_metrics(mr: np.ndarray, ms: np.ndarray, span: np.ndarray) -> np.ndarray:
-    return np.array([stats.wasserstein_distance(mr[:, j], ms[:, j]) for j in range(mr.shape[1])]) / span
+#: Repetitions and relabellings of the fair floor, as :func:`envi_py.verify.fair_reference` uses.
+REPETITIONS, PERMUTATIONS = 10, 99
+#: A goal's gap is beyond the floor when its permutation test gives p <= LEVEL.
+LEVEL = 0.05
 
 
 def floor_ratio(value: float, floor: float) -> float:
     """``value`` over a real-vs-real floor. A floor of exactly 0 (the real runs never differ in this
-    metric) makes any gap infinite and no gap 0, rather than a huge number from a tiny divisor."""
+    goal) makes any gap infinite and no gap 0, rather than a huge number from a tiny divisor."""
     if floor > 0:
         return value / floor
     return 0.0 if value == 0 else float("inf")
 
 
-def metric_gaps(
-    real: np.ndarray, sim: np.ndarray, cfg: MetricConfig, boot: int = 200, seed: int = 0
-) -> list[dict[str, Any]]:
-    """Per metric: normalised W1 with a bootstrap 95% interval (runs resampled on both sides), the
-    real-vs-real floor (random halves), and their ratio; ranked by the ratio, largest first."""
-    rng = np.random.default_rng(seed)
-    mr, ms = driving_metrics(real, cfg), driving_metrics(sim, cfg)
-    lo, hi = metric_bounds(real.shape[1] - cfg.skip, cfg)
-    span = hi - lo
-    w1 = _w1_metrics(mr, ms, span)
-    bs = np.array(
-        [
-            _w1_metrics(mr[rng.integers(0, len(mr), len(mr))], ms[rng.integers(0, len(ms), len(ms))], span)
-            for _ in range(boot)
-        ]
-    )
-    halves = []
-    for _ in range(50):
-        p = rng.permutation(len(mr))
-        halves.append(_w1_metrics(mr[p[: len(p) // 2]], mr[p[len(p) // 2 :]], span))
-    fl = np.mean(halves, axis=0)
-    rows = [
-        {
-            "metric": m,
-            "w1": float(w1[j]),
-            "ci": [float(np.percentile(bs[:, j], 2.5)), float(np.percentile(bs[:, j], 97.5))],
-            "floor": float(fl[j]),
-            "ratio": floor_ratio(float(w1[j]), float(fl[j])),
-            "real": mr[:, j].tolist(),
-            "sim": ms[:, j].tolist(),
-        }
-        for j, m in enumerate(METRIC_NAMES)
+def gap_rank(row: dict[str, Any]) -> tuple[bool, float, float]:
+    """Goals beyond the floor by their permutation test first, each group by its ratio to the floor,
+    largest first: a large ratio resting on a few runs that chance explains does not lead."""
+    return (not row["beyond_floor"], -row["ratio"], row["p"])
+
+
+def cut_logs(logs: Sequence[Log], t: int) -> list[Log]:
+    """The first ``t`` rows of each log: real and simulated runs are scored over the same span."""
+    return [
+        lg if len(lg) == t else Log(lg.path, lg.time[:t], lg.states[:t], lg.actions[:t], lg.meta, lg.logged[:t])
+        for lg in logs
     ]
-    return sorted(rows, key=lambda r: -r["ratio"])
+
+
+def _bootstrap_ci(mr: np.ndarray, ms: np.ndarray, scale: float, rng: np.random.Generator, boot: int) -> list[float]:
+    """95% interval of the all-runs normalised W1, runs resampled on both sides."""
+    bs = [
+        stats.wasserstein_distance(mr[rng.integers(0, len(mr), len(mr))], ms[rng.integers(0, len(ms), len(ms))]) / scale
+        for _ in range(boot)
+    ]
+    return [float(np.percentile(bs, 2.5)), float(np.percentile(bs, 97.5))]
+
+
+def goal_gaps(
+    scoring: Scoring, real: Sequence[Log], sim: Sequence[Log], seed: int = 0, boot: int = 200
+) -> dict[str, Any]:
+    """The gap of one controller version on every goal, ranked by :func:`gap_rank`.
+
+    Per goal: the matched W1 (a real half against m simulated runs) over the fair floor (a real half
+    against the other), both from :func:`~envi_py.verify.fair_reference` (the figures ``envi verify``
+    reports), the permutation test's p-value on that goal (:func:`~envi_py.verdicts.fair_floor`, its
+    null band of the ratio), and the W1 of all simulated runs against all real runs with a bootstrap
+    95% interval (``boot`` resamplings; none when 0). Needs at least 2 real runs and as many simulated ones."""
+    if len(real) < 2:
+        raise ValueError(f"the fair floor needs at least 2 real runs of each controller version, got {len(real)}")
+    rr, sr = scoring.runs(real), scoring.runs(sim)
+    mr, ms, scale = scoring.table(rr), scoring.table(sr), scoring.scales(rr)
+    floor, matched, tests = fair_reference(mr, ms, scale, None, None, seed, REPETITIONS, PERMUTATIONS)
+    rng = np.random.default_rng(seed)
+    units = {c.name: c.unit for c in scoring.schema.channels}
+    rows = []
+    for j, goal in enumerate(scoring.goals):
+        with np.errstate(invalid="ignore"):  # see _quiet_null_band
+            test = fair_floor(mr[:, j], ms[:, j], w1_normalised(scale[j]), REPETITIONS, PERMUTATIONS, LEVEL, seed)
+        w1, fl = float(matched.w1[j]), float(floor.w1[j])
+        rows.append(
+            {
+                "goal": goal.name,
+                "signal": goal.signal,
+                "unit": goal_unit(goal, units.get(goal.signal, "")),
+                "scale": float(scale[j]),
+                "w1": w1,
+                "floor": fl,
+                "ratio": floor_ratio(w1, fl),
+                "ratio_null_band": [float(v) for v in test.ratio_null_band],
+                "p": test.p_value,
+                "beyond_floor": not test.within_floor,
+                "w1_all": float(stats.wasserstein_distance(mr[:, j], ms[:, j]) / scale[j]),
+                "ci": _bootstrap_ci(mr[:, j], ms[:, j], float(scale[j]), rng, boot) if boot else None,
+                "real": mr[:, j].tolist(),
+                "sim": ms[:, j].tolist(),
+            }
+        )
+    rows.sort(key=gap_rank)
+    return {
+        "gaps": rows,
+        "n_real": int(mr.shape[0]),
+        "n_sim": int(ms.shape[0]),
+        "per_side": int(tests["per_side"]),
+        "mean_w1": float(np.mean(matched.w1)),
+        "mean_floor": float(np.mean(floor.w1)),
+        "goals_test": tests["goals_w1"],
+    }
+
+
+# _quiet_null_band: where the real runs barely differ in a goal, some relabellings have a floor of 0
+# and an infinite ratio; the quantile of the ratio's null band then subtracts inf from inf and numpy
+# warns. The band edge is NaN (reported as such); the p-value, from the statistic, is unaffected.
+
+
+def _w1_column(a: np.ndarray, b: np.ndarray) -> float:
+    return float(stats.wasserstein_distance(a.ravel(), b.ravel()))
 
 
 def horizon_gap(real: np.ndarray, sim: np.ndarray, skip: int, seed: int = 0) -> dict[str, Any]:
-    """How the gap grows with the horizon: per step the W1 between real and simulated states, the
-    same between halves of the real runs, the share of simulated runs outside the real 5-95% band,
-    and per simulated run the first step it leaves that band for 3 consecutive steps."""
-    rng = np.random.default_rng(seed)
+    """How the gap of one state grows with the horizon: per step the W1 between a real half and as
+    many simulated runs beside the W1 between the two real halves (the fair floor's design at each
+    step), the share of simulated runs outside the real 5-95% band, and per simulated run the first
+    step it leaves that band for 3 consecutive steps. ``real`` and ``sim`` are (runs, steps)."""
     t = min(real.shape[1], sim.shape[1])
     steps = np.arange(skip, t)
-    w1 = np.array([stats.wasserstein_distance(real[:, k], sim[:, k]) for k in steps])
-    p = rng.permutation(len(real))
-    a, b = real[p[: len(p) // 2]], real[p[len(p) // 2 :]]
-    fl = np.array([stats.wasserstein_distance(a[:, k], b[:, k]) for k in steps])
+    with np.errstate(invalid="ignore"):  # see _quiet_null_band
+        per_step = [fair_floor(real[:, k], sim[:, k], _w1_column, REPETITIONS, 1, LEVEL, seed) for k in steps]
     lo, hi = np.percentile(real[:, steps], 5, axis=0), np.percentile(real[:, steps], 95, axis=0)
     outside = (sim[:, steps] < lo) | (sim[:, steps] > hi)
     exits = []
@@ -80,28 +138,33 @@ def horizon_gap(real: np.ndarray, sim: np.ndarray, skip: int, seed: int = 0) -> 
         exits.append(int(np.argmax(run3)) if run3.any() else len(steps))
     return {
         "step": steps.tolist(),
-        "w1": w1.tolist(),
-        "floor": fl.tolist(),
+        "w1": [f.sim for f in per_step],
+        "floor": [f.floor for f in per_step],
+        "per_side": real.shape[0] // 2,
         "outside_band": outside.mean(axis=0).tolist(),
         "median_exit_step": float(np.median(exits)),
         "never_exit_share": float(np.mean(np.array(exits) == len(steps))),
     }
 
 
-def residual_map(res: Residuals, state_bins: int = 8, alpha: float = 0.05) -> dict[str, Any]:
-    """Mean one-step residual over state x action cells, and over the phase of the run, with the
-    cells whose bias is significant (t-test on the effective sample size, Bonferroni over cells)."""
+def _action_cells(action: np.ndarray) -> tuple[np.ndarray, list[str]]:
+    """Each residual's action cell: the action's values when it takes at most 8, else 8 quantile bins."""
+    actions = np.unique(action)
+    if len(actions) > 8:
+        edges = np.quantile(action, np.linspace(0, 1, 9))
+        edges[-1] += 1e-9
+        return np.clip(np.searchsorted(edges, action, side="right") - 1, 0, 7), [
+            f"{edges[i]:.3g}..{edges[i + 1]:.3g}" for i in range(8)
+        ]
+    return np.searchsorted(actions, action), [f"{a:g}" for a in actions]
+
+
+def state_action_map(res: Residuals, state_bins: int = 8, alpha: float = 0.05) -> dict[str, Any]:
+    """Mean one-step residual of one state over its own value x one action's value, with the cells
+    whose bias is significant (t-test on the effective sample size, Bonferroni over cells)."""
     edges = np.quantile(res.state, np.linspace(0, 1, state_bins + 1))
     edges[-1] += 1e-9
-    actions = np.unique(res.action)
-    if len(actions) > 8:
-        aedges = np.quantile(res.action, np.linspace(0, 1, 9))
-        aedges[-1] += 1e-9
-        a_idx = np.clip(np.searchsorted(aedges, res.action, side="right") - 1, 0, 7)
-        a_labels = [f"{aedges[i]:.3g}..{aedges[i + 1]:.3g}" for i in range(8)]
-    else:
-        a_idx = np.searchsorted(actions, res.action)
-        a_labels = [f"{a:g}" for a in actions]
+    a_idx, a_labels = _action_cells(res.action)
     s_idx = np.clip(np.searchsorted(edges, res.state, side="right") - 1, 0, state_bins - 1)
     ratio = n_eff(res) / len(res)
     cells = len(a_labels) * state_bins
@@ -129,27 +192,47 @@ def residual_map(res: Residuals, state_bins: int = 8, alpha: float = 0.05) -> di
                         "p_bonferroni": float(min(1.0, p * cells)),
                     }
                 )
-    phase_edges = np.quantile(res.row, np.linspace(0, 1, 6))
-    ph = np.clip(np.searchsorted(phase_edges, res.row, side="right") - 1, 0, 4)
-    phase = [
-        {
-            "rows": [float(phase_edges[k]), float(phase_edges[k + 1])],
-            "bias": float(res.r[ph == k].mean()),
-            "sd": float(res.r[ph == k].std()),
-            "rms": float(np.sqrt(np.mean(res.r[ph == k] ** 2))),
-        }
-        for k in range(5)
-        if np.any(ph == k)
-    ]
     return {
+        "action_signal": res.action_name,
         "state_edges": edges.tolist(),
         "actions": a_labels,
         "mean": mean.tolist(),
         "count": count.tolist(),
         "significant": sorted(significant, key=lambda c: -abs(c["bias"])),
-        "by_phase": phase,
-        "rmse": float(np.sqrt(np.mean(res.r**2))),
     }
+
+
+def residual_map(res: ResidualSet, state_bins: int = 8, alpha: float = 0.05) -> list[dict[str, Any]]:
+    """Per state channel: its one-step RMSE (physical, and over the channel's range), its mean
+    residual over its own value x each action's value (:func:`state_action_map`) and over the phase
+    of the run."""
+    out = []
+    for k, s in enumerate(res.states):
+        phase_edges = np.quantile(s.row, np.linspace(0, 1, 6))
+        ph = np.clip(np.searchsorted(phase_edges, s.row, side="right") - 1, 0, 4)
+        phase = [
+            {
+                "rows": [float(phase_edges[i]), float(phase_edges[i + 1])],
+                "bias": float(s.r[ph == i].mean()),
+                "sd": float(s.r[ph == i].std()),
+                "rms": float(np.sqrt(np.mean(s.r[ph == i] ** 2))),
+            }
+            for i in range(5)
+            if np.any(ph == i)
+        ]
+        rmse = float(np.sqrt(np.mean(s.r**2)))
+        out.append(
+            {
+                "signal": s.name,
+                "unit": s.unit,
+                "scale": s.scale,
+                "rmse": rmse,
+                "rmse_of_range": rmse / s.scale,
+                "by_action": [state_action_map(res.view(k, j), state_bins, alpha) for j in range(len(res.actions))],
+                "by_phase": phase,
+            }
+        )
+    return out
 
 
 def coverage(train_windows: np.ndarray, sim_windows: np.ndarray, seed: int = 0, sample: int = 2000) -> dict[str, Any]:
@@ -183,30 +266,38 @@ def windows_of(traces: np.ndarray, norm_encode: Any, history: int, skip: int) ->
     return np.concatenate(out, axis=0) if out else np.zeros((0, history * z.shape[2]))
 
 
-def by_version(groups: Sequence[tuple[str, np.ndarray, np.ndarray]], cfg: MetricConfig) -> list[dict[str, Any]]:
-    """Mean normalised W1 and its ratio to the floor for each controller version."""
-    out = []
-    for label, real, sim in groups:
-        gaps = metric_gaps(real, sim, cfg, boot=50)
-        out.append(
-            {
-                "controller": label,
-                "mean_w1": float(np.mean([g["w1"] for g in gaps])),
-                "mean_floor": float(np.mean([g["floor"] for g in gaps])),
-                "worst_metric": gaps[0]["metric"],
-                "worst_ratio": gaps[0]["ratio"],
-            }
-        )
-    return out
+def by_version(gaps: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Per controller version: mean matched W1 over the goals, mean floor, the permutation test on
+    that mean, and the worst goal."""
+    return [
+        {
+            "controller": g["controller"],
+            "mean_w1": g["mean_w1"],
+            "mean_floor": g["mean_floor"],
+            "p": g["goals_test"]["p_value"],
+            "per_side": g["per_side"],
+            "worst_goal": g["gaps"][0]["goal"],
+            "worst_ratio": g["gaps"][0]["ratio"],
+            "beyond_floor": sum(r["beyond_floor"] for r in g["gaps"]),
+        }
+        for g in gaps
+    ]
 
 
-def by_run(res: Residuals, names: Sequence[str]) -> list[dict[str, Any]]:
-    """Per log: one-step residual RMS and its ratio to the median log's, largest first. A gap that
-    lives in some runs only (a worn battery, a slippery patch) shows as a few logs far above 1."""
+def by_run(res: ResidualSet, names: Sequence[str]) -> list[dict[str, Any]]:
+    """Per log: one-step residual RMS over the channels' ranges (and per channel, physical units),
+    and its mean square over the median log's, largest first. A gap that lives in some runs only
+    (a worn battery, a slippery patch) shows as a few logs far above 1."""
     ms = res.ms_by_run(len(names))
+    per = {s.name: s.ms_by_run(len(names)) for s in res.states}
     med = float(np.nanmedian(ms)) or 1e-12
     rows = [
-        {"log": names[i], "rms": float(np.sqrt(ms[i])), "ratio": float(ms[i] / med)}
+        {
+            "log": names[i],
+            "rms_of_range": float(np.sqrt(ms[i])),
+            "rms": {k: float(np.sqrt(v[i])) for k, v in per.items()},
+            "ratio": float(ms[i] / med),
+        }
         for i in range(len(names))
         if np.isfinite(ms[i])
     ]

@@ -11,9 +11,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from ..metrics import METRIC_NAMES  # noqa: E402
 from .effects import CANDIDATES, MIN_SHARE, WHAT_IF_BAR  # noqa: E402
-from .run import Diagnosis  # noqa: E402
+from .run import Diagnosis, ratio_text  # noqa: E402
 
 
 def _own_bars() -> str:
@@ -22,37 +21,46 @@ def _own_bars() -> str:
 
 
 def _residual_map_png(d: Diagnosis, path: Path) -> None:
-    rm = d.residual_map
-    mean = np.array(rm["mean"], dtype=float)
-    fig, ax = plt.subplots(figsize=(7, 3.2))
-    lim = np.nanmax(np.abs(mean)) if np.isfinite(mean).any() else 1.0
-    im = ax.imshow(mean, aspect="auto", cmap="RdBu_r", vmin=-lim, vmax=lim)
-    edges = rm["state_edges"]
-    ax.set_xticks(
-        range(len(edges) - 1),
-        [f"{edges[i]:.0f}-{edges[i + 1]:.0f}" for i in range(len(edges) - 1)],
-        rotation=30,
-        fontsize=7,
-    )
-    ax.set_yticks(range(len(rm["actions"])), rm["actions"])
-    ax.set_xlabel("state (last reading of the window)")
-    ax.set_ylabel("action")
-    ax.set_title("mean one-step residual (real - predicted)")
-    fig.colorbar(im, ax=ax)
+    """One heat map per state and action: the mean residual over the state's value x the action's."""
+    maps = [(ch, m) for ch in d.residual_map for m in ch["by_action"]]
+    fig, axes = plt.subplots(len(maps), 1, figsize=(7, 3.2 * len(maps)), squeeze=False)
+    for ax, (ch, m) in zip(axes.ravel(), maps):
+        mean = np.array(m["mean"], dtype=float)
+        lim = np.nanmax(np.abs(mean)) if np.isfinite(mean).any() else 1.0
+        im = ax.imshow(mean, aspect="auto", cmap="RdBu_r", vmin=-lim, vmax=lim)
+        edges = m["state_edges"]
+        ax.set_xticks(
+            range(len(edges) - 1),
+            [f"{edges[i]:.3g}-{edges[i + 1]:.3g}" for i in range(len(edges) - 1)],
+            rotation=30,
+            fontsize=7,
+        )
+        ax.set_yticks(range(len(m["actions"])), m["actions"])
+        ax.set_xlabel(f"{_signal(ch['signal'], ch['unit'])} (last reading of the window)")
+        ax.set_ylabel(m["action_signal"])
+        ax.set_title(f"mean one-step residual of {ch['signal']} (real - predicted)")
+        fig.colorbar(im, ax=ax)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
 
+def _signal(name: str, unit: str) -> str:
+    return f"{name} [{unit}]" if unit else name
+
+
 def _horizon_png(d: Diagnosis, path: Path) -> None:
-    fig, ax = plt.subplots(figsize=(7, 3.2))
-    for h in d.horizon:
-        ax.plot(h["step"], h["w1"], label=f"{h['controller']} sim vs real")
-        ax.plot(h["step"], h["floor"], "--", alpha=0.6, label=f"{h['controller']} real vs real")
-    ax.set_xlabel("step")
-    ax.set_ylabel("W1 of the state at this step")
-    ax.set_title("gap vs horizon")
-    ax.legend(fontsize=7)
+    signals = list(dict.fromkeys(h["signal"] for h in d.horizon))
+    fig, axes = plt.subplots(len(signals), 1, figsize=(7, 3.2 * len(signals)), squeeze=False)
+    for ax, sig in zip(axes.ravel(), signals):
+        for h in (h for h in d.horizon if h["signal"] == sig):
+            ax.plot(h["step"], h["w1"], label=f"{h['controller']} sim vs real")
+            ax.plot(h["step"], h["floor"], "--", alpha=0.6, label=f"{h['controller']} real vs real")
+            unit = h["unit"]
+        ax.set_xlabel("step")
+        ax.set_ylabel(f"W1 of {sig}" + (f" [{unit}]" if unit else ""))
+        ax.set_title(f"gap of {sig} vs horizon (real half against as many runs)")
+        ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -60,13 +68,16 @@ def _horizon_png(d: Diagnosis, path: Path) -> None:
 
 def _metrics_png(d: Diagnosis, path: Path) -> None:
     g = d.gaps[0]
-    by_name = {x["metric"]: x for x in g["gaps"]}
-    fig, axes = plt.subplots(2, 4, figsize=(11, 4.5))
-    for ax, name in zip(axes.ravel(), METRIC_NAMES):
-        x = by_name[name]
+    rows = g["gaps"]
+    cols = min(4, len(rows))
+    nrows = -(-len(rows) // cols)
+    fig, axes = plt.subplots(nrows, cols, figsize=(2.8 * cols, 2.3 * nrows), squeeze=False)
+    for ax in axes.ravel()[len(rows) :]:
+        ax.axis("off")
+    for ax, x in zip(axes.ravel(), rows):
         ax.boxplot([x["real"], x["sim"]], tick_labels=["real", "sim"])
-        ax.set_title(f"{name}\nW1/floor {x['ratio']:.1f}", fontsize=8)
-    fig.suptitle(f"metric distributions, {g['controller']}")
+        ax.set_title(f"{_signal(x['goal'], x['unit'])}\nW1/floor {ratio_text(x['ratio'])}, p={x['p']:.2g}", fontsize=8)
+    fig.suptitle(f"goal distributions, {g['controller']}")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -75,29 +86,122 @@ def _metrics_png(d: Diagnosis, path: Path) -> None:
 def _shrink_png(d: Diagnosis, path: Path) -> None:
     s = d.shrink
     assert s is not None
-    labels = list(METRIC_NAMES)
+    labels = list(s["before"]["goals"])
     x = np.arange(len(labels))
     width = 0.8 / (1 + len(s["after"]))
-    fig, ax = plt.subplots(figsize=(9, 3.5))
+    fig, ax = plt.subplots(figsize=(max(6, 1.1 * len(labels)), 3.5))
     series = [("before", s["before"])] + [(f"+{a['effect']}", a) for a in s["after"]]
     for i, (name, summ) in enumerate(series):
-        vals = [summ["metrics"][m]["w1"] for m in labels]
-        lo = [summ["metrics"][m]["w1"] - summ["metrics"][m]["ci"][0] for m in labels]
-        hi = [summ["metrics"][m]["ci"][1] - summ["metrics"][m]["w1"] for m in labels]
-        ax.bar(x + i * width, vals, width, yerr=[np.maximum(lo, 0), np.maximum(hi, 0)], label=name, capsize=2)
-    ax.plot(
+        ax.bar(x + i * width, [summ["goals"][m]["w1"] for m in labels], width, label=name)
+    before = s["before"]["goals"]
+    floor = np.array([before[m]["floor"] for m in labels])
+    low, high = np.array([before[m]["floor_band"] for m in labels]).T
+    ax.errorbar(
         x + width * len(series) / 2 - width / 2,
-        [s["before"]["metrics"][m]["floor"] for m in labels],
-        "k_",
+        floor,
+        yerr=[np.maximum(floor - low, 0), np.maximum(high - floor, 0)],
+        fmt="k_",
         markersize=18,
-        label="real-vs-real floor",
+        capsize=3,
+        label="real-vs-real floor (95% range of sim if it were real)",
     )
     ax.set_xticks(x + width * (len(series) - 1) / 2, labels, rotation=25, fontsize=7)
-    ax.set_ylabel("normalised W1 (confirmation logs)")
+    ax.set_ylabel("normalised W1 (matched sizes)")
+    ax.set_title("goal gaps on the confirmation logs, before and after each fix")
     ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def _gap_lines(d: Diagnosis) -> list[str]:
+    lines = ["", "## Where the gap lies", ""]
+    lines.append(
+        "Per goal: W1 between a real half and as many simulated runs (matched), over the goal's scale; the fair "
+        "floor between the two real halves (m = n_real // 2 runs per side, 10 random splits); their ratio and the "
+        "range the ratio takes when simulated runs are exchangeable with real ones (95%); the permutation test's "
+        "p-value (99 relabellings, all real runs against as many simulated); and the W1 of all simulated against "
+        "all real runs with a bootstrap 95% interval. Ranked: goals beyond the floor (p <= 0.05) first, each group by "
+        "its ratio, largest first."
+    )
+    lines.append("")
+    for g in d.gaps:
+        lines += [
+            f"### {g['controller']} ({g['n_real']} real runs, {g['n_sim']} simulated, {g['per_side']} per side)",
+            "",
+            "| goal | unit | W1 sim (matched) | floor | ratio | ratio if sim were real | p | W1 all runs (95%) |",
+            "|---|---|---:|---:|---:|---:|---:|---:|",
+        ]
+        lines += [
+            f"| {x['goal']} | {x['unit'] or '-'} | {x['w1']:.4f} | {x['floor']:.4f} | {ratio_text(x['ratio'])} | "
+            f"{x['ratio_null_band'][0]:.2f}..{x['ratio_null_band'][1]:.2f} | {x['p']:.2g} | "
+            f"{x['w1_all']:.4f} ({x['ci'][0]:.4f}..{x['ci'][1]:.4f}) |"
+            for x in g["gaps"]
+        ]
+        lines.append("")
+    lines += [
+        "Per controller version (mean over the goals; p: permutation test on that mean):",
+        "",
+        "| controller | mean W1 (matched) | mean floor | p | goals beyond the floor | worst goal (ratio) |",
+        "|---|---:|---:|---:|---:|---|",
+    ]
+    lines += [
+        f"| {v['controller']} | {v['mean_w1']:.4f} | {v['mean_floor']:.4f} | {v['p']:.2g} | {v['beyond_floor']} | "
+        f"{v['worst_goal']} ({ratio_text(v['worst_ratio'])}) |"
+        for v in d.versions
+    ]
+    return lines
+
+
+def _residual_lines(d: Diagnosis) -> list[str]:
+    lines = [
+        "",
+        "## One-step residuals by state",
+        "",
+        f"{d.misfit:.0%} of the residual mean square (in units of each state's range) is a smooth function of "
+        "the window (misfit where similar windows were seen).",
+        "",
+        "| state | unit | range | RMSE | RMSE / range | misfit share |",
+        "|---|---|---:|---:|---:|---:|",
+    ]
+    lines += [
+        f"| {c['signal']} | {c['unit'] or '-'} | {c['scale']:.4g} | {c['rmse']:.3g} | {c['rmse_of_range']:.2%} | "
+        f"{d.misfit_by_signal.get(c['signal'], float('nan')):.0%} |"
+        for c in d.residual_map
+    ]
+    for c in d.residual_map:
+        cells = [
+            f"{m['action_signal']} {x['action']}, {c['signal']} {x['state'][0]:.3g}-{x['state'][1]:.3g}: "
+            f"{x['bias']:+.3g}"
+            for m in c["by_action"]
+            for x in m["significant"][:6]
+        ]
+        lines += [
+            "",
+            f"### {_signal(c['signal'], c['unit'])}",
+            "",
+            "Cells with significant bias (Bonferroni): " + (", ".join(cells) or "none") + ".",
+            "",
+            "By phase of the run (bias, RMS): "
+            + ", ".join(
+                f"rows {p['rows'][0]:.0f}-{p['rows'][1]:.0f}: {p['bias']:+.3g}, {p['rms']:.3g}" for p in c["by_phase"]
+            )
+            + ".",
+        ]
+    units = {c["signal"]: c["unit"] for c in d.residual_map}
+    lines += [
+        "",
+        "Logs with the largest one-step residuals (RMS over each state's range, the RMS of each state, and the "
+        "mean square over the median log's): "
+        + ", ".join(
+            f"{r['log']} {r['rms_of_range']:.2%} ("
+            + ", ".join(f"{k} {v:.3g}{' ' + units[k] if units.get(k) else ''}" for k, v in r["rms"].items())
+            + f"; {r['ratio']:.1f}x)"
+            for r in d.runs[:5]
+        )
+        + ".",
+    ]
+    return lines
 
 
 def write_diagnosis(d: Diagnosis, out: Path) -> Path:
@@ -107,11 +211,11 @@ def write_diagnosis(d: Diagnosis, out: Path) -> Path:
     _horizon_png(d, out / "horizon.png")
     _metrics_png(d, out / "metrics.png")
     lines = [
-        "# Sim-to-real diagnosis",
+        "# Sim-to-real diagnosis" + (f": {d.system}" if d.system else ""),
         "",
         d.verdict(),
         "",
-        "![metric distributions](metrics.png)",
+        "![goal distributions](metrics.png)",
         "",
         "![gap vs horizon](horizon.png)",
         "",
@@ -120,7 +224,8 @@ def write_diagnosis(d: Diagnosis, out: Path) -> Path:
         "## Candidate effects",
         "",
         "Each one-step residual is compared with the residual of the most similar window of another run "
-        "(the model's misfit cancels there, an unmodelled effect does not). Holm-corrected p-values; "
+        "(the model's misfit cancels there, an unmodelled effect does not); every candidate is tried on every "
+        "state it can act on (on every action for an actuator's play). Holm-corrected p-values; "
         "*share* is the part of those differences' mean square the effect accounts for; "
         "*what-if* is the part of the one-step residual mean square removed by feeding the model its inputs "
         "as the effect would have changed them (no retraining; it sees a misfit the pairs cannot); "
@@ -140,69 +245,26 @@ def write_diagnosis(d: Diagnosis, out: Path) -> Path:
     if d.shrink:
         _shrink_png(d, out / "shrink.png")
         s = d.shrink
+        b = s["before"]
         lines += [
             "",
             "## How far the gap shrinks (confirmation logs)",
             "",
             "![before and after](shrink.png)",
             "",
-            "| model | mean normalised W1 | metrics within 1.5x floor | shrink |",
+            f"| model | mean normalised W1 (matched) | goals within the floor (p > {b['level']:g}) | shrink |",
             "|---|---:|---:|---:|",
-            f"| as trained | {s['before']['mean_w1']:.4f} | {s['before']['inside_floor']}/8 | - |",
+            f"| as trained | {b['mean_w1']:.4f} | {b['inside_floor']}/{b['n_goals']} | - |",
         ]
         for a in s["after"]:
             lines.append(
-                f"| + {a['effect']} {a['fix']} | {a['mean_w1']:.4f} | {a['inside_floor']}/8 | {a['shrink']:+.0%} |"
+                f"| + {a['effect']} {a['fix']} | {a['mean_w1']:.4f} | {a['inside_floor']}/{a['n_goals']} | "
+                f"{a['shrink']:+.0%} |"
             )
-        lines.append(f"\nReal-vs-real floor: {s['before']['mean_floor']:.4f}.")
-    lines += ["", "## Where the gap lies", ""]
-    for g in d.gaps:
-        lines += [
-            f"### {g['controller']}",
-            "",
-            "| metric | W1 | 95% interval | floor | ratio |",
-            "|---|---:|---:|---:|---:|",
-        ]
-        lines += [
-            f"| {x['metric']} | {x['w1']:.4f} | {x['ci'][0]:.4f}..{x['ci'][1]:.4f} | {x['floor']:.4f} | "
-            f"{x['ratio']:.1f} |"
-            for x in g["gaps"]
-        ]
-        lines.append("")
+        lines.append(f"\nReal-vs-real floor: {b['mean_floor']:.4f}.")
+    lines += _gap_lines(d)
+    lines += _residual_lines(d)
     lines += [
-        "Per controller version:",
-        "",
-        "| controller | mean W1 | mean floor | worst metric (ratio) |",
-        "|---|---:|---:|---|",
-    ]
-    lines += [
-        f"| {v['controller']} | {v['mean_w1']:.4f} | {v['mean_floor']:.4f} | {v['worst_metric']} "
-        f"({v['worst_ratio']:.1f}) |"
-        for v in d.versions
-    ]
-    rm = d.residual_map
-    lines += [
-        "",
-        f"One-step RMSE {rm['rmse']:.3g}; {d.misfit:.0%} of its mean square is a smooth function of the "
-        f"window (misfit where similar windows were seen). Cells with significant bias (Bonferroni): "
-        + (
-            ", ".join(
-                f"action {c['action']}, state {c['state'][0]:.0f}-{c['state'][1]:.0f}: {c['bias']:+.2f}"
-                for c in rm["significant"][:6]
-            )
-            or "none"
-        )
-        + ".",
-        "",
-        "Logs with the largest one-step residuals (RMS, and mean square over the median log's): "
-        + ", ".join(f"{r['log']} {r['rms']:.3g} ({r['ratio']:.1f}x)" for r in d.runs[:5])
-        + ".",
-        "",
-        "By phase of the run (bias, RMS): "
-        + ", ".join(
-            f"rows {p['rows'][0]:.0f}-{p['rows'][1]:.0f}: {p['bias']:+.2f}, {p['rms']:.2f}" for p in rm["by_phase"]
-        )
-        + ".",
         "",
         f"Coverage: {d.coverage['outside_share']:.1%} of simulated windows are farther from the training "
         f"windows than 95% of training windows are from each other.",

@@ -1,5 +1,6 @@
 """How far the gap shrinks: retrain with a candidate effect added (same data, same seed, same
-hyper-parameters), simulate the confirmation logs with both models, compare the gaps."""
+hyper-parameters), simulate the confirmation logs with both models, compare the gaps on the
+system's goals against the fair floor."""
 
 from __future__ import annotations
 
@@ -8,14 +9,24 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from ..controllers import ControllerSpec
 from ..logs import Log, group_by_controller
-from ..metrics import MetricConfig
 from ..model import Checkpoint
 from ..simulate import simulate_logs
+from ..system import SystemDescription
 from ..train import train
-from ..verify import traces
+from ..verify import Scoring
 from .effects import Finding
-from .gap import metric_gaps
+from .gap import LEVEL, cut_logs, goal_gaps
+
+#: (version label, real logs, simulated logs), both cut to the same length.
+Group = tuple[str, list[Log], list[Log]]
+
+
+def scoring_of(ckpt: Checkpoint, skip: int | None = None) -> Scoring:
+    """How the diagnosis scores runs: the system's goals over the rows after the initial window
+    (sigma_0, which a simulation copies from its real log; ``skip`` rows, by default the history)."""
+    return Scoring.of(ckpt.system, ckpt.schema, ckpt.config.history if skip is None else skip, ckpt.period_ms)
 
 
 def retrain_with(ckpt: Checkpoint, finding: Finding, train_logs: Sequence[Log], val_logs: Sequence[Log]) -> Checkpoint:
@@ -27,40 +38,48 @@ def retrain_with(ckpt: Checkpoint, finding: Finding, train_logs: Sequence[Log], 
     return train(rec.algorithm, train_logs, val_logs, seed=rec.seed, **hyper, **cfg)
 
 
-def simulate_groups(
-    ckpt: Checkpoint, logs: Sequence[Log], runs: int, seed: int
-) -> list[tuple[str, np.ndarray, np.ndarray]]:
-    """(label, real traces, simulated traces) per controller version."""
+def simulate_groups(ckpt: Checkpoint, logs: Sequence[Log], runs: int, seed: int) -> list[Group]:
+    """(version label, real logs, simulated logs) per controller version, cut to one length."""
     out = []
     for spec, group in group_by_controller(logs).items():
         sims = simulate_logs(ckpt, spec, group, runs=runs, seed=seed)
-        real, sim = traces(group), traces(sims)
-        t = min(real.shape[1], sim.shape[1])
-        out.append((spec.label(), real[:, :t], sim[:, :t]))
+        t = min(min(len(lg) for lg in group), min(len(lg) for lg in sims))
+        out.append((version_label(ckpt.system, spec), cut_logs(group, t), cut_logs(sims, t)))
     return out
 
 
-def gap_summary(
-    groups: Sequence[tuple[str, np.ndarray, np.ndarray]], metric: MetricConfig, seed: int
-) -> dict[str, Any]:
-    """Per-metric W1 (with interval) and floor, averaged over controller versions."""
-    per = [metric_gaps(real, sim, metric, boot=100, seed=seed) for _, real, sim in groups]
-    names = [g["metric"] for g in per[0]]
+def version_label(system: SystemDescription | None, spec: ControllerSpec) -> str:
+    """The version as the system names it (``kp_steer=0.8,kp_speed=18``); the controller's own label
+    when the system has no description or names parameters this controller lacks (a PID steering
+    the lane-keeping twin has no ``x``)."""
+    if system is None or any(p not in system.version_of(spec) for p in system.versions.params):
+        return spec.label()
+    return system.version_label(spec)
+
+
+def gap_summary(groups: Sequence[Group], scoring: Scoring, seed: int) -> dict[str, Any]:
+    """Per goal the matched W1 and the fair floor, averaged over controller versions, and how many
+    goals are within the floor in every version (permutation test, p > LEVEL)."""
+    per = [goal_gaps(scoring, real, sim, seed, boot=0) for _, real, sim in groups]
     rows = {}
-    for name in names:
-        items = [next(g for g in gs if g["metric"] == name) for gs in per]
-        rows[name] = {
+    for goal in scoring.names:
+        items = [next(r for r in g["gaps"] if r["goal"] == goal) for g in per]
+        rows[goal] = {
             "w1": float(np.mean([i["w1"] for i in items])),
-            "ci": [float(np.mean([i["ci"][0] for i in items])), float(np.mean([i["ci"][1] for i in items]))],
             "floor": float(np.mean([i["floor"] for i in items])),
+            "floor_band": [
+                float(np.mean([i["floor"] * i["ratio_null_band"][0] for i in items])),
+                float(np.mean([i["floor"] * i["ratio_null_band"][1] for i in items])),
+            ],
+            "within": all(not i["beyond_floor"] for i in items),
         }
-    mean_w1 = float(np.mean([r["w1"] for r in rows.values()]))
-    mean_floor = float(np.mean([r["floor"] for r in rows.values()]))
     return {
-        "metrics": rows,
-        "mean_w1": mean_w1,
-        "mean_floor": mean_floor,
-        "inside_floor": sum(r["w1"] <= r["floor"] * 1.5 for r in rows.values()),
+        "goals": rows,
+        "mean_w1": float(np.mean([g["mean_w1"] for g in per])),
+        "mean_floor": float(np.mean([g["mean_floor"] for g in per])),
+        "inside_floor": sum(r["within"] for r in rows.values()),
+        "n_goals": len(rows),
+        "level": LEVEL,
     }
 
 
@@ -70,16 +89,17 @@ def shrink(
     train_logs: Sequence[Log],
     val_logs: Sequence[Log],
     confirm_logs: Sequence[Log],
-    metric: MetricConfig,
     runs: int = 10,
     seed: int = 0,
 ) -> dict[str, Any]:
-    """Before/after gaps on the confirmation logs for each finding, plus the untouched model."""
-    before = gap_summary(simulate_groups(ckpt, confirm_logs, runs, seed), metric, seed)
+    """Before/after gaps on the confirmation logs for each finding, plus the untouched model. Every
+    model is scored on the same rows: after the longest initial window any of them copies."""
+    scoring = scoring_of(ckpt, max([ckpt.config.history] + [int(f.fix.get("history", 0)) for f in findings]))
+    before = gap_summary(simulate_groups(ckpt, confirm_logs, runs, seed), scoring, seed)
     after = []
     for f in findings:
         fixed = retrain_with(ckpt, f, train_logs, val_logs)
-        summary = gap_summary(simulate_groups(fixed, confirm_logs, runs, seed), metric, seed)
+        summary = gap_summary(simulate_groups(fixed, confirm_logs, runs, seed), scoring, seed)
         after.append(
             {
                 "effect": f.effect,

@@ -102,7 +102,8 @@ def _where(ckpt: Any, case: Case, size: Size, seed: int) -> dict[str, Any]:
     rows = res.row[sel]
     edges = np.quantile(rows, np.linspace(0, 1, 6))
     idx = np.clip(np.searchsorted(edges, rows, side="right") - 1, 0, 4)
-    by_fifth = [float(np.mean(res.r[sel][idx == j] ** 2)) for j in range(5)]
+    sq = res.sq()[sel]
+    by_fifth = [float(np.mean(sq[idx == j])) for j in range(5)]
     return {"run_auc": auc, "residual_ms_by_fifth": by_fifth, "worst_fifth": int(np.argmax(by_fifth))}
 
 
@@ -138,7 +139,7 @@ def trial(case: Case, seed: int, mode: str = "withheld", size: Size = Size(), sh
         retrain=shrink and mode == "withheld" and case.expected is not None,
         seed=seed,
     )
-    sig = [f.effect for f in d.significant]
+    sig = [f.candidate for f in d.significant]
     out: dict[str, Any] = {
         "case": case.name,
         "seed": seed,
@@ -150,10 +151,11 @@ def trial(case: Case, seed: int, mode: str = "withheld", size: Size = Size(), sh
             f.effect: {"share": f.share, "what_if": f.what_if, "p_holm": f.p_holm, "statistic": f.statistic}
             for f in d.findings
         },
-        "residual_rms": d.residual_map["rmse"],
+        "residual_rms": d.residual_map[0]["rmse"],
         "misfit": d.misfit,
         "gap_ratio": d.gaps[0]["gaps"][0]["ratio"],
-        "gap_metric": d.gaps[0]["gaps"][0]["metric"],
+        "gap_goal": d.gaps[0]["gaps"][0]["goal"],
+        "gap_p": d.gaps[0]["gaps"][0]["p"],
     }
     if d.shrink:
         b, a = d.shrink["before"], d.shrink["after"][0]
@@ -341,7 +343,8 @@ def to_markdown(scores: Sequence[Score], size: Size) -> str:
         if s.shrink:
             lines += [
                 "",
-                "Retraining with the diagnosed fix (confirmation logs; mean normalised W1 over the 8 metrics):",
+                "Retraining with the diagnosed fix (confirmation logs; mean normalised W1 over the goals, "
+                "matched sizes):",
                 "",
                 "| case | trials | fixed with | median shrink | before / floor | after / floor | "
                 "after within 1.5x floor |",

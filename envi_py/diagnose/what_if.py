@@ -23,7 +23,7 @@ from scipy import stats
 
 from ..logs import Log
 from ..model import Checkpoint
-from .residuals import Residuals, one_step_residuals
+from .residuals import ResidualSet, one_step_residuals
 
 #: A transform of one log's action columns, (T, n_action) -> (T, n_action), and its description.
 Transform = tuple[str, Callable[[np.ndarray], np.ndarray]]
@@ -66,20 +66,43 @@ ACTUATOR_LAGS: tuple[Transform, ...] = tuple(
 )
 
 
-def input_what_if(ckpt: Checkpoint, logs: Sequence[Log], res: Residuals, transforms: Sequence[Transform]) -> WhatIf:
-    """Feed the model each transform of the logged commands; keep the one that removes the most of
-    the residual mean square (``res``: the residuals of the untransformed ``logs``). Runs are
-    independent, so the p-value pairs the per-run mean squares."""
+def _on_column(a: np.ndarray, j: int, fn: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
+    out = np.array(a, dtype=np.float64)
+    out[:, j] = fn(out[:, j : j + 1]).ravel()
+    return out
+
+
+def actuator_lags(actions: Sequence[str]) -> tuple[Transform, ...]:
+    """The actuator-lag what-ifs for these actions: with one action, :data:`ACTUATOR_LAGS`; with
+    several, each lag on each action alone ("a delay of 1 row on steering"), since one actuator
+    may lag while another does not."""
+    if len(actions) == 1:
+        return ACTUATOR_LAGS
+    return tuple(
+        (f"{label} on {name}", lambda a, fn=fn, j=j: _on_column(a, j, fn))
+        for j, name in enumerate(actions)
+        for label, fn in ACTUATOR_LAGS
+    )
+
+
+def input_what_if(
+    ckpt: Checkpoint, logs: Sequence[Log], res: ResidualSet, transforms: Sequence[Transform]
+) -> list[WhatIf]:
+    """Feed the model each transform of the logged commands; per state channel, keep the one that
+    removes the most of that channel's residual mean square (``res``: the residuals of the
+    untransformed ``logs``). Runs are independent, so the p-value pairs the per-run mean squares."""
     if len(logs) < 3:
-        return WhatIf.none("too few runs")
-    base = res.ms_by_run(len(logs))
-    best = WhatIf.none("no transform of the commands helps the model")
+        return [WhatIf.none("too few runs")] * len(res.states)
+    base = [s.ms_by_run(len(logs)) for s in res.states]
+    best = [WhatIf.none("no transform of the commands helps the model")] * len(res.states)
     for label, fn in transforms:
-        ms = one_step_residuals(ckpt, [replace(lg, actions=fn(lg.actions)) for lg in logs]).ms_by_run(len(logs))
-        gain = base - ms
-        sd = float(gain.std(ddof=1))
-        t = float(gain.mean()) / (sd / np.sqrt(len(gain))) if sd > 0 else 0.0
-        share = 1.0 - float(ms.mean()) / max(float(base.mean()), 1e-300)
-        if share > best.share:
-            best = WhatIf(share, min(1.0, float(stats.t.sf(t, len(gain) - 1)) * len(transforms)), label)
+        changed = one_step_residuals(ckpt, [replace(lg, actions=fn(lg.actions)) for lg in logs])
+        for k, s in enumerate(changed.states):
+            ms = s.ms_by_run(len(logs))
+            gain = base[k] - ms
+            sd = float(gain.std(ddof=1))
+            t = float(gain.mean()) / (sd / np.sqrt(len(gain))) if sd > 0 else 0.0
+            share = 1.0 - float(ms.mean()) / max(float(base[k].mean()), 1e-300)
+            if share > best[k].share:
+                best[k] = WhatIf(share, min(1.0, float(stats.t.sf(t, len(gain) - 1)) * len(transforms)), label)
     return best
