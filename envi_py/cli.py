@@ -12,16 +12,13 @@ import importlib
 import sys
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable, Sequence
+from typing import Any, Callable, Sequence
 
 from .cli_parser import EnviParser
 from .controllers import ControllerSpec, parse_params
 from .dataset import EXTRA_CHANNELS
 from .logs import Log, LogError, load_logs, write_log, write_manifest
 from .system import SystemDescription, load_system
-
-if TYPE_CHECKING:
-    from .metrics import MetricConfig
 
 #: Subcommands contributed by other parts of the project: "module:function" taking the subparsers.
 PLUGINS: tuple[str, ...] = (
@@ -98,20 +95,6 @@ def read_logs(args: argparse.Namespace, attr: str = "logs", min_length: int = 1)
         skip_bad=args.skip_bad,
         where=parse_where(args.where),
     )
-
-
-def add_metric_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--centre", type=float, default=40.0, help="lane centre in colour units (default 40)")
-    p.add_argument("--band", type=float, default=10.0, help="half-width of the steady band (default 10)")
-
-
-def metric_config(args: argparse.Namespace, skip: int) -> MetricConfig:
-    from .metrics import MetricConfig
-
-    return MetricConfig(centre=args.centre, band=args.band, skip=skip)
-
-
-# ------------------------------------------------------------------------------------ init
 
 
 def cmd_init(args: argparse.Namespace) -> int:

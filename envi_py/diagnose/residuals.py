@@ -188,12 +188,18 @@ def one_step_residuals(ckpt: Checkpoint, logs: Sequence[Log]) -> ResidualSet:
     shared: dict[str, list[np.ndarray]] = {k: [] for k in ("run", "row", "dt", "window", "beyond", "acts", "play")}
     half = ckpt.norm.half
     for i, (lg, x) in enumerate(zip(logs, data.X)):
-        mean, log_std = ckpt.model(torch.from_numpy(np.ascontiguousarray(x)))
+        mean, log_std, logit = ckpt.model.heads(torch.from_numpy(np.ascontiguousarray(x)))
         pred = ckpt.decode_states(mean.numpy().astype(np.float64))  # (n, |s|)
         n = len(pred)
         real_next = lg.states[hist:]
-        per["r"].append(real_next - pred)
         std = np.exp(log_std.numpy()) * half[:ns] if log_std is not None else np.zeros((n, ns))
+        if logit is not None:  # a limit event: the prediction is the mixture's mean and spread
+            prob = 1.0 / (1.0 + np.exp(-logit.numpy().astype(np.float64)))
+            for e, (k, value) in enumerate(cfg.limit_events):
+                q, mu = prob[:, e], pred[:, k]
+                std[:, k] = np.sqrt((1 - q) * std[:, k] ** 2 + q * (1 - q) * (value - mu) ** 2)
+                pred[:, k] = q * value + (1 - q) * mu
+        per["r"].append(real_next - pred)
         per["pred_std"].append(std)
         per["predicted"].append(pred)
         per["real_next"].append(real_next)

@@ -196,7 +196,9 @@ def fair_floor(
         null_ratio[i] = _ratio(ns, nf)
     p = float((1 + np.sum(null_stat >= observed)) / (1 + permutations))
     q = [level / 2, 1 - level / 2]
-    r_band, t_band = np.quantile(null_ratio, q), np.quantile(null_stat, q)
+    # a relabelled floor of 0 gives an infinite ratio: interpolating across it would give NaN
+    method = "inverted_cdf" if np.isinf(null_ratio).any() else "linear"
+    r_band, t_band = np.quantile(null_ratio, q, method=method), np.quantile(null_stat, q)
     return FairFloor(
         d_sim,
         d_floor,
