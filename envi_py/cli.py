@@ -8,25 +8,21 @@ and a one-line reason; ``--debug`` shows the traceback.
 from __future__ import annotations
 
 import argparse
-import importlib
 import sys
 import time
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
+from firmware_bridge.host.brick_sim import register as register_brick_sim
+
 from .cli_parser import EnviParser
 from .controllers import ControllerSpec, parse_params
 from .dataset import EXTRA_CHANNELS
+from .diagnose.cli import register as register_diagnose
+from .experiments.cli import register as register_experiment
 from .logs import Log, LogError, load_logs, write_log, write_manifest
 from .system import SystemDescription, load_system
-
-#: Subcommands contributed by other parts of the project: "module:function" taking the subparsers.
-PLUGINS: tuple[str, ...] = (
-    "envi_py.twin.cli:register",
-    "envi_py.experiments.cli:register",
-    "envi_py.diagnose.cli:register",
-    "firmware_bridge.host.brick_sim:register",
-)
+from .twin.cli import register as register_twin
 
 
 def seed_type(text: str) -> int:
@@ -555,9 +551,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--epochs", type=int, default=None, help="training epochs (default: 300, --fast 40)")
     p.set_defaults(func=cmd_demo)
 
-    for plugin in PLUGINS:
-        module, _, fn = plugin.partition(":")
-        getattr(importlib.import_module(module), fn)(sub)
+    # subcommands contributed by other parts of the project, each registering its own parsers
+    for register in (register_twin, register_experiment, register_diagnose, register_brick_sim):
+        register(sub)
     return parser
 
 
