@@ -388,6 +388,12 @@ def build_parser() -> argparse.ArgumentParser:
         prog="envi", description="Learn an environment model from field logs and verify a controller against it."
     )
     parser.add_argument("--debug", action="store_true", help="show tracebacks")
+    parser.add_argument(
+        "--config",
+        metavar="RUN.toml",
+        help="take a command's options from the [command] table of a TOML run file (the command line wins); "
+        "the effective configuration is written beside the output as run.toml",
+    )
     sub = parser.add_subparsers(dest="command", required=True, parser_class=EnviParser)
 
     p = sub.add_parser("init", help="draft a system description (TOML) from a folder of logs")
@@ -558,11 +564,26 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    from .run_config import apply_config, command_parser, take_config, write_effective
+
     parser = build_parser()
+    argv = list(sys.argv[1:] if argv is None else argv)
+    try:
+        argv, config = take_config(argv)
+        if config is not None:
+            apply_config(parser, argv, config)
+    except ValueError as exc:
+        print(f"envi: error: {exc}", file=sys.stderr)
+        return 2
     args = parser.parse_args(argv)
     func: Callable[[argparse.Namespace], int] = args.func
     try:
-        return func(args)
+        rc = func(args)
+        if config is not None and rc == 0:
+            written = write_effective(args, command_parser(parser, argv)[0])
+            if written is not None:
+                print(f"effective configuration: {written}")
+        return rc
     except (LogError, ValueError, OSError, KeyError) as exc:
         if args.debug:
             raise
