@@ -33,7 +33,11 @@ def test_car_diagnosis_scores_every_goal_against_the_fair_floor_and_every_state(
     args += ["--confirm", str(tmp_path / "confirm"), "--train-logs", str(tmp_path / "fit")]
     args += ["--runs", "2", "--no-retrain", "--seed", str(SEED), "--out", str(out)]
     assert main(args) == 0
-    verdict = capsys.readouterr().out
+    captured = capsys.readouterr()
+    verdict = captured.out
+    # progress: each step announced on standard error as it starts (no retraining step here)
+    steps = [line for line in captured.err.splitlines() if line.startswith("[diagnose] ")]
+    assert [line.split()[1] for line in steps] == ["1/5", "2/5", "3/5", "4/5"], captured.err
     d = json.loads((out / "diagnosis.json").read_text())
     car_goals = {g.name for g in load_system("car").goals}
     assert len(d["gaps"]) == 2 and d["system"] == "car"

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
@@ -31,6 +32,7 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
         top=args.top,
         retrain=not args.no_retrain,
         seed=args.seed,
+        progress=None if args.quiet else lambda text: print(f"[diagnose] {text}", file=sys.stderr, flush=True),
     )
     md = write_diagnosis(d, Path(args.out))
     print(d.verdict())
@@ -95,9 +97,10 @@ def register(sub: Any) -> None:
     )
     p.add_argument("--runs", type=int, default=10, help="simulated runs per initial window")
     p.add_argument("--top", type=int, default=2, help="how many significant effects to retrain with")
-    p.add_argument("--no-retrain", action="store_true", help="skip the retraining (step 3)")
+    p.add_argument("--no-retrain", action="store_true", help="skip the retraining (step 5)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="diagnosis", help="output folder")
+    p.add_argument("--quiet", action="store_true", help="no progress lines on standard error")
     p.set_defaults(func=_cmd_diagnose, parser=p)
 
     from .size import Size, default_jobs

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
@@ -186,14 +186,20 @@ def diagnose(
     alpha: float = 0.05,
     min_share: float = MIN_SHARE,
     seed: int = 0,
+    progress: Callable[[str], None] | None = None,
 ) -> Diagnosis:
     """Diagnose ``ckpt`` on ``real`` logs; effects are confirmed on ``confirm`` (default: half of ``real``).
-    Gaps are scored on the goals of the model's system (:func:`~.shrink.scoring_of`)."""
+    Gaps are scored on the goals of the model's system (:func:`~.shrink.scoring_of`). ``progress``
+    is told each step as it starts (the retraining of the last one takes most of the time)."""
+    say = progress or (lambda _text: None)
     choose, confirm_l = (list(real), list(confirm)) if confirm else split_choose_confirm(real, seed)
+    say(f"1/5 one-step residuals on {len(choose)} logs")
     res = one_step_residuals(ckpt, choose)
     scoring = scoring_of(ckpt)
+    say(f"2/5 closed-loop gaps: {runs} simulated runs per log, against the fair floor")
     groups = simulate_groups(ckpt, choose, runs, seed)
     gaps = [{"controller": label, **goal_gaps(scoring, r, s, seed)} for label, r, s in groups]
+    say("3/5 candidate effects on the residuals")
     findings = run_candidates(res, ckpt, alpha, min_share, logs=choose)
     if not has_gap(gaps):
         findings = [replace(f, significant=False) for f in findings]
@@ -213,6 +219,7 @@ def diagnose(
     if val_logs is None:
         val_logs = ckpt.recorded_logs("validation") if ckpt.record.validation else []
     hist = ckpt.config.history
+    say("4/5 horizon and training-data coverage")
     cov = {
         "threshold": float("nan"),
         "outside_share": float("nan"),
@@ -228,6 +235,8 @@ def diagnose(
         sim_w = np.concatenate([windows_of(s, ckpt.norm.encode, hist, scoring.skip) for s in sims_full])
         cov = coverage(train_w, sim_w.astype(np.float32), seed)
     sig = _distinct_fixes(findings, top)
+    if retrain and sig:
+        say(f"5/5 retraining with {', '.join(f.effect for f in sig)} and measuring the gap on {len(confirm_l)} logs")
     shrunk = shrink(ckpt, sig, train_logs, val_logs, confirm_l, runs, seed) if retrain and sig else None
     misfit, misfit_each = misfit_by_signal(res)
     return Diagnosis(
