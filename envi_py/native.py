@@ -141,8 +141,6 @@ def _compiled(model: Any) -> Any:
 
 
 def _spec_json(controller: ControllerSpec) -> str:
-    import json
-
     return json.dumps(controller.to_json())
 
 
@@ -176,7 +174,8 @@ def rollout_metrics(
     metric: MetricConfig | None = None,
 ) -> np.ndarray:
     """The eight driving metrics of every run, (K*runs, 8), scored while simulating: no traces kept.
-    They are the lane-keeping preset's; a model of another system is refused by the engine."""
+    They are the lane-keeping preset's: a model of another system is refused here (its goals are scored
+    from traces)."""
     metric = metric or MetricConfig()
     if metric.channel != 0:
         raise ValueError("the native engine scores the first state channel")
