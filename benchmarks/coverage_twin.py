@@ -54,9 +54,10 @@ MODELS: dict[str, CarProfile] = {
 }
 VERSIONS = (0, 2)  # kp (0.8, 18) and (1.4, 50): a loose and a tight follower
 STEPS, SKIP = 100, 10  # logged rows, and rows of sigma_0 not scored
-REQUIREMENTS = {
-    "keeps the lane: max|color - 40| <= 10": lambda s: np.abs(s[:, SKIP:, 0] - 40).max(axis=1) <= 10,
-    "keeps its distance: min(distance) >= 22": lambda s: s[:, SKIP:, 1].min(axis=1) >= 22,
+#: requirement -> its margin per run (>= 0: met), in the metric's unit, as ``MetricRequirement.margin``
+MARGINS = {
+    "keeps the lane: max|color - 40| <= 10": lambda s: 10 - np.abs(s[:, SKIP:, 0] - 40).max(axis=1),
+    "keeps its distance: min(distance) >= 22": lambda s: s[:, SKIP:, 1].min(axis=1) - 22,
 }
 P_REQUIRED = 0.8
 
@@ -96,7 +97,7 @@ def logged(world: CarBatch, spec: ControllerSpec) -> np.ndarray:
 
 def truth(spec: ControllerSpec, runs: int, seed: int) -> dict[str, float]:
     s = logged(real_starts(spec, runs, np.random.default_rng(seed)), spec)
-    return {name: float(req(s).mean()) for name, req in REQUIREMENTS.items()}
+    return {name: float((margin(s) >= 0).mean()) for name, margin in MARGINS.items()}
 
 
 def repetition(spec: ControllerSpec, model: CarProfile, args: argparse.Namespace, seed: int) -> dict[str, Any]:
@@ -108,10 +109,14 @@ def repetition(spec: ControllerSpec, model: CarProfile, args: argparse.Namespace
     other = real_starts(spec, args.starts, rng)
     unpaired = logged(continue_as(other, model, 1, np.random.default_rng(rng.integers(2**63))), spec)
     out = {}
-    for name, req in REQUIREMENTS.items():
-        y = req(real).astype(float)
-        f = req(paired).reshape(args.real, args.paired).mean(axis=1)
-        v = ppi_verdict(req(unpaired).astype(float), y, f, P_REQUIRED, sims_per_start=args.paired)
+    for name, margin in MARGINS.items():
+        real_m, paired_m = margin(real), margin(paired).reshape(args.real, args.paired)
+        y = (real_m >= 0).astype(float)
+        f = (paired_m >= 0).mean(axis=1)
+        margins = {"real_margins": real_m, "paired_margins": paired_m} if args.margins else {}
+        v = ppi_verdict(
+            (margin(unpaired) >= 0).astype(float), y, f, P_REQUIRED, sims_per_start=args.paired, seed=seed, **margins
+        )
         out[name] = {
             "kept": not v.withdrawn,
             "low": v.low,
@@ -149,6 +154,12 @@ def main() -> None:
     ap.add_argument("--starts", type=int, default=200, help="further starts, one model run each")
     ap.add_argument("--truth", type=int, default=10_000, help="real runs behind the true probability")
     ap.add_argument("--quick", action="store_true", help="20 repetitions, 2,000 truth runs")
+    ap.add_argument(
+        "--no-margins",
+        dest="margins",
+        action="store_false",
+        help="validity check on the 0/1 outcomes only (without the margins' PIT test), as before",
+    )
     ap.add_argument("--out", type=Path, default=Path("bench_out/coverage_twin.json"))
     args = ap.parse_args()
     if args.quick:
@@ -163,7 +174,7 @@ def main() -> None:
         p_true = truth(spec, args.truth, 10_000 + v)
         for model_name, model in MODELS.items():
             reps = [repetition(spec, model, args, 1000 * v + k) for k in range(args.reps)]
-            for name in REQUIREMENTS:
+            for name in MARGINS:
                 s = summarise([r[name] for r in reps], p_true[name])
                 rows.append({"version": label, "model": model_name, "requirement": name, **s})
     print(

@@ -9,8 +9,10 @@ For every version and requirement (the system description's, or given on the com
    outcome is paired with the model's prediction from that run's own sigma_0 (the fraction of
    ``sims_per_start`` runs meeting the requirement), and prediction-powered inference combines them
    with the model's predictions from further starts of that version (the training and validation
-   logs the checkpoint records). A calibration test withdraws the model-based claim when the real
-   runs contradict the model, and the verdict then rests on the real runs alone.
+   logs the checkpoint records). A validity check withdraws the model-based claim when the real
+   runs contradict the model (their count of successes against the paired predictions, and each real
+   run's margin against its own paired simulated margins), and the verdict then rests on the real
+   runs alone.
 3. **Without real runs** (TMVU, ``--unseen``): the verdict rests on the model only, and the model's
    error measured on the versions that do have real runs is carried beside it.
 
@@ -157,7 +159,17 @@ def check(
                     "cannot narrow the real-only interval much"
                 )
             if len(y) >= 2:
-                verdict = ppi_verdict(preds, y, paired, spec_req.probability, alpha, sims_per_start=sims_per_start)
+                verdict = ppi_verdict(
+                    preds,
+                    y,
+                    paired,
+                    spec_req.probability,
+                    alpha,
+                    sims_per_start=sims_per_start,
+                    real_margins=req.margin(real_runs),
+                    paired_margins=req.margin(paired_runs).reshape(len(logs), sims_per_start),
+                    seed=seed,
+                )
                 measured[spec_req.name][label] = verdict.check
                 real_json = verdict.to_json()
             else:

@@ -6,7 +6,16 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from envi_py.verdicts import Verdict, clopper_pearson, control_variate, model_only, ppi, ppi_verdict, rectifier_check
+from envi_py.verdicts import (
+    Verdict,
+    clopper_pearson,
+    control_variate,
+    model_only,
+    pit_values,
+    ppi,
+    ppi_verdict,
+    rectifier_check,
+)
 from envi_py.verdicts.real_system import calibration_p_value
 
 SIMS_PER_START, STARTS = 20, 400
@@ -143,6 +152,80 @@ def test_model_only_carries_the_measured_error():
     bad = rectifier_check(np.ones(10), np.full(10, 0.1))
     refused = model_only(sims, 0.8, {"x=10": good, "x=50": bad})
     assert refused.verdict is Verdict.UNDECIDED and "x=50" in refused.reason
+
+
+def test_pit_values_known_answers():
+    sims = np.array([[1.0, 2.0, 3.0, 4.0], [1.0, 2.0, 3.0, 4.0], [5.0, 5.0, 5.0, 5.0]])
+    u = pit_values([10.0, 0.0, 5.0], sims, seed=3)
+    assert 4 / 5 <= u[0] <= 1.0  # above all 4: the top fifth
+    assert 0.0 <= u[1] <= 1 / 5  # below all 4: the bottom fifth
+    assert 0.0 <= u[2] <= 1.0  # tied with all 4: anywhere, at random
+    assert np.array_equal(u, pit_values([10.0, 0.0, 5.0], sims, seed=3))  # a verdict repeats
+    inf = pit_values([np.inf, -np.inf], [[np.inf, 0.0], [0.0, 1.0]], seed=0)  # a metric that never settles
+    assert 1 / 3 <= inf[0] <= 1.0 and inf[1] <= 1 / 3
+    ties = [pit_values([5.0], [[5.0, 5.0, 5.0, 5.0]], seed=k)[0] for k in range(400)]
+    assert stats.kstest(ties, "uniform").pvalue > 0.01  # ties broken uniformly
+
+
+def margins_synthetic(rng: np.random.Generator, n_real: int, model_shift: float):
+    """The start decides the outcome: margin = start + small noise (sd 0.2); the model adds
+    ``model_shift`` to the margin. Outcomes are margin >= 0. Returns the verdict's arguments."""
+    x, xs = rng.normal(size=n_real), rng.normal(size=STARTS)
+    real = x + 0.2 * rng.normal(size=n_real)
+    paired = x[:, None] + model_shift + 0.2 * rng.normal(size=(n_real, SIMS_PER_START))
+    sims = ((xs[:, None] + model_shift + 0.2 * rng.normal(size=(STARTS, SIMS_PER_START))) >= 0).mean(axis=1)
+    y = (real >= 0).astype(float)
+    f = (paired >= 0).mean(axis=1)
+    return sims, y, f, real, paired
+
+
+def test_margin_test_keeps_a_faithful_model():
+    """Real and paired margins exchangeable: both tests together withdraw at most at the level."""
+    rng, reps = np.random.default_rng(7), 300
+    withdrawn = []
+    for k in range(reps):
+        sims, y, f, real, paired = margins_synthetic(rng, 10, 0.0)
+        v = ppi_verdict(
+            sims, y, f, 0.5, sims_per_start=SIMS_PER_START, real_margins=real, paired_margins=paired, seed=k
+        )
+        withdrawn.append(v.withdrawn)
+        assert v.check.margin_p_value is not None
+    assert np.mean(withdrawn) <= 0.05 + 3 * np.sqrt(0.05 * 0.95 / reps)
+
+
+def test_margin_test_withdraws_a_model_wrong_only_where_outcomes_rarely_show_it():
+    """The model's margins are 0.5 low: wrong only for starts near the threshold, which 10 real runs
+    often miss, so the outcome test alone keeps the claim and the interval misses the truth (the car
+    twin's badly wrong follower, benchmarks/coverage_twin.py). The margins show it in every run."""
+    rng, reps, truth = np.random.default_rng(8), 200, 0.5
+    kept_outcomes_only, covered_outcomes_only, withdrawn_with_margins = [], [], []
+    for k in range(reps):
+        sims, y, f, real, paired = margins_synthetic(rng, 10, -0.5)
+        plain = ppi_verdict(sims, y, f, 0.5, sims_per_start=SIMS_PER_START)
+        kept_outcomes_only.append(not plain.withdrawn)
+        if not plain.withdrawn:
+            covered_outcomes_only.append(plain.low <= truth <= plain.high)
+        both = ppi_verdict(
+            sims, y, f, 0.5, sims_per_start=SIMS_PER_START, real_margins=real, paired_margins=paired, seed=k
+        )
+        withdrawn_with_margins.append(both.withdrawn)
+        if both.withdrawn:
+            assert "PIT test" in both.reason or "calibration test" in both.reason
+    assert np.mean(kept_outcomes_only) >= 0.5 and np.mean(covered_outcomes_only) < 0.93  # the failure it fixes
+    assert np.mean(withdrawn_with_margins) >= 0.95
+
+
+def test_margins_go_together_and_pair_with_the_runs():
+    with pytest.raises(ValueError, match="go together"):
+        rectifier_check([1, 0], [0.5, 0.5], real_margins=[1.0, -1.0])
+    with pytest.raises(ValueError, match=r"\(real runs, simulations\)"):
+        rectifier_check([1, 0], [0.5, 0.5], real_margins=[1.0, -1.0], paired_margins=[[1.0, 2.0, 3.0]])
+    with pytest.raises(ValueError, match=r"\(real runs, simulations\)"):
+        rectifier_check([1, 0], [0.5, 0.5], real_margins=[1.0, -1.0], paired_margins=[1.0, 2.0])
+    with pytest.raises(ValueError, match="one margin per real run"):
+        rectifier_check([1, 0], [0.5, 0.5], real_margins=[1.0, -1.0, 2.0], paired_margins=[[1.0], [2.0]])
+    with pytest.raises(ValueError, match="NaN"):
+        rectifier_check([1, 0], [0.5, 0.5], real_margins=[1.0, -1.0], paired_margins=[[1.0], [float("nan")]])
 
 
 @pytest.mark.parametrize(

@@ -28,7 +28,20 @@ counts no likelier than the observed one (as ``scipy.stats.binomtest``). Predict
 simulated runs per start are shrunk to (m f + 1/2) / (m + 1) for this test (``sims_per_start``), so a
 start where the model saw no failure in m runs is "rare", not "impossible". Using the model's own
 variance makes this far more powerful at 10 runs than a t test of the rectifier mean (whose sample
-variance is tiny when no surprising run was drawn). On withdrawal the interval falls back to the exact
+variance is tiny when no surprising run was drawn).
+
+The 0/1 outcomes still hide most of what the paired runs show: when the start decides the outcome
+(each start's m simulated runs all pass or all fail, and agree with the real run) a model whose error
+lies in the rare starts looks perfect on 10 runs. So, when the requirement's margins are given (how far
+inside or outside its threshold each run ends: a metric's distance to its threshold, an STL formula's
+robustness), the check also asks whether each real run's margin is a plausible draw from its own m
+simulated margins: under a faithful model the real run and its m paired runs are exchangeable, so the
+real run's rank among the m + 1 (ties broken at random) is uniform, and its randomised probability
+integral transform (PIT) is exactly Uniform(0, 1) at any n and m. A Cramer-von Mises test of the n PIT
+values against the uniform (``scipy.stats.cramervonmises``) catches a model that is biased (PITs piled
+at one end) or too narrow or too wide (PITs at both ends, or in the middle) long before the outcomes
+disagree. The two tests share the level (Bonferroni, ``level / 2`` each), so a faithful model's claim is
+withdrawn with probability at most ``level``. On withdrawal the interval falls back to the exact
 real-only (Clopper-Pearson) interval and the verdict says why: a user should not be told P(goal) "from
 4000 simulated runs" by a model the real runs contradict. Conditional on the claim being kept, coverage
 can still fall below nominal for a badly wrong model that the few real runs do not expose (the check's
@@ -62,7 +75,23 @@ class RectifierCheck:
     high: float
     p_value: float  # of the exact Poisson-binomial calibration test
     level: float
-    passed: bool  # p_value > level (p <= level rejects): the real runs do not contradict the model at this level
+    passed: bool  # no test rejects at its share of the level: the real runs do not contradict the model
+    margin_p_value: float | None = None  # of the PIT uniformity test of the margins (None: no margins given)
+
+    @property
+    def failed_test(self) -> str | None:
+        """Which test withdrew the claim, in words, or None when the check passed."""
+        if self.passed:
+            return None
+        if self.margin_p_value is not None and self.margin_p_value <= self.level / 2:
+            return (
+                "the real margins are not plausible draws from the paired simulations "
+                f"(PIT test p = {self.margin_p_value:.3g})"
+            )
+        return (
+            "the count of real runs meeting the goal contradicts the predictions "
+            f"(calibration test p = {self.p_value:.3g})"
+        )
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -71,10 +100,17 @@ class RectifierCheck:
             "sd": self.sd,
             "interval": [self.low, self.high],
             "p_value": self.p_value,
+            "margin_p_value": self.margin_p_value,
             "level": self.level,
             "passed": self.passed,
             "test": "exact two-sided Poisson-binomial test of the count of real runs meeting the goal, "
-            "paired predictions as probabilities",
+            "paired predictions as probabilities"
+            + (
+                ""
+                if self.margin_p_value is None
+                else "; and Cramer-von Mises test of the real margins' randomised PIT against their paired "
+                "simulated margins (each at level / 2)"
+            ),
         }
 
 
@@ -100,13 +136,58 @@ def calibration_p_value(real_outcomes: np.ndarray, probabilities: np.ndarray) ->
     return float(min(1.0, pmf[pmf <= observed * (1 + 1e-7)].sum()))
 
 
+def _margins(name: str, values: object, ndim: int) -> np.ndarray:
+    """Margins as a float array of ``ndim`` dimensions; +-inf is a margin (a metric that never settles),
+    NaN is not."""
+    try:
+        a = np.asarray(values, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{name} must be numbers: {exc}") from None
+    if a.ndim != ndim:
+        what = "one per real run" if ndim == 1 else "(real runs, simulations)"
+        raise ValueError(f"{name} must be {what}, got shape {a.shape}")
+    if np.isnan(a).any():
+        raise ValueError(f"{name} hold {int(np.isnan(a).sum())} NaN values")
+    return a
+
+
+def pit_values(real_margins: object, paired_margins: object, seed: int = 0) -> np.ndarray:
+    """Randomised PIT of each real margin among its own paired simulated margins, (n,) in (0, 1).
+
+    ``paired_margins`` is (n, m): row i holds the m simulated margins from real run i's start. The rank
+    of the real value among the m + 1, ties broken uniformly at random (``seed``, so a verdict repeats),
+    scaled to (0, 1): exactly uniform when the m + 1 are exchangeable.
+    """
+    real, sims = _margins("real_margins", real_margins, 1), _margins("paired_margins", paired_margins, 2)
+    if real.size < 1 or sims.shape[0] != real.size or sims.shape[1] < 1:
+        raise ValueError(f"paired_margins must be (real runs, simulations) = ({real.size}, m), got {sims.shape}")
+    m = sims.shape[1]
+    below = (sims < real[:, None]).sum(axis=1)
+    ties = (sims == real[:, None]).sum(axis=1)
+    u = np.random.default_rng(seed).random(real.size)
+    return (below + u * (ties + 1)) / (m + 1)
+
+
+def margin_p_value(real_margins: object, paired_margins: object, seed: int = 0) -> float:
+    """p-value of the Cramer-von Mises test that the real margins' PIT values are Uniform(0, 1)."""
+    return float(stats.cramervonmises(pit_values(real_margins, paired_margins, seed), "uniform").pvalue)
+
+
 def rectifier_check(
-    real_outcomes: object, paired_predictions: object, level: float = 0.05, sims_per_start: int | None = None
+    real_outcomes: object,
+    paired_predictions: object,
+    level: float = 0.05,
+    sims_per_start: int | None = None,
+    real_margins: object | None = None,
+    paired_margins: object | None = None,
+    seed: int = 0,
 ) -> RectifierCheck:
-    """The model's measured error on paired real runs (at least 2) and the exact calibration test at ``level``.
+    """The model's measured error on paired real runs (at least 2) and its validity check at ``level``.
 
     ``sims_per_start``: how many simulated runs each paired prediction was estimated from (None: the
     predictions are exact probabilities); used to shrink the predictions for the test (module docstring).
+    ``real_margins`` (n,) and ``paired_margins`` (n, m), given together: the requirement's margin of each
+    real run and of its paired simulated runs; they add the PIT test, each test then at ``level / 2``.
     """
     y, f = _paired(real_outcomes, paired_predictions)
     level = probability("level", level)
@@ -116,12 +197,21 @@ def rectifier_check(
         m = count("sims_per_start", sims_per_start, 1)
         shrunk = (m * f + 0.5) / (m + 1)
     p = calibration_p_value(y, shrunk)
+    if (real_margins is None) != (paired_margins is None):
+        raise ValueError("real_margins and paired_margins go together: give both or neither")
+    if real_margins is None:
+        p_margin, passed = None, p > level
+    else:
+        if np.asarray(real_margins).shape != y.shape:
+            raise ValueError(f"real_margins must hold one margin per real run ({y.size})")
+        p_margin = margin_p_value(real_margins, paired_margins, seed)
+        passed = p > level / 2 and p_margin > level / 2
     r = y - f
     mean, sd = float(r.mean()), float(r.std(ddof=1))
     if sd == 0.0:  # every real run off by the same amount: the error is known exactly
-        return RectifierCheck(r.size, mean, 0.0, mean, mean, p, level, p > level)
+        return RectifierCheck(r.size, mean, 0.0, mean, mean, p, level, passed, p_margin)
     lo, hi = stats.ttest_1samp(r, 0.0).confidence_interval(1.0 - level)
-    return RectifierCheck(r.size, mean, sd, float(lo), float(hi), p, level, p > level)
+    return RectifierCheck(r.size, mean, sd, float(lo), float(hi), p, level, passed, p_margin)
 
 
 @dataclass(frozen=True)
@@ -237,12 +327,17 @@ def ppi_verdict(
     check_level: float = 0.05,
     estimator: str = "ppi",
     sims_per_start: int | None = None,
+    real_margins: object | None = None,
+    paired_margins: object | None = None,
+    seed: int = 0,
 ) -> RealSystemVerdict:
     """PASS / FAIL / UNDECIDED for the real system at confidence 1 - ``alpha``, from sims plus paired real runs.
 
     ``estimator``: "ppi" or "control-variate". If the calibration check rejects at ``check_level`` the
     model-based claim is withdrawn and the verdict comes from the real runs alone (Clopper-Pearson).
-    ``sims_per_start``: simulated runs behind each paired prediction (see :func:`rectifier_check`).
+    ``sims_per_start``: simulated runs behind each paired prediction; ``real_margins``/``paired_margins``
+    (with ``seed`` for the PIT's ties): the requirement's margins, which add the PIT test (see
+    :func:`rectifier_check`).
     """
     if estimator not in ("ppi", "control-variate"):
         raise ValueError(f"estimator must be 'ppi' or 'control-variate', got {estimator!r}")
@@ -253,19 +348,22 @@ def ppi_verdict(
     )
     y = outcomes("real_outcomes", real_outcomes, 2)
     real = decide(int(y.sum()), y.size, p_required, alpha)
-    check = rectifier_check(real_outcomes, paired_predictions, check_level, sims_per_start)
+    check = rectifier_check(
+        real_outcomes, paired_predictions, check_level, sims_per_start, real_margins, paired_margins, seed
+    )
     if not check.passed:
         reason = (
-            f"claim withdrawn: the {check.n} real runs contradict the model (mean(real - predicted) = "
-            f"{check.mean:+.3f}, calibration test p = {check.p_value:.3g} <= {check.level:g}); "
-            f"verdict from the {real.n} real runs alone"
+            f"claim withdrawn: the {check.n} real runs contradict the model: {check.failed_test}, "
+            f"mean(real - predicted) = {check.mean:+.3f}; verdict from the {real.n} real runs alone"
         )
         return RealSystemVerdict(
             real.verdict, "real-only", real.low, real.high, p_required, confidence, est, real, check, reason
         )
     reason = (
         f"{est.method} from {est.n_sim} simulated starts and {est.n_real} paired real runs; model error "
-        f"{check.mean:+.3f}, calibration test p = {check.p_value:.3g} > {check.level:g}"
+        f"{check.mean:+.3f}, calibration test p = {check.p_value:.3g}"
+        + ("" if check.margin_p_value is None else f", margin PIT test p = {check.margin_p_value:.3g}")
+        + f" (withdrawn at {check.level:g})"
     )
     return RealSystemVerdict(
         verdict_of(est.low, est.high, p_required),
