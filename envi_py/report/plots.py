@@ -1,0 +1,283 @@
+"""The plots a control engineer expects, rendered to PNG report figures (matplotlib Agg, imported lazily).
+
+Every plot names its signals with their units and its controller versions in titles or legends, and
+stays readable for five versions: one colour per data source (real black, simulated blue), versions
+side by side on a shared axis rather than stacked in one tangle.
+"""
+
+from __future__ import annotations
+
+import io
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from .document import Figure
+from .stats import Correlations, fit_percent
+
+REAL, SIM = "black", "tab:blue"
+
+
+def _pyplot() -> Any:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _png(fig: Any, dpi: int = 100) -> bytes:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=dpi)
+    _pyplot().close(fig)
+    return buf.getvalue()
+
+
+def signal_label(name: str, unit: str = "") -> str:
+    return f"{name} [{unit}]" if unit else name
+
+
+@dataclass(frozen=True)
+class TracePair:
+    """One real log and the simulated runs started from its initial window: (T, c) arrays of its
+    state channels, ``sims`` (R, T, c); ``time_s`` (T,) seconds from the log's start."""
+
+    name: str
+    time_s: np.ndarray
+    real: np.ndarray
+    sims: np.ndarray
+
+
+@dataclass(frozen=True)
+class Fit:
+    log: str
+    channel: str
+    fit: float  # percent; of the simulated median when there are several runs
+    runs: int
+
+
+def simulated_centre(sims: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """The simulated trace to compare: the run itself, or for several runs of a stochastic model the
+    pointwise median with its 5-95 % band."""
+    if sims.shape[0] == 1:
+        return sims[0], None, None
+    lo, med, hi = np.percentile(sims, [5, 50, 95], axis=0)
+    return med, lo, hi
+
+
+def trace_fits(pairs: Sequence[TracePair], channels: Sequence[str], skip: int) -> list[Fit]:
+    """MATLAB ``compare``'s fit per log and channel over the rows after the initial window (the
+    window is copied from the real log, so it would flatter the fit)."""
+    out = []
+    for p in pairs:
+        centre, _, _ = simulated_centre(p.sims)
+        t = min(len(p.real), centre.shape[0])
+        for j, ch in enumerate(channels):
+            out.append(Fit(p.name, ch, fit_percent(p.real[skip:t, j], centre[skip:t, j]), int(p.sims.shape[0])))
+    return out
+
+
+def trace_overlay(
+    pairs: Sequence[TracePair],
+    channels: Sequence[str],
+    units: Mapping[str, str],
+    version: str,
+    skip: int,
+    name: str,
+) -> Figure:
+    """One row per real log, one column per state channel: the real trace, the simulated one (or the
+    median and 5-95 % band of several runs) from the same initial window, the window shaded, and the
+    fit in each panel's title."""
+    plt = _pyplot()
+    fits = {(f.log, f.channel): f.fit for f in trace_fits(pairs, channels, skip)}
+    rows, cols = len(pairs), len(channels)
+    fig, axes = plt.subplots(rows, cols, figsize=(5.2 * cols, 2.5 * rows + 0.6), squeeze=False, sharex="col")
+    runs = int(pairs[0].sims.shape[0]) if pairs else 0
+    for i, p in enumerate(pairs):
+        centre, lo, hi = simulated_centre(p.sims)
+        t = min(len(p.real), centre.shape[0])
+        x = p.time_s[:t]
+        for j, ch in enumerate(channels):
+            ax = axes[i, j]
+            if skip > 0:
+                ax.axvspan(x[0], x[min(skip, t) - 1], color="0.92", lw=0)
+            if lo is not None and hi is not None:
+                ax.fill_between(x, lo[:t, j], hi[:t, j], color=SIM, alpha=0.2, lw=0, label="simulated 5-95 %")
+            ax.plot(x, p.real[:t, j], color=REAL, lw=1.2, label="real")
+            ax.plot(x, centre[:t, j], color=SIM, lw=1.2, label="simulated median" if lo is not None else "simulated")
+            fit = fits[(p.name, ch)]
+            ax.set_title(
+                f"{p.name}: {ch}, fit {fit:.1f} %" if np.isfinite(fit) else f"{p.name}: {ch}, fit -", fontsize=9
+            )
+            ax.set_ylabel(signal_label(ch, units.get(ch, "")), fontsize=8)
+            ax.tick_params(labelsize=7)
+            if i == rows - 1:
+                ax.set_xlabel("time [s]", fontsize=8)
+    axes[0, 0].legend(fontsize=7, loc="best")
+    what = f"median of {runs} runs" if runs > 1 else "one run"
+    fig.suptitle(f"{version}: real vs simulated ({what}) from the same initial window (shaded)", fontsize=10)
+    fig.tight_layout()
+    return Figure(
+        name,
+        _png(fig),
+        f"Version {version}: real (black) and simulated ({what}, blue) traces of every state from each real "
+        f"log's initial window (shaded, copied from the log). Fit = 100·(1 − ‖y − ŷ‖/‖y − mean(y)‖) after the "
+        "window, as MATLAB's compare: 100 is a perfect match, 0 no better than the real trace's mean.",
+    )
+
+
+def correlation_figure(
+    curves: Mapping[tuple[str, str], Correlations], units: Mapping[str, str] | None = None, name: str = "residuals"
+) -> Figure:
+    """MATLAB ``resid``: per residual channel its auto-correlation, and per (residual, input) pair
+    the cross-correlation, each with the 99 % band of a white residual independent of the input."""
+    plt = _pyplot()
+    units = units or {}
+    residuals = list(dict.fromkeys(r for r, _ in curves))
+    inputs = list(dict.fromkeys(u for _, u in curves))
+    fig, axes = plt.subplots(
+        len(residuals), 1 + len(inputs), figsize=(4.2 * (1 + len(inputs)), 2.6 * len(residuals) + 0.5), squeeze=False
+    )
+    for i, r in enumerate(residuals):
+        first = curves[(r, inputs[0])]
+        ax = axes[i, 0]
+        ax.axhspan(-first.band, first.band, color="0.88", lw=0, label="99 % band")
+        ax.stem(first.lags, first.auto, basefmt=" ", markerfmt=".")
+        ax.set_title(f"auto-correlation of {signal_label(r, units.get(r, ''))} residual", fontsize=9)
+        ax.set_xlabel("lag [steps]", fontsize=8)
+        ax.legend(fontsize=7)
+        for j, u in enumerate(inputs, start=1):
+            c = curves.get((r, u))
+            ax = axes[i, j]
+            if c is None:
+                ax.set_visible(False)
+                continue
+            ax.axhspan(-c.band, c.band, color="0.88", lw=0)
+            ax.stem(c.cross_lags, c.cross, basefmt=" ", markerfmt=".")
+            ax.set_title(f"residual {r} × input {signal_label(u, units.get(u, ''))}", fontsize=9)
+            ax.set_xlabel("lag [steps] (positive: input leads)", fontsize=8)
+    n = next(iter(curves.values())).n
+    fig.suptitle(f"residual analysis (N = {n} samples, band ±2.58/√N)", fontsize=10)
+    fig.tight_layout()
+    return Figure(
+        name,
+        _png(fig),
+        f"Residual auto-correlation and residual–input cross-correlation over {n} samples, as MATLAB's resid. "
+        "Bars outside the grey 99 % band (±2.58/√N) mean the residual still holds dynamics the model missed "
+        "(left) or a dependence on the input it did not capture (right).",
+    )
+
+
+def metric_distributions(
+    versions: Sequence[str],
+    goals: Sequence[str],
+    real: Mapping[str, np.ndarray],
+    sim: Mapping[str, np.ndarray],
+    goal_signals: Mapping[str, str],
+    name: str = "metric_distributions",
+) -> Figure:
+    """One panel per goal metric; in each, every version side by side with a real (grey) and a
+    simulated (blue) box, the number of runs in the tick label. ``real``/``sim``: version -> (R, G)."""
+    plt = _pyplot()
+    cols = min(3, len(goals))
+    rows = -(-len(goals) // cols)
+    width = max(4.5, 0.9 * len(versions) + 1.5)
+    fig, axes = plt.subplots(rows, cols, figsize=(width * cols, 3.1 * rows + 0.6), squeeze=False)
+    pos = np.arange(len(versions), dtype=float)
+    for k, (ax, goal) in enumerate(zip(axes.flat, goals)):
+        r = [real[v][:, k] for v in versions]
+        s = [sim[v][:, k] for v in versions]
+        b1 = ax.boxplot(r, positions=pos - 0.2, widths=0.35, patch_artist=True, showfliers=True)
+        b2 = ax.boxplot(s, positions=pos + 0.2, widths=0.35, patch_artist=True, showfliers=True)
+        for b, colour in ((b1, "0.75"), (b2, "#9ec5e8")):
+            for patch in b["boxes"]:
+                patch.set_facecolor(colour)
+            for med in b["medians"]:
+                med.set_color("black")
+        ax.set_xticks(pos, [f"{v}\n({len(real[v])} real, {len(sim[v])} sim)" for v in versions], fontsize=7)
+        ax.set_title(f"{goal}\n(on {goal_signals.get(goal, '?')})", fontsize=9)
+        ax.tick_params(axis="y", labelsize=7)
+        if k == 0:
+            ax.legend([b1["boxes"][0], b2["boxes"][0]], ["real", "simulated"], fontsize=7)
+    for ax in list(axes.flat)[len(goals) :]:
+        ax.set_visible(False)
+    fig.suptitle("goal metrics per run, every controller version: real vs simulated", fontsize=10)
+    fig.tight_layout()
+    return Figure(
+        name,
+        _png(fig),
+        "Distribution of every goal metric over runs, per controller version: real (grey) beside simulated "
+        "(blue); boxes span the quartiles, whiskers 1.5 IQR, the line is the median. Run counts in the labels.",
+    )
+
+
+def training_curves(rows: Sequence[Mapping[str, float]], title: str, name: str = "training_curves") -> Figure:
+    """Each recorded training series against the epoch: the closed-loop validation error (the model
+    selection's criterion, the selected epoch marked) and, when the algorithm records them, losses."""
+    plt = _pyplot()
+    keys = [k for k in (rows[0].keys() if rows else []) if k not in ("epoch", "selected")]
+    series = {k: np.array([float(r.get(k, np.nan)) for r in rows]) for k in keys}
+    series = {k: v for k, v in series.items() if np.isfinite(v).any()}
+    epochs = np.array([float(r["epoch"]) for r in rows])
+    panels = [k for k in series if k == "val_error"] + [k for k in series if k != "val_error"]
+    fig, axes = plt.subplots(len(panels) or 1, 1, figsize=(7, 2.4 * max(1, len(panels)) + 0.6), squeeze=False)
+    for ax, k in zip(axes[:, 0], panels):
+        ok = np.isfinite(series[k])
+        ax.plot(epochs[ok], series[k][ok], marker="." if k == "val_error" else None, lw=1.2)
+        ax.set_ylabel(k, fontsize=8)
+        ax.tick_params(labelsize=7)
+        if k == "val_error":
+            ax.set_ylabel("closed-loop error\n(mean normalised W1)", fontsize=8)
+            chosen = [r["epoch"] for r in rows if r.get("selected")]
+            if chosen:
+                ax.axvline(chosen[0], color="tab:green", ls="--", lw=1, label=f"selected epoch {chosen[0]:g}")
+                ax.legend(fontsize=7)
+    axes[-1, 0].set_xlabel("epoch", fontsize=8)
+    if not panels:
+        axes[0, 0].text(0.5, 0.5, "no curve recorded (no validation logs)", ha="center", va="center")
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    return Figure(name, _png(fig), f"Training curves: {title}.")
+
+
+def requirement_intervals(rows: Sequence[Any], name: str = "requirements") -> Figure:
+    """Per requirement, every version's estimated probability of meeting it: the simulation's point
+    and interval and the real system's interval, against the required probability."""
+    plt = _pyplot()
+    reqs = list(dict.fromkeys(r.requirement for r in rows))
+    fig, axes = plt.subplots(
+        len(reqs), 1, figsize=(8, 1.0 + 0.55 * max(3, len(rows) // max(1, len(reqs))) * len(reqs) + 0.8), squeeze=False
+    )
+    for ax, req in zip(axes[:, 0], reqs):
+        mine = [r for r in rows if r.requirement == req]
+        y = np.arange(len(mine), dtype=float)
+        for i, r in enumerate(mine):
+            s, q = r.simulation, r.real_system
+            ax.plot(
+                q["interval"],
+                [y[i] + 0.15] * 2,
+                color=REAL,
+                lw=4,
+                solid_capstyle="butt",
+                label="real system" if i == 0 else None,
+            )
+            ax.plot(s["interval"], [y[i] - 0.15] * 2, color=SIM, lw=2, label="simulation" if i == 0 else None)
+            if s["runs"]:
+                ax.plot([s["successes"] / s["runs"]], [y[i] - 0.15], "o", color=SIM, ms=4)
+        ax.axvline(mine[0].p_required, color="tab:red", ls="--", lw=1, label=f"required {mine[0].p_required:g}")
+        ax.set_yticks(y, [f"{r.version} ({r.verdict})" for r in mine], fontsize=8)
+        ax.set_xlim(-0.02, 1.02)
+        ax.invert_yaxis()
+        ax.set_title(f"{req}: `{mine[0].expr}`", fontsize=9)
+        ax.legend(fontsize=7, loc="lower left")
+    axes[-1, 0].set_xlabel("probability of meeting the requirement", fontsize=8)
+    fig.tight_layout()
+    return Figure(
+        name,
+        _png(fig),
+        "Per requirement and version: the interval for the real system (black, the verdict's basis) and the "
+        "simulation's estimate and interval (blue), against the required probability (red).",
+    )
