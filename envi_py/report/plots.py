@@ -88,20 +88,20 @@ def trace_overlay(
     skip: int,
     name: str,
 ) -> Figure:
-    """One row per real log, one column per state channel: the real trace, the simulated one (or the
+    """One column per real log, one row per state channel: the real trace, the simulated one (or the
     median and 5-95 % band of several runs) from the same initial window, the window shaded, and the
     fit in each panel's title."""
     plt = _pyplot()
     fits = {(f.log, f.channel): f.fit for f in trace_fits(pairs, channels, skip)}
-    rows, cols = len(pairs), len(channels)
-    fig, axes = plt.subplots(rows, cols, figsize=(5.2 * cols, 2.5 * rows + 0.6), squeeze=False, sharex="col")
+    rows, cols = len(channels), len(pairs)
+    fig, axes = plt.subplots(rows, cols, figsize=(max(10.0, 4.0 * cols), 2.8 * rows + 0.7), squeeze=False)
     runs = int(pairs[0].sims.shape[0]) if pairs else 0
-    for i, p in enumerate(pairs):
+    for j_log, p in enumerate(pairs):
         centre, lo, hi = simulated_centre(p.sims)
         t = min(len(p.real), centre.shape[0])
         x = p.time_s[:t]
         for j, ch in enumerate(channels):
-            ax = axes[i, j]
+            ax = axes[j, j_log]
             if skip > 0:
                 ax.axvspan(x[0], x[min(skip, t) - 1], color="0.92", lw=0)
             if lo is not None and hi is not None:
@@ -109,12 +109,11 @@ def trace_overlay(
             ax.plot(x, p.real[:t, j], color=REAL, lw=1.2, label="real")
             ax.plot(x, centre[:t, j], color=SIM, lw=1.2, label="simulated median" if lo is not None else "simulated")
             fit = fits[(p.name, ch)]
-            ax.set_title(
-                f"{p.name}: {ch}, fit {fit:.1f} %" if np.isfinite(fit) else f"{p.name}: {ch}, fit -", fontsize=9
-            )
-            ax.set_ylabel(signal_label(ch, units.get(ch, "")), fontsize=8)
-            ax.tick_params(labelsize=7)
-            if i == rows - 1:
+            ax.set_title(f"{p.name}: fit {fit:.1f} %" if np.isfinite(fit) else f"{p.name}: fit -", fontsize=9)
+            if j_log == 0:
+                ax.set_ylabel(signal_label(ch, units.get(ch, "")), fontsize=9)
+            ax.tick_params(labelsize=8)
+            if j == rows - 1:
                 ax.set_xlabel("time [s]", fontsize=8)
     axes[0, 0].legend(fontsize=7, loc="best")
     what = f"median of {runs} runs" if runs > 1 else "one run"
@@ -123,9 +122,8 @@ def trace_overlay(
     return Figure(
         name,
         _png(fig),
-        f"Version {version}: real (black) and simulated ({what}, blue) traces of every state from each real "
-        f"log's initial window (shaded, copied from the log). Fit = 100·(1 − ‖y − ŷ‖/‖y − mean(y)‖) after the "
-        "window, as MATLAB's compare: 100 is a perfect match, 0 no better than the real trace's mean.",
+        f"Version {version}: real (black) and simulated ({what}, blue{', 5-95 % band' if runs > 1 else ''}) "
+        "traces from each real log's initial window (shaded, copied from the log); fit as MATLAB's compare.",
     )
 
 
@@ -182,9 +180,9 @@ def metric_distributions(
     """One panel per goal metric; in each, every version side by side with a real (grey) and a
     simulated (blue) box, the number of runs in the tick label. ``real``/``sim``: version -> (R, G)."""
     plt = _pyplot()
-    cols = min(3, len(goals))
+    cols = min(2, len(goals))
     rows = -(-len(goals) // cols)
-    width = max(4.5, 0.9 * len(versions) + 1.5)
+    width = max(5.0, 1.0 * len(versions) + 1.0)
     fig, axes = plt.subplots(rows, cols, figsize=(width * cols, 3.1 * rows + 0.6), squeeze=False)
     pos = np.arange(len(versions), dtype=float)
     for k, (ax, goal) in enumerate(zip(axes.flat, goals)):
@@ -197,9 +195,9 @@ def metric_distributions(
                 patch.set_facecolor(colour)
             for med in b["medians"]:
                 med.set_color("black")
-        ax.set_xticks(pos, [f"{v}\n({len(real[v])} real, {len(sim[v])} sim)" for v in versions], fontsize=7)
-        ax.set_title(f"{goal}\n(on {goal_signals.get(goal, '?')})", fontsize=9)
-        ax.tick_params(axis="y", labelsize=7)
+        ax.set_xticks(pos, [f"{v}\n({len(real[v])} real, {len(sim[v])} sim)" for v in versions], fontsize=8)
+        ax.set_title(f"{goal}\n(of {goal_signals.get(goal, '?')})", fontsize=9)
+        ax.tick_params(axis="y", labelsize=8)
         if k == 0:
             ax.legend([b1["boxes"][0], b2["boxes"][0]], ["real", "simulated"], fontsize=7)
     for ax in list(axes.flat)[len(goals) :]:
@@ -280,4 +278,93 @@ def requirement_intervals(rows: Sequence[Any], name: str = "requirements") -> Fi
         _png(fig),
         "Per requirement and version: the interval for the real system (black, the verdict's basis) and the "
         "simulation's estimate and interval (blue), against the required probability (red).",
+    )
+
+
+def accuracy_vs_n(use_case: str, versions: Mapping[str, Any], name: str) -> Figure:
+    """Verification accuracy against the number of training logs, per algorithm (mean and 95 %
+    interval over repetitions) and version, with the FOT-vs-FOT floor (paper Figures 6-8)."""
+    plt = _pyplot()
+    vs = list(versions.items())
+    cols = min(3, max(len(vs), 1))
+    rows = -(-max(len(vs), 1) // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(4.6 * cols, 3.6 * rows + 0.4), squeeze=False)
+    for ax, (label, v) in zip(axes.flat, vs):
+        for a, cells in v["cells"].items():
+            ns = sorted(int(n) for n in cells)
+            m = np.array([_num(cells[str(n)]["acc"][0]) for n in ns]) * 100
+            h = np.nan_to_num(np.array([_num(cells[str(n)]["acc"][1]) for n in ns]) * 100)  # no bar for one rep.
+            ax.errorbar(ns, m, yerr=h, marker="o", capsize=3, label=a)
+        if v["floor"]:
+            ax.axhline(_num(v["floor"]["acc"][0]) * 100, color="k", ls="--", lw=1, label="FOT vs FOT")
+        ax.set_title(f"{use_case.upper()} {label}", fontsize=9)
+        ax.set_xlabel("training logs per version", fontsize=8)
+        ax.set_ylabel("verification accuracy [%]", fontsize=8)
+        ax.tick_params(labelsize=8)
+        ax.legend(fontsize=7)
+    for ax in list(axes.flat)[len(vs) :]:
+        ax.set_visible(False)
+    fig.tight_layout()
+    return Figure(
+        name,
+        _png(fig),
+        f"{use_case.upper()}: verification accuracy against training logs per version, per algorithm and version "
+        "(mean and 95 % interval over repetitions); dashed: the accuracy between two halves of the real test logs.",
+    )
+
+
+def _num(v: Any) -> float:
+    return float("nan") if v is None else float(v)
+
+
+def algorithm_traces(
+    title: str,
+    panels: Sequence[tuple[str, str, Sequence[Sequence[float]], Mapping[str, Sequence[Sequence[float]]]]],
+    units: Mapping[str, str],
+    skip: int,
+    name: str,
+    bands: Mapping[str, tuple[float, float]] | None = None,
+) -> Figure:
+    """One row per (version, state channel), one column per kept real log: the real trace (black) and
+    each algorithm's simulated run from the same initial window (one colour each), with the fit of each
+    in the legend. ``panels``: (version, channel, real traces, {algorithm: simulated traces}); ``bands``:
+    a shaded target band per channel (the lane-keeping steady band)."""
+    plt = _pyplot()
+    n_logs = max((len(p[2]) for p in panels), default=1)
+    fig, axes = plt.subplots(
+        len(panels), n_logs, figsize=(max(10.0, 4.0 * n_logs), 2.7 * len(panels) + 0.7), squeeze=False
+    )
+    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    for i, (version, ch, real, sims) in enumerate(panels):
+        for k in range(n_logs):
+            ax = axes[i, k]
+            if k >= len(real):
+                ax.set_visible(False)
+                continue
+            y = np.asarray(real[k], dtype=float)
+            ax.axvspan(0, max(skip - 1, 0), color="0.92", lw=0)
+            if bands and ch in bands:
+                ax.axhspan(*bands[ch], color="tab:green", alpha=0.08, lw=0)
+            ax.plot(y, color=REAL, lw=1.4, label="real")
+            for c, (algo, runs) in enumerate(sims.items()):
+                if k < len(runs):
+                    s = np.asarray(runs[k], dtype=float)
+                    t = min(len(y), len(s))
+                    f = fit_percent(y[skip:t], s[skip:t]) if t > skip + 1 else float("nan")
+                    fit = f"{f:.0f} %" if np.isfinite(f) else "-"
+                    ax.plot(s[:t], color=colours[c % len(colours)], lw=1, label=f"{algo} (fit {fit})")
+            ax.set_title(f"{version}, real log {k + 1}", fontsize=9)
+            if k == 0:
+                ax.set_ylabel(signal_label(ch, units.get(ch, "")), fontsize=9)
+            if i == len(panels) - 1:
+                ax.set_xlabel("step", fontsize=8)
+            ax.tick_params(labelsize=8)
+            ax.legend(fontsize=6, loc="best")
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    return Figure(
+        name,
+        _png(fig),
+        f"{title}. Each algorithm's simulated run starts from the real log's initial window (shaded); the legend "
+        "gives each run's fit after the window, as MATLAB's compare (100 = identical, 0 = the real mean).",
     )

@@ -172,7 +172,9 @@ def evidence_sections(
         fit_table = Table(
             ["version", "state", "real logs", "sim runs per log", "median fit %", "min fit %", "max fit %"],
             fit_rows,
-            "Fit of simulated to real traces after the initial window (100 = identical, 0 = the real mean)",
+            "Fit = 100·(1 − ‖y − ŷ‖/‖y − mean(y)‖) of the simulated trace (the median of the runs from the log's "
+            "initial window) to the real one, after the window, as MATLAB's compare: 100 is a perfect match, "
+            "0 no better than the real trace's mean, negative worse",
             frozenset(range(2, 7)),
         )
         sections.append(Section("Real vs simulated traces", [fit_table, *traces]))
