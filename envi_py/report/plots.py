@@ -216,7 +216,7 @@ def training_curves(rows: Sequence[Mapping[str, float]], title: str, name: str =
     """Each recorded training series against the epoch: the closed-loop validation error (the model
     selection's criterion, the selected epoch marked) and, when the algorithm records them, losses."""
     plt = _pyplot()
-    keys = [k for k in (rows[0].keys() if rows else []) if k not in ("epoch", "selected")]
+    keys = [k for k in (rows[0].keys() if rows else []) if k not in ("epoch", "selected", "diverged")]
     series = {k: np.array([float(r.get(k, np.nan)) for r in rows]) for k in keys}
     series = {k: v for k, v in series.items() if np.isfinite(v).any()}
     epochs = np.array([float(r["epoch"]) for r in rows])
@@ -230,8 +230,12 @@ def training_curves(rows: Sequence[Mapping[str, float]], title: str, name: str =
         if k == "val_error":
             ax.set_ylabel("closed-loop error\n(mean normalised W1)", fontsize=8)
             chosen = [r["epoch"] for r in rows if r.get("selected")]
+            bad = [(r["epoch"], r["val_error"]) for r in rows if r.get("diverged") and np.isfinite(r["val_error"])]
+            if bad:
+                ax.plot(*zip(*bad), "x", color="tab:red", ms=7, label="diverged in closed loop")
             if chosen:
                 ax.axvline(chosen[0], color="tab:green", ls="--", lw=1, label=f"selected epoch {chosen[0]:g}")
+            if chosen or bad:
                 ax.legend(fontsize=7)
     axes[-1, 0].set_xlabel("epoch", fontsize=8)
     if not panels:
@@ -246,33 +250,31 @@ def requirement_intervals(rows: Sequence[Any], name: str = "requirements") -> Fi
     and interval and the real system's interval, against the required probability."""
     plt = _pyplot()
     reqs = list(dict.fromkeys(r.requirement for r in rows))
-    fig, axes = plt.subplots(
-        len(reqs), 1, figsize=(8, 1.0 + 0.55 * max(3, len(rows) // max(1, len(reqs))) * len(reqs) + 0.8), squeeze=False
-    )
+    per = max(len([r for r in rows if r.requirement == q]) for q in reqs)
+    fig, axes = plt.subplots(len(reqs), 1, figsize=(10, (0.45 * per + 1.1) * len(reqs) + 0.4), squeeze=False)
     for ax, req in zip(axes[:, 0], reqs):
         mine = [r for r in rows if r.requirement == req]
         y = np.arange(len(mine), dtype=float)
         for i, r in enumerate(mine):
             s, q = r.simulation, r.real_system
-            ax.plot(
-                q["interval"],
-                [y[i] + 0.15] * 2,
-                color=REAL,
-                lw=4,
-                solid_capstyle="butt",
-                label="real system" if i == 0 else None,
-            )
-            ax.plot(s["interval"], [y[i] - 0.15] * 2, color=SIM, lw=2, label="simulation" if i == 0 else None)
+            ax.plot(q["interval"], [y[i] + 0.15] * 2, color=REAL, lw=4, marker="|", ms=10, solid_capstyle="butt")
+            ax.plot(s["interval"], [y[i] - 0.15] * 2, color=SIM, lw=2, marker="|", ms=8)
             if s["runs"]:
                 ax.plot([s["successes"] / s["runs"]], [y[i] - 0.15], "o", color=SIM, ms=4)
-        ax.axvline(mine[0].p_required, color="tab:red", ls="--", lw=1, label=f"required {mine[0].p_required:g}")
+        ax.axvline(mine[0].p_required, color="tab:red", ls="--", lw=1)
         ax.set_yticks(y, [f"{r.version} ({r.verdict})" for r in mine], fontsize=8)
         ax.set_xlim(-0.02, 1.02)
-        ax.invert_yaxis()
-        ax.set_title(f"{req}: `{mine[0].expr}`", fontsize=9)
-        ax.legend(fontsize=7, loc="lower left")
+        ax.set_ylim(len(mine) - 0.5, -0.5)
+        ax.set_title(f"{req}: {mine[0].expr} (required {mine[0].p_required:g})", fontsize=9)
+        ax.tick_params(axis="x", labelsize=8)
+    handles = [
+        plt.Line2D([], [], color=REAL, lw=4, label="real system (verdict's basis)"),
+        plt.Line2D([], [], color=SIM, lw=2, marker="o", ms=4, label="simulation: estimate and interval"),
+        plt.Line2D([], [], color="tab:red", ls="--", lw=1, label="required probability"),
+    ]
+    fig.legend(handles=handles, loc="upper center", ncol=3, fontsize=8, frameon=False)
     axes[-1, 0].set_xlabel("probability of meeting the requirement", fontsize=8)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0, 1, 1 - 0.35 / fig.get_figheight()))
     return Figure(
         name,
         _png(fig),
