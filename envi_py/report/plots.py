@@ -29,7 +29,8 @@ def _pyplot() -> Any:
     return plt
 
 
-def _png(fig: Any, dpi: int = 100) -> bytes:
+def png_bytes(fig: Any, dpi: int = 100) -> bytes:
+    """A finished matplotlib figure as PNG bytes (the figure is closed): what a report :class:`Figure` holds."""
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=dpi)
     _pyplot().close(fig)
@@ -121,7 +122,7 @@ def trace_overlay(
     fig.tight_layout()
     return Figure(
         name,
-        _png(fig),
+        png_bytes(fig),
         f"Version {version}: real (black) and simulated ({what}, blue{', 5-95 % band' if runs > 1 else ''}) "
         "traces from each real log's initial window (shaded, copied from the log); fit as MATLAB's compare.",
     )
@@ -162,7 +163,7 @@ def correlation_figure(
     fig.tight_layout()
     return Figure(
         name,
-        _png(fig),
+        png_bytes(fig),
         f"Residual auto-correlation and residual–input cross-correlation over {n} samples, as MATLAB's resid. "
         "Bars outside the grey 99 % band (±2.58/√N) mean the residual still holds dynamics the model missed "
         "(left) or a dependence on the input it did not capture (right).",
@@ -206,7 +207,7 @@ def metric_distributions(
     fig.tight_layout()
     return Figure(
         name,
-        _png(fig),
+        png_bytes(fig),
         "Distribution of every goal metric over runs, per controller version: real (grey) beside simulated "
         "(blue); boxes span the quartiles, whiskers 1.5 IQR, the line is the median. Run counts in the labels.",
     )
@@ -242,7 +243,7 @@ def training_curves(rows: Sequence[Mapping[str, float]], title: str, name: str =
         axes[0, 0].text(0.5, 0.5, "no curve recorded (no validation logs)", ha="center", va="center")
     fig.suptitle(title, fontsize=10)
     fig.tight_layout()
-    return Figure(name, _png(fig), f"Training curves: {title}.")
+    return Figure(name, png_bytes(fig), f"Training curves: {title}.")
 
 
 def requirement_intervals(rows: Sequence[Any], name: str = "requirements") -> Figure:
@@ -277,7 +278,7 @@ def requirement_intervals(rows: Sequence[Any], name: str = "requirements") -> Fi
     fig.tight_layout(rect=(0, 0, 1, 1 - 0.35 / fig.get_figheight()))
     return Figure(
         name,
-        _png(fig),
+        png_bytes(fig),
         "Per requirement and version: the interval for the real system (black, the verdict's basis) and the "
         "simulation's estimate and interval (blue), against the required probability (red).",
     )
@@ -309,7 +310,7 @@ def accuracy_vs_n(use_case: str, versions: Mapping[str, Any], name: str) -> Figu
     fig.tight_layout()
     return Figure(
         name,
-        _png(fig),
+        png_bytes(fig),
         f"{use_case.upper()}: verification accuracy against training logs per version, per algorithm and version "
         "(mean and 95 % interval over repetitions); dashed: the accuracy between two halves of the real test logs.",
     )
@@ -366,7 +367,7 @@ def algorithm_traces(
     fig.tight_layout()
     return Figure(
         name,
-        _png(fig),
+        png_bytes(fig),
         f"{title}. Each algorithm's simulated run starts from the real log's initial window (shaded); the legend "
         "gives each run's fit after the window, as MATLAB's compare (100 = identical, 0 = the real mean).",
     )
