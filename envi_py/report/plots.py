@@ -222,8 +222,12 @@ def training_curves(rows: Sequence[Mapping[str, float]], title: str, name: str =
     series = {k: v for k, v in series.items() if np.isfinite(v).any()}
     epochs = np.array([float(r["epoch"]) for r in rows])
     panels = [k for k in series if k == "val_error"] + [k for k in series if k != "val_error"]
-    fig, axes = plt.subplots(len(panels) or 1, 1, figsize=(7, 2.4 * max(1, len(panels)) + 0.6), squeeze=False)
-    for ax, k in zip(axes[:, 0], panels):
+    cols = 1 if len(panels) <= 2 else 2
+    rows_n = max(1, -(-len(panels) // cols))
+    fig, axes = plt.subplots(
+        rows_n, cols, figsize=(6.0 * cols, 2.3 * rows_n + 0.7), squeeze=False, sharex=True, layout="constrained"
+    )
+    for ax, k in zip(axes.flat, panels):
         ok = np.isfinite(series[k])
         ax.plot(epochs[ok], series[k][ok], marker="." if k == "val_error" else None, lw=1.2)
         ax.set_ylabel(k, fontsize=8)
@@ -238,12 +242,22 @@ def training_curves(rows: Sequence[Mapping[str, float]], title: str, name: str =
                 ax.axvline(chosen[0], color="tab:green", ls="--", lw=1, label=f"selected epoch {chosen[0]:g}")
             if chosen or bad:
                 ax.legend(fontsize=7)
-    axes[-1, 0].set_xlabel("epoch", fontsize=8)
+    for ax in list(axes.flat)[len(panels) :]:
+        ax.set_visible(False)
+    for ax in axes.flat:
+        ax.tick_params(labelbottom=True)  # a panel above an empty cell keeps its epochs
+        ax.set_xlabel("epoch", fontsize=8)
     if not panels:
         axes[0, 0].text(0.5, 0.5, "no curve recorded (no validation logs)", ha="center", va="center")
     fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
-    return Figure(name, png_bytes(fig), f"Training curves: {title}.")
+    return Figure(
+        name,
+        png_bytes(fig),
+        f"Training curves of {title}. Closed-loop error: the validation logs' controllers simulated from their "
+        "initial windows, the mean over the goal metrics of the Wasserstein-1 distance to the real runs over each "
+        "metric's scale (the model selection's criterion); the checkpoint keeps the selected epoch. Losses appear "
+        "when the algorithm records them (GAIL, BCxGAIL).",
+    )
 
 
 def requirement_intervals(rows: Sequence[Any], name: str = "requirements") -> Figure:
