@@ -36,8 +36,11 @@ ARGS = [
 ]
 
 
+DEBIAN_CHROMIUM = Path("/usr/bin/chromium")
+
+
 def _chromium() -> str:
-    path = shutil.which("chromium") or ("/usr/bin/chromium" if Path("/usr/bin/chromium").exists() else None)
+    path = shutil.which("chromium") or (str(DEBIAN_CHROMIUM) if DEBIAN_CHROMIUM.exists() else None)
     why = None
     if path is None:
         why = "no Chromium: apt-get install chromium (./dev.sh setup installs it)"
@@ -141,3 +144,16 @@ def test_verify_page_shows_traces_with_fit_and_every_versions_distributions(page
     assert md.startswith("# Verification report\n\n| version |") and "## Provenance" in md
     for name in ("traces_x=10", "traces_x=30", "metric_distributions"):
         assert (pages["verify"].parent / "report_figures" / f"{name}.png").stat().st_size > 1000
+
+
+def test_a_missing_browser_skips_only_outside_ci(monkeypatch, tmp_path) -> None:
+    import sys
+
+    monkeypatch.setattr(shutil, "which", lambda *_: None)
+    monkeypatch.setattr(sys.modules[__name__], "DEBIAN_CHROMIUM", tmp_path / "no-chromium")
+    monkeypatch.setenv("CI", "true")
+    with pytest.raises(pytest.fail.Exception, match="CI must run the browser test: no Chromium"):
+        _chromium()
+    monkeypatch.delenv("CI")
+    with pytest.raises(pytest.skip.Exception, match="apt-get install chromium"):
+        _chromium()
