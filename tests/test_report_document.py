@@ -7,6 +7,7 @@ import importlib.util
 import json
 import math
 
+import numpy as np
 import pytest
 
 from envi_py.cli import main
@@ -32,7 +33,7 @@ def _report(figures: list[Figure] | None = None) -> Report:
         Provenance("0.1.0", "envi verify --real a", "2026-01-01T00:00:00+00:00", "lane-keeping", extra={"seed": 3}),
         [Text("how to read `acc`")],
         [Section("Evidence", [Table(["a", "b"], [["1", "2"]], "numbers", frozenset({1})), *(figures or [])])],
-        {"groups": [{"acc": float("nan"), "w1": [1.0, float("inf")]}]},
+        {"groups": [{"acc": float("nan"), "w1": [1.0, float("inf")], "n": np.int64(3), "m": np.array([0.5, np.nan])}]},
     )
 
 
@@ -51,6 +52,7 @@ def test_writer_gives_strict_json_with_provenance_and_embedded_figures(tmp_path)
     files = write_files(_report([Figure("traces_x=1", PNG, "a figure")]), tmp_path, "report")
     js = json.loads(files.json.read_text())
     assert js["groups"][0]["acc"] is None and js["groups"][0]["w1"] == [1.0, None]
+    assert js["groups"][0]["n"] == 3 and js["groups"][0]["m"] == [0.5, None]
     assert js["provenance"]["command"] == "envi verify --real a" and js["provenance"]["seed"] == 3
     assert files.figures == [tmp_path / "report_figures" / "traces_x=1.png"] and files.figures[0].read_bytes() == PNG
     assert "](report_figures/traces_x=1.png)" in files.markdown.read_text()

@@ -13,6 +13,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from .document import Report
 from .html import to_html
 from .markdown import to_markdown
@@ -28,7 +30,11 @@ class ReportFiles:
 
 
 def strict(obj: Any) -> Any:
-    """``obj`` with NaN and infinities as None (JSON has no NaN)."""
+    """``obj`` with NaN and infinities as None (JSON has no NaN), numpy numbers and arrays as Python ones."""
+    if isinstance(obj, np.ndarray):
+        return strict(obj.tolist())
+    if isinstance(obj, np.generic):
+        return strict(obj.item())
     if isinstance(obj, float):
         return obj if math.isfinite(obj) else None
     if isinstance(obj, dict):

@@ -20,7 +20,7 @@ from .stats import Correlations, fit_percent
 REAL, SIM = "black", "tab:blue"
 
 
-def _pyplot() -> Any:
+def pyplot() -> Any:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -33,7 +33,7 @@ def png_bytes(fig: Any, dpi: int = 100) -> bytes:
     """A finished matplotlib figure as PNG bytes (the figure is closed): what a report :class:`Figure` holds."""
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=dpi)
-    _pyplot().close(fig)
+    pyplot().close(fig)
     return buf.getvalue()
 
 
@@ -92,7 +92,7 @@ def trace_overlay(
     """One column per real log, one row per state channel: the real trace, the simulated one (or the
     median and 5-95 % band of several runs) from the same initial window, the window shaded, and the
     fit in each panel's title."""
-    plt = _pyplot()
+    plt = pyplot()
     fits = {(f.log, f.channel): f.fit for f in trace_fits(pairs, channels, skip)}
     rows, cols = len(channels), len(pairs)
     fig, axes = plt.subplots(rows, cols, figsize=(max(10.0, 4.0 * cols), 2.8 * rows + 0.7), squeeze=False)
@@ -133,7 +133,7 @@ def correlation_figure(
 ) -> Figure:
     """MATLAB ``resid``: per residual channel its auto-correlation, and per (residual, input) pair
     the cross-correlation, each with the 99 % band of a white residual independent of the input."""
-    plt = _pyplot()
+    plt = pyplot()
     units = units or {}
     residuals = list(dict.fromkeys(r for r, _ in curves))
     inputs = list(dict.fromkeys(u for _, u in curves))
@@ -180,7 +180,7 @@ def metric_distributions(
 ) -> Figure:
     """One panel per goal metric; in each, every version side by side with a real (grey) and a
     simulated (blue) box, the number of runs in the tick label. ``real``/``sim``: version -> (R, G)."""
-    plt = _pyplot()
+    plt = pyplot()
     cols = min(2, len(goals))
     rows = -(-len(goals) // cols)
     width = max(5.0, 1.0 * len(versions) + 1.0)
@@ -216,7 +216,7 @@ def metric_distributions(
 def training_curves(rows: Sequence[Mapping[str, float]], title: str, name: str = "training_curves") -> Figure:
     """Each recorded training series against the epoch: the closed-loop validation error (the model
     selection's criterion, the selected epoch marked) and, when the algorithm records them, losses."""
-    plt = _pyplot()
+    plt = pyplot()
     keys = [k for k in (rows[0].keys() if rows else []) if k not in ("epoch", "selected", "diverged")]
     series = {k: np.array([float(r.get(k, np.nan)) for r in rows]) for k in keys}
     series = {k: v for k, v in series.items() if np.isfinite(v).any()}
@@ -263,7 +263,7 @@ def training_curves(rows: Sequence[Mapping[str, float]], title: str, name: str =
 def requirement_intervals(rows: Sequence[Any], name: str = "requirements") -> Figure:
     """Per requirement, every version's estimated probability of meeting it: the simulation's point
     and interval and the real system's interval, against the required probability."""
-    plt = _pyplot()
+    plt = pyplot()
     reqs = list(dict.fromkeys(r.requirement for r in rows))
     per = max(len([r for r in rows if r.requirement == q]) for q in reqs)
     fig, axes = plt.subplots(len(reqs), 1, figsize=(10, (0.45 * per + 1.1) * len(reqs) + 0.4), squeeze=False)
@@ -301,7 +301,7 @@ def requirement_intervals(rows: Sequence[Any], name: str = "requirements") -> Fi
 def accuracy_vs_n(use_case: str, versions: Mapping[str, Any], name: str) -> Figure:
     """Verification accuracy against the number of training logs, per algorithm (mean and 95 %
     interval over repetitions) and version, with the FOT-vs-FOT floor (paper Figures 6-8)."""
-    plt = _pyplot()
+    plt = pyplot()
     vs = list(versions.items())
     cols = min(3, max(len(vs), 1))
     rows = -(-max(len(vs), 1) // cols)
@@ -346,7 +346,7 @@ def algorithm_traces(
     each algorithm's simulated run from the same initial window (one colour each), with the fit of each
     in the legend. ``panels``: (version, channel, real traces, {algorithm: simulated traces}); ``bands``:
     a shaded target band per channel (the lane-keeping steady band)."""
-    plt = _pyplot()
+    plt = pyplot()
     n_logs = max((len(p[2]) for p in panels), default=1)
     fig, axes = plt.subplots(
         len(panels), n_logs, figsize=(max(10.0, 4.0 * n_logs), 2.7 * len(panels) + 0.7), squeeze=False
