@@ -21,6 +21,7 @@ REAL, SIM = "black", "tab:blue"
 
 
 def pyplot() -> Any:
+    """matplotlib.pyplot on the Agg backend, imported on first use (never at command-line start-up)."""
     import matplotlib
 
     matplotlib.use("Agg")
