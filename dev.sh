@@ -3,7 +3,7 @@
 #   ./dev.sh demo   set up, then run the main job (twin data -> train -> simulate -> verify)
 #   ./dev.sh test   set up, then run every test (C++, then ruff on the whole tree, then Python)
 #   ./dev.sh setup  only set up
-# Set-up is idempotent: system packages via apt-get (g++, cmake, python3-venv), Python packages into
+# Set-up is idempotent: system packages via apt-get (g++, cmake, python3-venv, chromium), Python packages into
 # ./.venv (Eigen too: the cmeel-eigen wheel, no libeigen3-dev needed).
 set -euo pipefail
 cd "$(dirname "$0")"
@@ -18,6 +18,7 @@ setup_system() {
   command -v g++ >/dev/null || need+=(g++)
   command -v cmake >/dev/null || need+=(cmake)
   python3 -c 'import venv, ensurepip' 2>/dev/null || need+=(python3-venv)
+  command -v chromium >/dev/null || need+=(chromium)  # the headless browser of tests/test_report_html.py
   if [ ${#need[@]} -gt 0 ]; then
     echo "[setup] apt-get install ${need[*]}"
     sudo_if_needed apt-get update -qq

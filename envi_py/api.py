@@ -24,6 +24,7 @@ from __future__ import annotations
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 from .logs import Log, load_logs
@@ -107,6 +108,20 @@ class Verification:
 
         return to_markdown(self.groups)
 
+    def write(
+        self,
+        out: str | os.PathLike,
+        real: Sequence[Log] = (),
+        sim: Sequence[Log] = (),
+        system: SystemDescription | None = None,
+    ) -> Path:
+        """``envi verify``'s report files in ``out``; with the logs also the trace overlays (fit per
+        state) and every version's metric distributions. Returns the HTML page to open."""
+        from .verify import write_report
+
+        md, _ = write_report(self.groups, Path(out), real=real, sim=sim, system=system)
+        return md.with_suffix(".html")
+
     def plot(self, ax: Any = None) -> Any:
         """Matched W1 beside the real-vs-real floor, per version and goal (a matplotlib Axes)."""
         import matplotlib.pyplot as plt
@@ -156,6 +171,15 @@ class Verdicts:
 
     def to_dataframe(self) -> Any:
         return _frame(self.records())
+
+    def write(self, out: str | os.PathLike, settings: dict[str, Any] | None = None) -> Path:
+        """``envi check``'s report files in ``out`` (``settings``: alpha, delta, ... as listed in the
+        provenance); returns the HTML page to open."""
+        from .check import write_check
+
+        meta = {"alpha": 0.05, "delta": 0.05, "max_runs": 4000, **(settings or {})}
+        md, _ = write_check(self.rows, Path(out), meta)
+        return md.with_suffix(".html")
 
 
 def check(

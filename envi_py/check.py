@@ -21,7 +21,6 @@ Simulated runs that leave the training data's range are counted and reported wit
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
@@ -271,47 +270,18 @@ def requirements_of(
 
 
 def to_markdown(rows: Sequence[CheckRow], meta: dict[str, Any]) -> str:
-    """The verdict table first, then the evidence."""
-    lines = [
-        "# Requirement check",
-        "",
-        "| version | requirement | P required | real runs | P (simulation) [interval], runs | "
-        "P (real system) [interval] | basis | verdict |",
-        "|---|---|---:|---:|---|---|---|---|",
-    ]
-    for r in rows:
-        s, q = r.simulation, r.real_system
-        p_sim = s["successes"] / s["runs"] if s["runs"] else float("nan")
-        lines.append(
-            f"| {r.version} | {r.requirement}: `{r.expr}` | {r.p_required:g} | {r.n_real} | "
-            f"{p_sim:.3f} [{s['interval'][0]:.3f}, {s['interval'][1]:.3f}], {s['runs']} ({s['verdict']}) | "
-            f"[{q['interval'][0]:.3f}, {q['interval'][1]:.3f}] | {q['basis']} | **{q['verdict']}** |"
-        )
-    lines += [
-        "",
-        f"Confidence {1 - meta['alpha']:.0%} (each wrong PASS or FAIL at most {meta['alpha']:.0%}). "
-        "Simulation: Wald's SPRT with an indifference region of "
-        f"+-{meta['delta']:g} around the required probability, stopped at {meta['max_runs']} runs at most; "
-        "its interval is valid at the stopping time. Real system: prediction-powered inference from the "
-        "model's predictions and the paired real runs, withdrawn to the real runs alone when a calibration "
-        "test rejects the model; a version without real runs rests on the model only.",
-        "",
-        "## Evidence",
-        "",
-    ]
-    for r in rows:
-        q = r.real_system
-        lines.append(
-            f"- {r.version}, {r.requirement}: {q.get('reason', '')}. Simulated runs outside the "
-            f"training data: {r.outside_training} of {r.sim_runs}." + "".join(f" {n}." for n in r.notes)
-        )
-    lines += ["", "## Provenance", "", *(f"- {k}: {v}" for k, v in meta.items())]
-    return "\n".join(lines) + "\n"
+    """The verdict table first, then the evidence, provenance last (:mod:`envi_py.report.requirements`)."""
+    from .report.markdown import to_markdown as render
+    from .report.requirements import check_report
+
+    return render(check_report(rows, meta, figures=False))
 
 
 def write_check(rows: Sequence[CheckRow], out: Path, meta: dict[str, Any]) -> tuple[Path, Path]:
-    out.mkdir(parents=True, exist_ok=True)
-    md, js = out / "check.md", out / "check.json"
-    md.write_text(to_markdown(rows, meta))
-    js.write_text(json.dumps({**meta, "rows": [r.to_json() for r in rows]}, indent=1))
-    return md, js
+    """``check.md``, ``check.html`` (with the intervals drawn) and ``check.json`` in ``out``; returns
+    the Markdown and JSON paths."""
+    from .report.files import write_files
+    from .report.requirements import check_report
+
+    files = write_files(check_report(rows, meta), out, "check")
+    return files.markdown, files.json

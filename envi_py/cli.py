@@ -179,6 +179,9 @@ def _at_most(args: argparse.Namespace, **limits: int) -> None:
 
 
 def cmd_train(args: argparse.Namespace) -> int:
+    import importlib.util
+    import tempfile
+
     from .train import train
 
     _positive(args, "epochs", "history", "eval_every")
@@ -213,9 +216,24 @@ def cmd_train(args: argparse.Namespace) -> int:
         kwargs.update(state_path=Path(args.output).with_suffix(".state"), resume=args.resume)
     elif args.resume:
         raise ValueError("--resume: random training has no epochs, so there is nothing to resume")
+    if args.tensorboard and importlib.util.find_spec("tensorboard") is None:
+        raise ValueError("--tensorboard needs the tensorboard package: pip install 'envi[tensorboard]'")
+    losses = tempfile.TemporaryDirectory() if args.algorithm in ("gail", "bcxgail") else None
+    if losses is not None:
+        kwargs["curves_dir"] = losses.name  # GAIL's per-epoch losses, merged into the curves below
     t0 = time.perf_counter()
     ckpt = train(args.algorithm, logs, val, system=system_of(args), **kwargs)
     path = ckpt.save(args.output)
+    from .report.training import write_training_outputs
+
+    written = write_training_outputs(
+        ckpt,
+        Path(path),
+        Path(losses.name) / "curves.csv" if losses is not None else None,
+        Path(args.tensorboard) if args.tensorboard else None,
+    )
+    if losses is not None:
+        losses.cleanup()
     if args.algorithm != "random":
         Path(args.output).with_suffix(".state").unlink(missing_ok=True)  # finished: nothing to resume
     sel = ckpt.record.selection
@@ -225,6 +243,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         f"trained {args.algorithm} on {len(logs)} logs ({len(val)} validation) in "
         f"{time.perf_counter() - t0:.1f} s; selected epoch {sel.get('best_epoch', '-')}; saved {path}"
     )
+    print("training curves: " + " ".join(str(p) for p in written.values()))
     return 0
 
 
@@ -461,7 +480,18 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="continue a killed training from <output>.state (written at every validation; bc, gail, bcxgail)",
     )
-    p.add_argument("-o", "--output", required=True, help="checkpoint file to write")
+    p.add_argument(
+        "-o",
+        "--output",
+        required=True,
+        help="checkpoint file to write; its training curves go beside it (MODEL.curves.csv, MODEL.training.html)",
+    )
+    p.add_argument(
+        "--tensorboard",
+        metavar="DIR",
+        default=None,
+        help="also write the training curves as TensorBoard scalars into DIR (needs pip install 'envi[tensorboard]')",
+    )
     p.set_defaults(func=cmd_train)
 
     p = sub.add_parser("simulate", help="simulate a controller against a model from real initial windows")

@@ -12,7 +12,6 @@ simulation is already inside real-vs-real variation.
 
 from __future__ import annotations
 
-import json
 import math
 import warnings
 from dataclasses import dataclass, field
@@ -301,84 +300,55 @@ def version_label(spec: ControllerSpec, system: SystemDescription) -> str:
     return system.version_label(spec)
 
 
-def _fmt(v: float | None, spec: str) -> str:
-    return "-" if v is None or (isinstance(v, float) and math.isnan(v)) else format(v, spec)
-
-
-def _test_cell(t: dict[str, Any] | None) -> str:
-    if not t:
-        return "-"
-    return f"p={t['p_value']:.2f} {'within' if t['within_floor'] else 'BEYOND'}"
-
-
 def to_markdown(results: Sequence[GroupResult], title: str = "Verification report") -> str:
-    """Tables a person reads: per version the accuracy, the distances at matched sizes beside the
-    real-vs-real floor and the permutation tests; then per goal."""
-    lines = [
-        f"# {title}",
-        "",
-        "acc: the paper's verification accuracy over the goal metrics (1 = identical means). W1: "
-        "Wasserstein-1 between real and simulated goal-metric distributions, divided by the metric's scale. "
-        "KLD: the authors' safety/comfort KL divergence (lane keeping only). Floor: the same between two "
-        "halves of the real runs; sim (matched): a real half against as many simulated runs, so the two "
-        "columns rest on equal numbers of runs. Test: permutation test of 'simulated runs are exchangeable "
-        "with real ones' with all real runs against as many simulated runs; 'within' means p > 0.05.",
-        "",
-        "| version | real runs | sim runs | runs per side | acc | mean W1 sim (matched) | mean W1 floor | W1 test "
-        "| KLD sim (matched) | KLD floor | KLD test |",
-        "|---|---:|---:|---:|---:|---:|---:|---|---:|---:|---|",
-    ]
-    for r in results:
-        fl, mt = r.floor, r.matched
-        lines.append(
-            f"| {r.version} | {r.n_real} | {r.n_sim} | {r.tests.get('per_side', '-')} | {r.sim.acc:.2%} | "
-            f"{_fmt(mt.w1.mean() if mt else None, '.4f')} | {_fmt(fl.w1.mean() if fl else None, '.4f')} | "
-            f"{_test_cell(r.tests.get('goals_w1'))} | {_fmt(mt.kld if mt else None, '.3f')} | "
-            f"{_fmt(fl.kld if fl else None, '.3f')} | {_test_cell(r.tests.get('kld'))} |"
-        )
-    for r in results:
-        lines += [
-            "",
-            f"## {r.version}",
-            "",
-            "Controller: `" + json.dumps(r.controller) + "`",
-            "",
-            "| goal | real mean | sim mean | W1 (all runs) | W1 sim (matched) | W1 floor | KS (p) |",
-            "|---|---:|---:|---:|---:|---:|---:|",
-        ]
-        for j, m in enumerate(r.goals):
-            lines.append(
-                f"| {m} | {r.real_mean[j]:.2f} | {r.sim_mean[j]:.2f} | {r.sim.w1[j]:.4f} | "
-                f"{_fmt(r.matched.w1[j] if r.matched else None, '.4f')} | "
-                f"{_fmt(r.floor.w1[j] if r.floor else None, '.4f')} | {r.sim.ks[j]:.3f} ({r.sim.ks_p[j]:.2g}) |"
-            )
-        lines += ["", "Real logs: " + ", ".join(r.real_logs)]
-    return "\n".join(lines) + "\n"
+    """Tables a person reads (:mod:`envi_py.report.verification`): the verdict per version with every
+    matched figure beside its real-vs-real floor, then per goal; provenance last."""
+    from .report.markdown import to_markdown as render
+    from .report.verification import verification_report
+
+    return render(verification_report(results, title))
 
 
 def to_text(results: Sequence[GroupResult]) -> str:
-    """A compact screen table: the matched figures beside the floor, and the tests' verdicts."""
+    """A compact screen table: each matched figure beside its real-vs-real floor (accuracy too, so a
+    high accuracy and a large KLD can be read against what real runs give), and the tests' verdicts."""
+    from .report.verification import fmt, test_cell
+
     rows = [
-        f"{'version':<28} {'real':>5} {'sim':>5} {'acc':>8} {'W1 sim':>8} {'W1 floor':>8} {'W1 test':>14} "
-        f"{'KLD sim':>8} {'KLD floor':>9} {'KLD test':>14}"
+        f"{'version':<28} {'real':>5} {'sim':>5} {'acc':>7} {'acc flr':>7} {'W1 sim':>8} {'W1 floor':>8} "
+        f"{'W1 test':>14} {'KLD sim':>8} {'KLD floor':>9} {'KLD test':>14}"
     ]
     for r in results:
         fl, mt = r.floor, r.matched
         rows.append(
-            f"{r.version[:28]:<28} {r.n_real:>5} {r.n_sim:>5} {r.sim.acc:>8.2%} "
-            f"{_fmt(mt.w1.mean() if mt else None, '.4f'):>8} {_fmt(fl.w1.mean() if fl else None, '.4f'):>8} "
-            f"{_test_cell(r.tests.get('goals_w1')):>14} {_fmt(mt.kld if mt else None, '.3f'):>8} "
-            f"{_fmt(fl.kld if fl else None, '.3f'):>9} {_test_cell(r.tests.get('kld')):>14}"
+            f"{r.version[:28]:<28} {r.n_real:>5} {r.n_sim:>5} {fmt(mt.acc if mt else r.sim.acc, '.2%'):>7} "
+            f"{fmt(fl.acc if fl else None, '.2%'):>7} "
+            f"{fmt(mt.w1.mean() if mt else None, '.4f'):>8} {fmt(fl.w1.mean() if fl else None, '.4f'):>8} "
+            f"{test_cell(r.tests.get('goals_w1')):>14} {fmt(mt.kld if mt else None, '.3f'):>8} "
+            f"{fmt(fl.kld if fl else None, '.3f'):>9} {test_cell(r.tests.get('kld')):>14}"
         )
+    rows.append(
+        "acc, W1, KLD: simulated runs against a real half at matched sizes (acc over all runs when there is no "
+        "floor); flr/floor: the same between two real halves."
+    )
     return "\n".join(rows)
 
 
 def write_report(
-    results: Sequence[GroupResult], out: Path, title: str = "Verification report", extra: dict[str, Any] | None = None
+    results: Sequence[GroupResult],
+    out: Path,
+    title: str = "Verification report",
+    extra: dict[str, Any] | None = None,
+    real: Sequence[Log] = (),
+    sim: Sequence[Log] = (),
+    system: SystemDescription | None = None,
+    skip: int = 10,
 ) -> tuple[Path, Path]:
-    """``report.md`` and ``report.json`` in ``out``."""
-    out.mkdir(parents=True, exist_ok=True)
-    md, js = out / "report.md", out / "report.json"
-    md.write_text(to_markdown(results, title))
-    js.write_text(json.dumps({"title": title, **(extra or {}), "groups": [r.to_json() for r in results]}, indent=1))
-    return md, js
+    """``report.md``, ``report.html`` and ``report.json`` in ``out`` (and ``report_figures/``). With
+    the real and simulated logs the report also shows trace overlays with fit figures and every
+    version's metric distributions. Returns the Markdown and JSON paths."""
+    from .report.files import write_files
+    from .report.verification import verification_report
+
+    files = write_files(verification_report(results, title, extra, real, sim, system, skip), out, "report")
+    return files.markdown, files.json

@@ -199,8 +199,9 @@ def test_tiny_grid_repeats_and_writes_the_report(real_logs, tmp_path) -> None:
     md = (tmp_path / "a" / "report.md").read_text()
     assert "TOVK, x=30: accuracy (%)" in md and "FOT vs FOT floor" in md and "safety/comfort KLD" in md
     assert "geometric-mean KLD" in md
-    assert (tmp_path / "a" / "accuracy_tovk.png").stat().st_size > 0
-    assert (tmp_path / "a" / "traces_tovk.png").stat().st_size > 0
+    assert (tmp_path / "a" / "report_figures" / "accuracy_tovk.png").stat().st_size > 0
+    assert (tmp_path / "a" / "report_figures" / "traces_tovk.png").stat().st_size > 0
+    assert '<img src="data:image/png;base64,' in (tmp_path / "a" / "report.html").read_text()
     again = run_experiment(logs, ["tovk"], tmp_path / "a", executor=LocalExecutor(0), **kw)
     assert again["meta"]["jobs_reused"] == 8 and again["results"] == a["results"]
 
@@ -258,7 +259,7 @@ def test_car_grid_runs_tmvk_and_tmvu_end_to_end(car_logs, tmp_path) -> None:
     assert f"## TMVU, {CAR_NEW[1]}: accuracy (%)" in md and "| closest approach |" in md
     assert "safety/comfort KLD" not in md and "paper:" not in md
     for name in ("accuracy_tmvk", "accuracy_tmvu", "traces_tmvk", "traces_tmvu"):
-        assert (tmp_path / f"{name}.png").stat().st_size > 0
+        assert (tmp_path / "report_figures" / f"{name}.png").stat().st_size > 0
     again = run_experiment(car_logs, ["tmvk", "tmvu"], tmp_path, versions=choice, **kw)
     assert again["meta"]["jobs_reused"] == 2
     fewer = VersionChoice(train=CAR_TRAIN, eval=CAR_TRAIN[:2], unseen=CAR_NEW)

@@ -10,7 +10,6 @@ logs as the last row. The paper's published accuracies are shown beside the pape
 
 from __future__ import annotations
 
-import json
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -19,6 +18,9 @@ import numpy as np
 from scipy import stats
 
 from ..goals.presets import LANE_KEEPING_SIGNAL
+from ..report.document import Provenance, Report, Section, Table, Text
+from ..report.files import write_files
+from ..report.markdown import to_markdown as render_markdown
 from .versions import parse_label
 
 #: The paper's accuracies (%), Tables 5-7, for n = 3, 15, 30 (random: one value for every n).
@@ -219,46 +221,37 @@ def _has_kld(v: dict[str, Any]) -> bool:
     return any("kld" in cell for ns in v["cells"].values() for cell in ns.values()) or "kld" in v["floor"]
 
 
-def _version_tables(uc: str, label: str, v: dict[str, Any], algorithms: Sequence[str]) -> list[str]:
+def _version_sections(uc: str, label: str, v: dict[str, Any], algorithms: Sequence[str]) -> list[Section]:
+    """Per figure (accuracy, W1, KLD) a table algorithm x n with the floor row and, for the paper's
+    versions, the paper's accuracies; then the per-goal W1 / KS at the largest n."""
     algos = [a for a in algorithms if a in v["cells"]]
     ns = sorted({int(n) for a in algos for n in v["cells"][a]})
-    lines: list[str] = []
+    sections: list[Section] = []
     figures = [("acc", "accuracy (%)", 100.0), ("w1", "mean normalised W1", 1.0)]
     if _has_kld(v):
         figures.append(("kld", "safety/comfort KLD", 1.0))
+    numeric = frozenset(range(1, len(ns) + 1))
     for key, title, scale in figures:
         digits = 2 if key == "acc" else 4
-        lines += [
-            f"## {uc.upper()}, {label}: {title}",
-            "",
-            "| algorithm | " + " | ".join(f"n={n}" for n in ns) + " |",
-            "|---|" + "---:|" * len(ns),
-        ]
-        for a in algos:
-            cells = [
+        rows = [
+            [a]
+            + [
                 _fmt(tuple(v["cells"][a][str(n)].get(key, NONE)), scale, digits) if str(n) in v["cells"][a] else "-"
                 for n in ns
             ]
-            lines.append(f"| {a} | " + " | ".join(cells) + " |")
+            for a in algos
+        ]
         if v["floor"]:
-            lines.append(
-                "| FOT vs FOT floor | "
-                + " | ".join([_fmt(tuple(v["floor"].get(key, NONE)), scale, digits)] * len(ns))
-                + " |"
-            )
+            rows.append(["FOT vs FOT floor"] + [_fmt(tuple(v["floor"].get(key, NONE)), scale, digits)] * len(ns))
         paper = paper_accuracy(uc, label)
         if key == "acc" and paper and ns == [3, 15, 30]:
             for a, p in paper.items():
                 vals = [p] * 3 if isinstance(p, float) else p
-                lines.append(f"| paper: {a} | " + " | ".join(f"{q:.2f}" for q in vals) + " |")
-        lines.append("")
+                rows.append([f"paper: {a}"] + [f"{q:.2f}" for q in vals])
+        table = Table(["algorithm"] + [f"n={n}" for n in ns], rows, numeric=numeric)
+        sections.append(Section(f"{uc.upper()}, {label}: {title}", [table]))
     best_n = str(max(ns))
-    lines += [
-        f"## {uc.upper()}, {label}: per-goal W1 / KS at n={best_n}",
-        "",
-        "| goal | " + " | ".join(f"{a} W1 / KS" for a in algos) + " | floor W1 / KS |",
-        "|---|" + "---:|" * (len(algos) + 1),
-    ]
+    rows = []
     for j, m in enumerate(v["goals"]):
         cells = [
             f"{v['cells'][a][best_n]['w1_goal'][j]:.4f} / {v['cells'][a][best_n]['ks_goal'][j]:.3f}"
@@ -267,48 +260,58 @@ def _version_tables(uc: str, label: str, v: dict[str, Any], algorithms: Sequence
             for a in algos
         ]
         fl = f"{v['floor']['w1_goal'][j]:.4f} / {v['floor']['ks_goal'][j]:.3f}" if v["floor"] else "-"
-        lines.append(f"| {m} | " + " | ".join(cells) + f" | {fl} |")
-    lines.append("")
-    return lines
+        rows.append([m, *cells, fl])
+    table = Table(
+        ["goal"] + [f"{a} W1 / KS" for a in algos] + ["floor W1 / KS"],
+        rows,
+        numeric=frozenset(range(1, len(algos) + 2)),
+    )
+    sections.append(Section(f"{uc.upper()}, {label}: per-goal W1 / KS at n={best_n}", [table]))
+    return sections
 
 
-def _geomean_table(uc: str, s: dict[str, Any], algorithms: Sequence[str]) -> list[str]:
+def _geomean_section(uc: str, s: dict[str, Any], algorithms: Sequence[str]) -> list[Section]:
     g = s["kld_geomean"]
     if not g:
         return []
     ns = sorted({int(n) for a in g for n in g[a]})
     pooled = s["kld_geomean_pooled"]
-    lines = [
-        f"## {uc.upper()}: geometric-mean KLD over versions (the authors' summary)",
-        "",
-        (
-            "Per repetition the geometric mean over controller versions; cells give its mean ± 95% "
-            "interval over repetitions and, in brackets, the geometric mean over all repetitions (the "
-            "authors' figure: BCxGAIL 0.80 at n=20, about 6.5 at n=3, FOT-vs-FOT about 0.62)."
-        ),
-        "",
-        "| algorithm | " + " | ".join(f"n={n}" for n in ns) + " |",
-        "|---|" + "---:|" * len(ns),
+    rows = [
+        [a] + [f"{_fmt(tuple(g[a][str(n)]), 1.0, 3)} [{pooled[a][str(n)]:.3f}]" if str(n) in g[a] else "-" for n in ns]
+        for a in algorithms
+        if a in g
     ]
-    for a in [a for a in algorithms if a in g]:
-        cells = g[a]
-        lines.append(
-            f"| {a} | "
-            + " | ".join(
-                f"{_fmt(tuple(cells[str(n)]), 1.0, 3)} [{pooled[a][str(n)]:.3f}]" if str(n) in cells else "-"
-                for n in ns
-            )
-            + " |"
-        )
-    lines.append("")
-    return lines
+    text = Text(
+        "Per repetition the geometric mean over controller versions; cells give its mean ± 95% "
+        "interval over repetitions and, in brackets, the geometric mean over all repetitions (the "
+        "authors' figure: BCxGAIL 0.80 at n=20, about 6.5 at n=3, FOT-vs-FOT about 0.62)."
+    )
+    table = Table(["algorithm"] + [f"n={n}" for n in ns], rows, numeric=frozenset(range(1, len(ns) + 1)))
+    return [Section(f"{uc.upper()}: geometric-mean KLD over versions (the authors' summary)", [text, table])]
 
 
-def to_markdown(summary: dict[str, Any], meta: dict[str, Any]) -> str:
-    lines = [
-        f"# ENVI experiments: {', '.join(u.upper() for u in summary)}",
-        "",
-        (
+def _verdict(summary: dict[str, Any], meta: dict[str, Any]) -> Table:
+    """The answer first: per use case and version, each algorithm's accuracy at the largest n beside
+    the FOT-vs-FOT floor of the same test logs."""
+    algos = list(meta["algorithms"])
+    rows = []
+    for uc, s in summary.items():
+        for label, v in s["versions"].items():
+            ns = sorted({int(n) for a in v["cells"] for n in v["cells"][a]})
+            top = str(ns[-1]) if ns else ""
+            cells = [
+                _fmt(tuple(v["cells"][a][top]["acc"]), 100.0, 2) if a in v["cells"] and top in v["cells"][a] else "-"
+                for a in algos
+            ]
+            floor = _fmt(tuple(v["floor"]["acc"]), 100.0, 2) if v["floor"] else "-"
+            rows.append([uc.upper(), label, top or "-", *cells, floor])
+    cols = ["use case", "version", "n"] + [f"{a} acc (%)" for a in algos] + ["FOT vs FOT floor (%)"]
+    return Table(cols, rows, numeric=frozenset(range(2, len(cols))))
+
+
+def _intro(meta: dict[str, Any]) -> list[Text]:
+    out = [
+        Text(
             f"System {meta.get('system', '?')}. Protocol {meta['protocol']}, algorithms "
             f"{', '.join(meta['algorithms'])}, n = {', '.join(map(str, meta['ns']))} training logs per version, "
             f"{meta['reps']} repetitions, seed {meta['seed']}, epochs {meta['epochs']}. Cells: mean ± half-width "
@@ -316,128 +319,90 @@ def to_markdown(summary: dict[str, Any], meta: dict[str, Any]) -> str:
             "system's goals. W1: mean over the goals of the normalised Wasserstein-1 distance. KLD (lane "
             "keeping only): Gaussian KL of (safety, comfort), real || sim. Floor: the same between two "
             "halves of the real test logs (FOT vs FOT)."
-        ),
-        "",
+        )
     ]
     for uc, plan in meta.get("versions", {}).items():
-        lines.append(f"- {uc.upper()}: trains on {'; '.join(plan['train'])}; verifies {'; '.join(plan['eval'])}")
-    lines.append("")
+        out.append(Text(f"{uc.upper()}: trains on {'; '.join(plan['train'])}; verifies {'; '.join(plan['eval'])}"))
+    return out
+
+
+def experiment_report(
+    summary: dict[str, Any], results: Sequence[dict[str, Any]], meta: dict[str, Any], figures: bool = True
+) -> Report:
+    """The grid's report: the verdict table, the reading guide, per use case the accuracy figure and
+    the trace overlays, the tables per version, provenance last."""
+    sections: list[Section] = []
     for uc, s in summary.items():
+        if figures:
+            sections += _figures(uc, s, results, meta)
         for label, v in s["versions"].items():
-            lines += _version_tables(uc, label, v, meta["algorithms"])
-        lines += _geomean_table(uc, s, meta["algorithms"])
-    lines += ["Logs of every training (training, validation, test) are listed per job in `results.json`.", ""]
-    return "\n".join(lines)
-
-
-def _grid(n: int, cols: int = 3) -> tuple[int, int]:
-    c = min(cols, max(n, 1))
-    return -(-max(n, 1) // c), c
-
-
-def plot(
-    summary: dict[str, Any],
-    results: Sequence[dict[str, Any]],
-    out: Path,
-    ranges: dict[str, list[float] | None] | None = None,
-    band: tuple[float, float] | None = None,
-) -> list[Path]:
-    """Accuracy vs n per algorithm and version (paper Figures 6-8), and real vs simulated traces of
-    every state channel. ``ranges``: each state's plotted range (its valid range when finite);
-    ``band``: the lane-keeping steady band (given for that preset only), shaded on its signal."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    ranges = ranges or {}
-    paths = []
-    for uc, s in summary.items():
-        vs = list(s["versions"].items())
-        rows, cols = _grid(len(vs))
-        fig, axes = plt.subplots(rows, cols, figsize=(5 * cols, 4 * rows), squeeze=False)
-        for ax, (label, v) in zip(axes.flat, vs):
-            for a, cells in v["cells"].items():
-                ns = sorted(int(n) for n in cells)
-                m = np.array([cells[str(n)]["acc"][0] for n in ns]) * 100
-                h = np.nan_to_num(np.array([cells[str(n)]["acc"][1] for n in ns]) * 100)  # no bar for one rep.
-                ax.errorbar(ns, m, yerr=h, marker="o", capsize=3, label=a)
-            if v["floor"]:
-                ax.axhline(v["floor"]["acc"][0] * 100, color="k", ls="--", lw=1, label="FOT vs FOT")
-            ax.set_title(f"{uc.upper()} {label}", fontsize=9)
-            ax.set_xlabel("training logs per version")
-            ax.set_ylabel("verification accuracy (%)")
-            ax.legend(fontsize=8)
-        for ax in list(axes.flat)[len(vs) :]:
-            ax.set_visible(False)
-        fig.tight_layout()
-        p = out / f"accuracy_{uc}.png"
-        fig.savefig(p, dpi=100)
-        plt.close(fig)
-        paths.append(p)
-        p = _plot_traces(plt, uc, results, out, ranges, band)
-        if p is not None:
-            paths.append(p)
-    return paths
-
-
-def _plot_traces(
-    plt: Any,
-    uc: str,
-    results: Sequence[dict[str, Any]],
-    out: Path,
-    ranges: dict[str, list[float] | None],
-    band: tuple[float, float] | None,
-) -> Path | None:
-    """One row per (version, state channel): real traces, then each algorithm's simulated ones
-    (first repetition, largest n)."""
-    mine = [r for r in results if uc in r["evals"]]
-    if not mine:
-        return None
-    top = max(r["n"] for r in mine)
-    chosen = [r for r in mine if r["rep"] == 0 and r["n"] == top]
-    groups = chosen[0]["evals"][uc]["groups"]
-    rows = [(gi, ch) for gi, g in enumerate(groups) for ch in g["traces"]["real"]]
-    # shared axes and a fixed layout: tick placement dominates the cost of a figure with many panels
-    fig, axes = plt.subplots(
-        len(rows),
-        len(chosen) + 1,
-        figsize=(3.2 * (len(chosen) + 1), 2.4 * len(rows)),
-        squeeze=False,
-        sharex=True,
-        sharey="row",
+            sections += _version_sections(uc, label, v, meta["algorithms"])
+        sections += _geomean_section(uc, s, meta["algorithms"])
+    sections.append(
+        Section(
+            "Logs", [Text("Logs of every training (training, validation, test) are listed per job in `results.json`.")]
+        )
     )
-    fig.subplots_adjust(left=0.12, right=0.98, bottom=0.04, top=1 - 0.5 / len(rows), hspace=0.25, wspace=0.08)
-    for ri, (gi, ch) in enumerate(rows):
-        axes[ri, 0].set_ylabel(f"{groups[gi]['version']}\n{ch}", fontsize=8)
-        for tr in groups[gi]["traces"]["real"][ch]:
-            axes[ri, 0].plot(tr, lw=1)
-        axes[ri, 0].set_title("real (FOT)" if ri == 0 else "")
-        for ai, r in enumerate(chosen, start=1):
-            for tr in r["evals"][uc]["groups"][gi]["traces"]["sim"].get(ch, []):
-                axes[ri, ai].plot(tr, lw=1)
-            axes[ri, ai].set_title(r["algorithm"] if ri == 0 else "")
-        for ax in axes[ri]:
-            if ranges.get(ch):
-                ax.set_ylim(*ranges[ch])
-            if band is not None and ch == LANE_KEEPING_SIGNAL:
-                ax.axhspan(*band, color="0.9")
-    fig.suptitle(f"{uc.upper()}: real vs simulated state traces (same initial windows, n={top}, rep 0)")
-    p = out / f"traces_{uc}.png"
-    fig.savefig(p, dpi=90)
-    plt.close(fig)
-    return p
+    title = f"ENVI experiments: {', '.join(u.upper() for u in summary)}"
+    data = strict_json({"meta": meta, "summary": summary, "jobs": list(results)})
+    return Report(
+        title, _verdict(summary, meta), Provenance.collect(system=meta.get("system")), _intro(meta), sections, data
+    )
+
+
+def to_markdown(summary: dict[str, Any], meta: dict[str, Any]) -> str:
+    """The report's tables as Markdown (no figures)."""
+    return render_markdown(experiment_report(summary, [], meta, figures=False))
+
+
+def _units(meta: dict[str, Any]) -> dict[str, str]:
+    """Each signal's unit: the grid's ``units`` when it records them, else the shipped system's."""
+    if meta.get("units"):
+        return dict(meta["units"])
+    try:
+        from ..system import load_system
+
+        return {c.name: c.unit for c in load_system(str(meta.get("system"))).schema.channels}
+    except (ValueError, OSError):
+        return {}
+
+
+def _figures(uc: str, s: dict[str, Any], results: Sequence[dict[str, Any]], meta: dict[str, Any]) -> list[Section]:
+    """Accuracy vs n (paper Figures 6-8) and real vs simulated traces of every state channel, each
+    algorithm's run from the same initial window as the real log (first repetition, largest n)."""
+    from ..report.plots import accuracy_vs_n, algorithm_traces
+
+    blocks: list[Any] = [accuracy_vs_n(uc, s["versions"], f"accuracy_{uc}")]
+    mine = [r for r in results if uc in r["evals"]]
+    if mine:
+        top = max(r["n"] for r in mine)
+        chosen = [r for r in mine if r["rep"] == 0 and r["n"] == top]
+        groups = chosen[0]["evals"][uc]["groups"]
+        panels = [
+            (
+                g["version"],
+                ch,
+                g["traces"]["real"][ch],
+                {r["algorithm"]: r["evals"][uc]["groups"][gi]["traces"]["sim"].get(ch, []) for r in chosen},
+            )
+            for gi, g in enumerate(groups)
+            for ch in g["traces"]["real"]
+        ]
+        if panels:
+            skip = int(meta.get("train_kwargs", {}).get("history", 10))
+            title = f"{uc.upper()}: real vs simulated state traces (same initial windows, n={top}, rep 0)"
+            band = meta.get("lane_band")
+            bands = {LANE_KEEPING_SIGNAL: (float(band[0]), float(band[1]))} if band else None
+            blocks.append(algorithm_traces(title, panels, _units(meta), skip, f"traces_{uc}", bands))
+    return [Section(f"{uc.upper()}: figures", blocks)]
 
 
 def write_report(results: Sequence[dict[str, Any]], meta: dict[str, Any], out: Path) -> Path:
-    """``report.md``, ``results.json`` (every job, its logs and numbers) and the PNGs in ``out``."""
+    """``report.md``, ``report.html``, ``results.json`` (every job, its logs and numbers; the report's
+    JSON) and the figures in ``report_figures/`` in ``out``; returns the Markdown path."""
     out.mkdir(parents=True, exist_ok=True)
     summary = summarise(results, meta["use_cases"])
-    (out / "results.json").write_text(
-        json.dumps(strict_json({"meta": meta, "summary": summary, "jobs": list(results)}), indent=1, allow_nan=False)
-    )
-    md = out / "report.md"
-    md.write_text(to_markdown(summary, meta))
-    band = meta.get("lane_band")
-    plot(summary, results, out, meta.get("state_ranges"), tuple(band) if band else None)
-    return md
+    report = experiment_report(summary, results, meta)
+    files = write_files(report, out, "report")
+    files.json.replace(out / "results.json")
+    return files.markdown

@@ -1,0 +1,140 @@
+"""Training curves of a finished model: a CSV, a report page and, on request, TensorBoard scalars.
+
+What is read (read-only) is what the trainers store: every algorithm's closed-loop validation error
+per evaluated epoch and the selected epoch (``record.selection``: ``curve``, ``best_epoch``,
+``diverged_epochs``); GAIL and BCxGAIL also write per-epoch losses to a ``curves.csv`` when asked for
+a curves folder (:func:`envi_py.train.gail.write_curves`), merged here when present. BC stores no
+per-epoch loss, so its page shows the validation curve only.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from .document import Provenance, Report, Section, Table, Text
+from .files import ReportFiles, write_files
+
+TENSORBOARD_HINT = "pip install 'envi[tensorboard]'"
+
+
+def curve_rows(selection: dict[str, Any], losses: Sequence[dict[str, Any]] = ()) -> list[dict[str, float]]:
+    """One row per epoch that has a number: ``epoch``, ``val_error`` (closed-loop mean normalised W1,
+    NaN where not evaluated), ``selected`` (1 at the kept epoch), ``diverged`` (1 where the simulated
+    runs left the real runs' range), and any loss columns of ``losses``."""
+    rows: dict[int, dict[str, float]] = {}
+    for r in losses:
+        e = int(float(r["epoch"]))
+        rows[e] = {k: float(v) if v not in ("", None) else math.nan for k, v in r.items() if k != "val_error"}
+        rows[e]["epoch"] = float(e)
+    for e, err in selection.get("curve", []):
+        rows.setdefault(int(e), {"epoch": float(e)})["val_error"] = float(err)
+    best, diverged = selection.get("best_epoch"), set(selection.get("diverged_epochs", []))
+    out = []
+    for e in sorted(rows):
+        r = {"epoch": float(e), "val_error": math.nan, **rows[e]}
+        r["selected"] = 1.0 if best is not None and e == best else 0.0
+        r["diverged"] = 1.0 if e in diverged else 0.0
+        out.append(r)
+    return out
+
+
+def read_loss_csv(path: Path) -> list[dict[str, Any]]:
+    """The rows of a GAIL ``curves.csv`` (empty when absent)."""
+    if not path.is_file():
+        return []
+    with path.open(newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def write_curves_csv(rows: Sequence[dict[str, float]], path: Path) -> Path:
+    fields = list(dict.fromkeys(k for r in rows for k in r)) or ["epoch", "val_error", "selected", "diverged"]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=fields)
+        w.writeheader()
+        for r in rows:
+            w.writerow({k: "" if isinstance(v, float) and math.isnan(v) else f"{v:g}" for k, v in r.items()})
+    return path
+
+
+def tensorboard_writer(logdir: Path) -> Any:
+    """A ``SummaryWriter``; ImportError naming the extra when tensorboard is not installed."""
+    try:
+        import tensorboard  # noqa: F401  (torch's writer needs it, and says so less clearly)
+    except ImportError:
+        raise ImportError(f"--tensorboard needs the tensorboard package: {TENSORBOARD_HINT}") from None
+    from torch.utils.tensorboard import SummaryWriter
+
+    return SummaryWriter(log_dir=str(logdir))
+
+
+def write_tensorboard(rows: Sequence[dict[str, float]], logdir: Path) -> Path:
+    """Every series of ``rows`` as TensorBoard scalars under ``train/<name>`` by epoch."""
+    writer = tensorboard_writer(logdir)
+    try:
+        for r in rows:
+            step = int(r["epoch"])
+            for k, v in r.items():
+                if k != "epoch" and math.isfinite(v):
+                    writer.add_scalar(f"train/{k}", v, step)
+    finally:
+        writer.close()
+    return logdir
+
+
+def training_report(ckpt: Any, model_path: Path, rows: Sequence[dict[str, float]]) -> Report:
+    """The page: what was selected and why first, the curves, then the record and provenance."""
+    from .plots import training_curves
+
+    rec = ckpt.record
+    sel = rec.selection
+    evaluated = [r for r in rows if math.isfinite(r.get("val_error", math.nan))]
+    best = [r for r in rows if r.get("selected")]
+    verdict = Table(
+        ["algorithm", "training logs", "validation logs", "epochs evaluated", "selected epoch", "closed-loop error"],
+        [
+            [
+                rec.algorithm,
+                str(len(rec.data)),
+                str(len(rec.validation)),
+                str(len(evaluated)),
+                str(sel.get("best_epoch", "-")),
+                f"{best[0]['val_error']:.4f}" if best and math.isfinite(best[0].get("val_error", math.nan)) else "-",
+            ]
+        ],
+        numeric=frozenset({1, 2, 3, 4, 5}),
+    )
+    guide = [
+        Text(f"Selection: {sel.get('criterion', '-')}." + (f" Warning: {sel['warning']}" if sel.get("warning") else ""))
+    ]
+    title = f"{rec.algorithm}: {len(rec.data)} training logs, seed {rec.seed}"
+    hyper = Table(["hyper-parameter", "value"], [[k, str(v)] for k, v in rec.hyper.items()])
+    return Report(
+        f"Training report: {model_path.name}",
+        verdict,
+        Provenance.collect(model_path, ckpt.system.name if ckpt.system else None),
+        guide,
+        [Section("Training curves", [training_curves(rows, title)]), Section("Hyper-parameters", [hyper])],
+        {"selection": sel, "curves": list(rows)},
+    )
+
+
+def write_training_outputs(
+    ckpt: Any, model_path: Path, losses_csv: Path | None = None, tensorboard: Path | None = None
+) -> dict[str, Path]:
+    """Beside the checkpoint ``model.pt``: ``model.curves.csv`` and ``model.training.{html,md,json}``;
+    with ``tensorboard`` the scalars in that folder."""
+    rows = curve_rows(ckpt.record.selection, read_loss_csv(losses_csv) if losses_csv else [])
+    stem = model_path.with_suffix("")
+    out = {"curves": write_curves_csv(rows, stem.with_name(stem.name + ".curves.csv"))}
+    files: ReportFiles = write_files(
+        training_report(ckpt, model_path, rows), model_path.parent, stem.name + ".training"
+    )
+    out["html"] = files.html
+    if tensorboard is not None:
+        out["tensorboard"] = write_tensorboard(rows, tensorboard)
+    return out
