@@ -300,11 +300,12 @@ def cmd_verify(args: argparse.Namespace) -> int:
 
     real = read_logs(args, "real")
     sim = load_logs(args.sim, skip_bad=args.skip_bad)
-    results = verify(real, sim, system_of(args), skip=args.skip, floor=not args.no_floor, seed=args.seed)
+    system = system_of(args)
+    results = verify(real, sim, system, skip=args.skip, floor=not args.no_floor, seed=args.seed)
     print(to_text(results))
     if args.out:
-        md, js = write_report(results, Path(args.out))
-        print(f"report: {md} {js}")
+        md, js = write_report(results, Path(args.out), real=real, sim=sim, system=system, skip=args.skip)
+        print(f"report: {md.with_suffix('.html')} {md} {js}")
     return 0
 
 
@@ -358,6 +359,7 @@ def cmd_check(args: argparse.Namespace) -> int:
         "batch": args.batch,
         "sims_per_start": args.sims_per_start,
         "seed": args.seed,
+        "system": system.name if system else None,
     }
     width = max(len(r.version) for r in rows)
     print(
@@ -373,7 +375,7 @@ def cmd_check(args: argparse.Namespace) -> int:
         )
     if args.out:
         md, js = write_check(rows, Path(args.out), meta)
-        print(f"report: {md} {js}")
+        print(f"report: {md.with_suffix('.html')} {md} {js}")
     return 0
 
 

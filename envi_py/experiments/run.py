@@ -110,6 +110,7 @@ def run_experiment(
         "jobs_reused": len(jobs) - len(todo),
         "wall_seconds": time.perf_counter() - t0,
         "system": system.name,
+        "units": {c.name: c.unit for c in system.schema.channels},
         "versions": plan.to_json(),
         "state_ranges": {
             c.name: [c.low, c.high] if math.isfinite(c.low) and math.isfinite(c.high) else None
