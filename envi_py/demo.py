@@ -87,6 +87,11 @@ def run_demo(
         results,
         out / "report",
         f"Demo ({system}): BC model of the twin, trained on {len(trained)} versions, verified on all (TMVK and TMVU)",
+        real=test_logs,
+        sim=sims,
+        system=desc,
+        skip=ckpt.config.history,
+        model=out / "model.pt",
     )
-    print(f"report: {md}")
+    print(f"report: {md.with_suffix('.html')} {md}")
     return md

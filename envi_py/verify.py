@@ -343,12 +343,17 @@ def write_report(
     sim: Sequence[Log] = (),
     system: SystemDescription | None = None,
     skip: int = 10,
+    model: Path | None = None,
 ) -> tuple[Path, Path]:
     """``report.md``, ``report.html`` and ``report.json`` in ``out`` (and ``report_figures/``). With
     the real and simulated logs the report also shows trace overlays with fit figures and every
-    version's metric distributions. Returns the Markdown and JSON paths."""
+    version's metric distributions; ``model``: the checkpoint the simulations came from, named and
+    hashed in the provenance. Returns the Markdown and JSON paths."""
+    from .report.document import Provenance
     from .report.files import write_files
     from .report.verification import verification_report
 
-    files = write_files(verification_report(results, title, extra, real, sim, system, skip), out, "report")
+    provenance = Provenance.collect(model=model, system=system.name if system is not None else None)
+    report = verification_report(results, title, extra, real, sim, system, skip, provenance=provenance)
+    files = write_files(report, out, "report")
     return files.markdown, files.json
