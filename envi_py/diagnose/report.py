@@ -147,6 +147,51 @@ def shrink_figure(d: Diagnosis) -> Figure:
     return fig
 
 
+def _quality_lines(d: Diagnosis) -> list[str]:
+    """Data-quality findings, before any effect: where the logs themselves are wrong."""
+    lines = ["", "## Data quality", ""]
+    if not d.quality:
+        return lines + [
+            "No pause in the time stamps, no repeated rows, no frozen or out-of-range reading, no session that "
+            "differs as a block, in the diagnosed or the training logs."
+        ]
+    lines += ["| logs | finding | files | what |", "|---|---|---:|---|"]
+    for q in d.quality:
+        lines.append(f"| {q['logs']} | {q['kind'].replace('_', ' ')} | {len(q['files'])} | {q['what']} |")
+    pauses = [(q["logs"], w) for q in d.quality if q["kind"] == "pause" for w in q["where"]]
+    if pauses:
+        lines += ["", "Pauses (file, time into the log, file row, length):", ""]
+        lines += [
+            f"- {which}: {w['file']} at {w['time_s']:.2f} s (row {w['row']}): {w['pause_s']:.1f} s"
+            for which, w in pauses
+        ]
+    return lines
+
+
+def _stage_lines(d: Diagnosis) -> list[str]:
+    """The model-class check: per version and goal, simulated against real run-to-run spread."""
+    if not d.stage:
+        return []
+    s = d.stage
+    lines = [
+        "",
+        "## Model class: simulated against real run-to-run spread",
+        "",
+        "Scatter of the real readings the model cannot predict: "
+        + "; ".join(f"{x['detail']} (p={x['p']:.2g}, {share_text(x['share'])})" for x in s["scatter"])
+        + ".",
+        "",
+        "| controller | goal | sd real | sd simulated | ratio |",
+        "|---|---|---:|---:|---:|",
+    ]
+    lines += [
+        f"| {r['controller']} | {r['goal']} | {r['sd_real']:.3g} {r['unit']} | {r['sd_sim']:.3g} {r['unit']} | "
+        f"{r['ratio']:.2f} |"
+        for r in s["goals"]
+    ]
+    return lines
+
+
 def _gap_lines(d: Diagnosis) -> list[str]:
     lines = ["", "## Where the gap lies", ""]
     lines.append(
@@ -247,6 +292,8 @@ def write_diagnosis(d: Diagnosis, out: Path) -> Path:
         "# Sim-to-real diagnosis" + (f": {d.system}" if d.system else ""),
         "",
         d.verdict(),
+        *_quality_lines(d),
+        *_stage_lines(d),
         "",
         "![goal distributions](metrics.png)",
         "",

@@ -28,7 +28,9 @@ from .gap import (
     windows_of,
 )
 from .residuals import ResidualSet, one_step_residuals
-from .shrink import scoring_of, shrink, simulate_groups
+from .data_quality import data_quality
+from .shrink import scoring_of, shrink, simulate_groups, version_label
+from .stages import refit_gaussian, spread_check, stage_text
 
 #: A misfit share from which the verdict discusses the misfit at all.
 MISFIT_SHARE = 0.5
@@ -53,6 +55,8 @@ class Diagnosis:
     misfit_by_signal: dict[str, float] = field(default_factory=dict)
     gap_test: dict[str, Any] = field(default_factory=dict)  # :func:`~.gap.gap_test`
     held_out: dict[str, Any] | None = None  # :func:`held_out_fit`: these logs against the model's own held-out logs
+    quality: list[dict[str, Any]] = field(default_factory=list)  # :mod:`.data_quality`, shown first
+    stage: dict[str, Any] | None = None  # :mod:`.stages`: the model class was wrong, and the refit
 
     @property
     def significant(self) -> list[Finding]:
@@ -125,10 +129,20 @@ class Diagnosis:
             "as imprecise on logs of its own training world (more data or training, not an added effect). "
         )
 
+    def _quality_text(self) -> str:
+        if not self.quality:
+            return ""
+        first = " ".join(q["what"] for q in self.quality[:2])
+        more = f" ({len(self.quality) - 2} more in the data-quality table.)" if len(self.quality) > 2 else ""
+        return f"Data quality first: {first}{more} "
+
     def verdict(self) -> str:
         """One paragraph a person reads first."""
+        stage = self.stage
         text = (
-            self._gap_text()
+            self._quality_text()
+            + (stage_text(stage, stage["mean_w1_before"], stage["mean_w1_after"]) if stage else "")
+            + self._gap_text()
             + self._horizon_text()
             + f"{share_text(self.coverage['outside_share'])} of simulated windows lie outside the training data. "
         )
@@ -165,6 +179,8 @@ class Diagnosis:
     def to_json(self) -> dict[str, Any]:
         return {
             "verdict": self.verdict(),
+            "data_quality": self.quality,
+            "stage": self.stage,
             "system": self.system,
             "gap_test": self.gap_test,
             "findings": [f.to_json() for f in self.findings],
@@ -252,6 +268,50 @@ def _distinct_fixes(findings: Sequence[Finding], top: int) -> list[Finding]:
     return out[:top]
 
 
+def _quality(ckpt: Checkpoint, diagnosed: Sequence[Log], training: Sequence[Log]) -> list[dict[str, Any]]:
+    """Data-quality findings of the diagnosed logs and of the model's training and validation logs,
+    each tagged with the set it was found in."""
+    states, actions = ckpt.schema.states, ckpt.schema.actions
+
+    def label(spec: Any) -> str:
+        return version_label(ckpt.system, spec)
+
+    return [
+        {"logs": which, **f.to_json()}
+        for which, logs in (("diagnosed", diagnosed), ("training", training))
+        for f in data_quality(logs, states, actions, label)
+    ]
+
+
+def _gaps(ckpt: Checkpoint, choose: Sequence[Log], runs: int, seed: int) -> tuple[list[Any], list[dict[str, Any]]]:
+    """The simulated groups and every version's goal gaps against the fair floor."""
+    scoring = scoring_of(ckpt)
+    groups = simulate_groups(ckpt, choose, runs, seed)
+    return groups, [{"controller": label, **goal_gaps(scoring, r, s, seed)} for label, r, s in groups]
+
+
+def _coverage(
+    ckpt: Checkpoint, choose: Sequence[Log], train_logs: Sequence[Log], runs: int, seed: int
+) -> dict[str, Any]:
+    """Share of simulated windows outside what the training windows cover (NaN for a model whose
+    input is not the plain window)."""
+    if not ckpt.config.plain:
+        return {
+            "threshold": float("nan"),
+            "outside_share": float("nan"),
+            "median_distance": float("nan"),
+            "train_median_distance": float("nan"),
+        }
+    hist, skip = ckpt.config.history, scoring_of(ckpt).skip
+    train_w = np.concatenate(ckpt.dataset(train_logs).X)[:, : hist * ckpt.config.row_width]
+    sims_full = [
+        rollout(ckpt, spec, initial_windows(group, hist), min(len(g) for g in group) - hist, runs=1, seed=seed)
+        for spec, group in group_by_controller(choose).items()
+    ]
+    sim_w = np.concatenate([windows_of(s, ckpt.norm.encode, hist, skip) for s in sims_full])
+    return coverage(train_w, sim_w.astype(np.float32), seed)
+
+
 def diagnose(
     ckpt: Checkpoint,
     real: Sequence[Log],
@@ -265,57 +325,60 @@ def diagnose(
     min_share: float = MIN_SHARE,
     seed: int = 0,
     progress: Callable[[str], None] | None = None,
+    refit: bool = True,
 ) -> Diagnosis:
     """Diagnose ``ckpt`` on ``real`` logs; effects are confirmed on ``confirm`` (default: half of ``real``).
     Gaps are scored on the goals of the model's system (:func:`~.shrink.scoring_of`). ``progress``
-    is told each step as it starts (the retraining of the last one takes most of the time)."""
+    is told each step as it starts (the retraining of the last one takes most of the time).
+
+    In stages: the logs' data quality first; then whether the model's class is wrong (a deterministic
+    model against runs that vary, :mod:`.stages`), in which case it is refitted with the Gaussian
+    head (unless ``refit`` is False) and the rest is the diagnosis of the refit."""
     say = progress or (lambda _text: None)
     choose, confirm_l = (list(real), list(confirm)) if confirm else split_choose_confirm(real, seed)
-    say(f"1/5 one-step residuals on {len(choose)} logs")
+    train_logs = list(train_logs) if train_logs is not None else ckpt.recorded_logs("data")
+    if val_logs is None:
+        val_logs = ckpt.recorded_logs("validation") if ckpt.record.validation else []
+    n_train = len(train_logs) + len(val_logs)
+    say(f"1/6 data quality of {len(choose) + len(confirm_l)} diagnosed and {n_train} training logs")
+    quality = _quality(ckpt, choose + confirm_l, list(train_logs) + list(val_logs))
+    say(f"2/6 one-step residuals on {len(choose)} logs")
     res = one_step_residuals(ckpt, choose)
-    scoring = scoring_of(ckpt)
-    say(f"2/5 closed-loop gaps: {runs} simulated runs per log, against the fair floor")
-    groups = simulate_groups(ckpt, choose, runs, seed)
-    gaps = [{"controller": label, **goal_gaps(scoring, r, s, seed)} for label, r, s in groups]
-    say("3/5 candidate effects on the residuals")
+    say(f"3/6 closed-loop gaps: {runs} simulated runs per log, against the fair floor")
+    groups, gaps = _gaps(ckpt, choose, runs, seed)
+    check = spread_check(ckpt, gaps, res)
+    stage: dict[str, Any] | None = None
+    if check["too_certain"]:
+        before = float(np.mean([g["mean_w1"] for g in gaps]))
+        after = None
+        if refit:
+            say("3/6 the model is deterministic and the real runs vary: refitting with a Gaussian head")
+            ckpt = refit_gaussian(ckpt, train_logs, val_logs)
+            res = one_step_residuals(ckpt, choose)
+            groups, gaps = _gaps(ckpt, choose, runs, seed)
+            after = float(np.mean([g["mean_w1"] for g in gaps]))
+        stage = {**check, "refit": refit, "mean_w1_before": before, "mean_w1_after": after}
+    say("4/6 candidate effects on the residuals")
     findings = run_candidates(res, ckpt, alpha, min_share, logs=choose)
     gap_tested = significant_gap(gaps)
     if not gap_tested["significant"]:
         findings = [replace(f, significant=False) for f in findings]
-    say("4/5 horizon and training-data coverage")
+    say("5/6 horizon and training-data coverage")
+    skip = scoring_of(ckpt).skip
     horizon = [
         {
             "controller": label,
             "signal": c.name,
             "unit": c.unit,
-            **horizon_gap(
-                np.stack([lg.states[:, k] for lg in r]), np.stack([lg.states[:, k] for lg in s]), scoring.skip, seed
-            ),
+            **horizon_gap(np.stack([lg.states[:, k] for lg in r]), np.stack([lg.states[:, k] for lg in s]), skip, seed),
         }
         for label, r, s in groups
         for k, c in enumerate(ckpt.schema.states)
     ]
-    train_logs = list(train_logs) if train_logs is not None else ckpt.recorded_logs("data")
-    if val_logs is None:
-        val_logs = ckpt.recorded_logs("validation") if ckpt.record.validation else []
-    hist = ckpt.config.history
-    cov = {
-        "threshold": float("nan"),
-        "outside_share": float("nan"),
-        "median_distance": float("nan"),
-        "train_median_distance": float("nan"),
-    }
-    if ckpt.config.plain:
-        train_w = np.concatenate(ckpt.dataset(train_logs).X)[:, : hist * ckpt.config.row_width]
-        sims_full = [
-            rollout(ckpt, spec, initial_windows(group, hist), min(len(g) for g in group) - hist, runs=1, seed=seed)
-            for spec, group in group_by_controller(choose).items()
-        ]
-        sim_w = np.concatenate([windows_of(s, ckpt.norm.encode, hist, scoring.skip) for s in sims_full])
-        cov = coverage(train_w, sim_w.astype(np.float32), seed)
+    cov = _coverage(ckpt, choose, train_logs, runs, seed)
     sig = _distinct_fixes(findings, top)
     if retrain and sig:
-        say(f"5/5 retraining with {', '.join(f.effect for f in sig)} and measuring the gap on {len(confirm_l)} logs")
+        say(f"6/6 retraining with {', '.join(f.effect for f in sig)} and measuring the gap on {len(confirm_l)} logs")
     shrunk = shrink(ckpt, sig, train_logs, val_logs, confirm_l, runs, seed) if retrain and sig else None
     misfit, misfit_each = misfit_by_signal(res)
     held = held_out_fit(ckpt, res, len(choose), val_logs)
@@ -335,4 +398,6 @@ def diagnose(
         misfit_each,
         gap_tested,
         held,
+        quality,
+        stage,
     )
