@@ -28,8 +28,7 @@ def residual_map_figure(d: Diagnosis) -> Figure:
     A cell with fewer than 5 residuals has no mean: it is hatched grey, never drawn as zero bias."""
     maps = [(ch, m) for ch in d.residual_map for m in ch["by_action"]]
     fig, axes = plt.subplots(len(maps), 1, figsize=(7, 3.2 * len(maps)), squeeze=False)
-    cmap = plt.get_cmap("RdBu_r").copy()
-    cmap.set_bad(alpha=0.0)  # NaN cells show the hatched background
+    cmap = plt.get_cmap("RdBu_r").with_extremes(bad=(0.0, 0.0, 0.0, 0.0))  # NaN cells show the hatching
     for ax, (ch, m) in zip(axes.ravel(), maps):
         mean = np.array(m["mean"], dtype=float)
         lim = np.nanmax(np.abs(mean)) if np.isfinite(mean).any() else 1.0
