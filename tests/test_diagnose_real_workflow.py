@@ -35,6 +35,7 @@ def test_multi_version_model_is_diagnosed_against_all_five_versions(real_dir, tm
         )
         == 0
     )
+    capsys.readouterr()  # the training's own lines
     out = tmp_path / "diag"
     args = ["diagnose", "--model", str(model), "--real", str(real), "--pattern", PATTERN]
     assert main(args + ["--runs", "2", "--no-retrain", "--out", str(out)]) == 0

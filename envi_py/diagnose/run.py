@@ -149,8 +149,8 @@ class Diagnosis:
         if self.no_gap:
             return text + (
                 f"No significant gap: every controller version's goals are within the real-vs-real floor by its "
-                f"permutation test (Holm over versions, p > {LEVEL:g}), so there is nothing to attribute and no "
-                "candidate effect is called significant (their tests are listed for information)."
+                f"permutation test (Holm over versions, p > {LEVEL:g}): there is no closed-loop gap to attribute, "
+                "so no candidate effect is called significant (their tests are listed for information)."
             )
         text += self._misfit_text()
         sig = self.significant
