@@ -157,7 +157,7 @@ def horizon_gap(real: np.ndarray, sim: np.ndarray, skip: int, seed: int = 0) -> 
     single readings measures the phase spread of an oscillating robot instead (large for two real
     runs alike but for their phase). ``real`` and ``sim`` are (runs, steps)."""
     t = min(real.shape[1], sim.shape[1])
-    width = oscillation_rows(real[:, skip:t])
+    width = min(oscillation_rows(real[:, skip:t]), t - skip)
     ends = np.arange(skip + width, t + 1)
     per_step = [
         fair_floor(real[:, e - width : e], sim[:, e - width : e], _w1_column, REPETITIONS, 1, LEVEL, seed) for e in ends
