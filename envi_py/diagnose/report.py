@@ -184,9 +184,9 @@ def _stage_lines(d: Diagnosis) -> list[str]:
         "|---|---|---:|---:|---:|",
     ]
     lines += [
-        f"| {r['controller']} | {r['goal']} | {r['sd_real']:.3g} {r['unit']} | {r['sd_sim']:.3g} {r['unit']} | "
-        f"{r['ratio']:.2f} |"
+        f"| {r['controller']} | {r['goal']} | {r['sd_real']:.3g}{unit} | {r['sd_sim']:.3g}{unit} | {r['ratio']:.2f} |"
         for r in s["goals"]
+        for unit in [f" {r['unit']}" if r["unit"] else ""]
     ]
     return lines
 

@@ -97,7 +97,7 @@ def stage_text(check: dict[str, Any], before: float, after: float | None) -> str
     """What the verdict says first when the model class is wrong."""
     scatter = "; ".join(s["detail"] for s in check["scatter"] if s["random"])
     text = (
-        f"First, the model class: the model is deterministic, while the real runs vary ({scatter}); its "
+        f"First, the model class: the model is deterministic, while the real runs vary: {scatter}. Its "
         f"simulated runs spread {check['median_ratio']:.0%} as widely as the real ones over the goals (median "
         f"of the standard deviations' ratio; narrower in {check['narrower']} of {check['tested']} goals, sign test "
         f"p={check['p']:.2g}). "
