@@ -49,7 +49,7 @@ def test_multi_version_model_is_diagnosed_against_all_five_versions(real_dir, tm
     assert len(pauses) == 1 and set(pauses[0]["files"]) == set(PAUSED)
     assert all(w["pause_s"] > 9.0 for w in pauses[0]["where"])
     verdict = captured.out
-    assert verdict.startswith("Data quality first: 4 of 20 logs pause inside the log")
+    assert verdict.startswith("Data quality first: In the diagnosed logs: 4 of 20 logs pause inside the log")
     md = (out / "diagnosis.md").read_text()
     assert "- diagnosed: log_10_1.csv at " in md
     # the misfit is compared with the model's own held-out (validation) logs, re-read with their versions

@@ -490,6 +490,7 @@ class Candidate:
     # its what-if (:mod:`.what_if`): one outcome per state channel
     what_if: Callable[[Checkpoint, Sequence[Log], ResidualSet], list[WhatIf]] | None = None
     per_action: bool = False  # tied to one action (tried on each), else to one state
+    no_fix: str = "envi has no model change that adds it on this channel"  # why ``fix`` gave nothing
 
     def bar(self, common: float) -> float:
         """The share a significant finding of this candidate must reach."""
@@ -505,7 +506,14 @@ CANDIDATES: tuple[Candidate, ...] = (
         ("delay", "lag", "lowpass"),
         what_if=lambda ckpt, logs, res: input_what_if(ckpt, logs, res, actuator_lags(res.actions)),
     ),
-    Candidate("noise", "unmodelled noise", test_noise, _gaussian_head, ("noise", "glitch")),
+    Candidate(
+        "noise",
+        "unmodelled noise",
+        test_noise,
+        _gaussian_head,
+        ("noise", "glitch"),
+        no_fix="the model already predicts a spread (Gaussian head): retraining with one changes nothing",
+    ),
     Candidate("quantisation", "sensor quantisation", test_quantisation, _round_states, ("quantise",)),
     Candidate("saturation", "saturation at range limits", test_saturation, _clip_and_remember, ("saturation",)),
     # Per-run offsets and trends in time absorb slow transients of a closed loop whose state the
@@ -627,7 +635,7 @@ def run_candidates(
                     else f"; what-if: {w.label}"
                 )
             if not fix:
-                detail += "; envi has no model change that adds it on this channel"
+                detail += f"; {c.no_fix}"
             name = _named(c, channel, res)
             what_if = max(0.0, w.share) if w else 0.0
             raw.append(

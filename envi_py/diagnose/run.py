@@ -132,7 +132,7 @@ class Diagnosis:
     def _quality_text(self) -> str:
         if not self.quality:
             return ""
-        first = " ".join(q["what"] for q in self.quality[:2])
+        first = " ".join(f"In the {q['logs']} logs: {q['what']}" for q in self.quality[:2])
         more = f" ({len(self.quality) - 2} more in the data-quality table.)" if len(self.quality) > 2 else ""
         return f"Data quality first: {first}{more} "
 
