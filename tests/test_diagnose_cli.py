@@ -1,4 +1,5 @@
-"""``envi diagnose`` end to end on twin logs with a known unmodelled effect: report, JSON, retraining."""
+"""``envi diagnose`` end to end on twin logs with a known unmodelled effect: report, JSON, the staged
+diagnosis of a deterministic model against a world whose runs vary."""
 
 from __future__ import annotations
 
@@ -11,42 +12,33 @@ from envi_py.train import train
 from envi_py.twin import TwinProfile, generate, write_logs
 
 
-def test_diagnose_names_noise_and_retrains_with_a_gaussian_head(tmp_path, capsys):
+def test_deterministic_model_of_a_noisy_world_is_refitted_before_the_rest_is_diagnosed(tmp_path, capsys):
     lane = ControllerSpec("lane-keeping", {"x": 30})
     write_logs(generate(lane, 15, 100, {"noise": 3.0}, seed=1, profile=TwinProfile()), tmp_path / "fit")
     write_logs(generate(lane, 24, 100, {"noise": 3.0}, seed=2, profile=TwinProfile()), tmp_path / "real")
     fit = load_logs(tmp_path / "fit")
-    ckpt = train("bc", fit[:12], fit[12:], seed=0, epochs=80, lr=1e-3, history=4, head="deterministic")
+    ckpt = train("bc", fit[:12], fit[12:], seed=0, epochs=40, lr=1e-3, history=4, head="deterministic")
     ckpt.save(tmp_path / "bc.pt")
     out = tmp_path / "diag"
-    assert (
-        main(
-            [
-                "diagnose",
-                "--model",
-                str(tmp_path / "bc.pt"),
-                "--real",
-                str(tmp_path / "real"),
-                "--runs",
-                "2",
-                "--top",
-                "1",
-                "--out",
-                str(out),
-            ]
-        )
-        == 0
-    )
-    verdict = capsys.readouterr().out
-    assert "Significant candidate effects, most important first: noise" in verdict
+    args = ["diagnose", "--model", str(tmp_path / "bc.pt"), "--real", str(tmp_path / "real")]
+    assert main(args + ["--runs", "2", "--no-retrain", "--out", str(out)]) == 0
+    captured = capsys.readouterr()
+    # stage 1 leads: the model class, then the refit
+    assert captured.out.startswith("First, the model class: the model is deterministic, while the real runs vary")
+    assert "Refitted with a Gaussian head" in captured.out
+    assert "3/6 the model is deterministic and the real runs vary: refitting with a Gaussian head" in captured.err
     d = json.loads((out / "diagnosis.json").read_text())
-    assert d["findings"][0]["effect"] == "noise" and d["findings"][0]["significant"]
-    after = d["shrink"]["after"][0]
-    assert after["effect"] == "noise" and after["fix"] == {"head": "gaussian"}
-    assert after["mean_w1"] < d["shrink"]["before"]["mean_w1"]
+    stage = d["stage"]
+    assert stage["too_certain"] and stage["refit"] and stage["head"] == "deterministic"
+    assert stage["scatter"][0]["random"] and stage["median_ratio"] < 1.0
+    assert stage["mean_w1_after"] < stage["mean_w1_before"]
+    # the rest is of the refit: the noise candidate has no fix left to offer (the head is Gaussian)
+    noise = next(f for f in d["findings"] if f["effect"] == "noise")
+    assert noise["fix"] == {}
     assert len(d["runs"]) == 12 and set(d["confirm_logs"]).isdisjoint(d["choose_logs"])
+    assert d["data_quality"] == []
     md = (out / "diagnosis.md").read_text()
-    for part in ("metrics.png", "horizon.png", "residual_map.png", "shrink.png", "Logs with the largest"):
+    for part in ("## Data quality", "## Model class", "metrics.png", "horizon.png", "residual_map.png"):
         assert part in md
         if part.endswith(".png"):
             assert (out / part).stat().st_size > 1000

@@ -23,15 +23,18 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
     real = read_logs(args, "real", min_length=hist + 1)
     confirm = read_logs(args, "confirm", min_length=hist + 1) if args.confirm else None
     train_logs = read_logs(args, "train_logs", min_length=hist + 1) if args.train_logs else None
+    val_logs = read_logs(args, "val_logs", min_length=hist + 1) if args.val_logs else None
     d = diagnose(
         ckpt,
         real,
         confirm,
         train_logs,
+        val_logs,
         runs=args.runs,
         top=args.top,
         retrain=not args.no_retrain,
         seed=args.seed,
+        refit=not args.no_refit,
         progress=None if args.quiet else lambda text: print(f"[diagnose] {text}", file=sys.stderr, flush=True),
     )
     md = write_diagnosis(d, Path(args.out))
@@ -95,9 +98,21 @@ def register(sub: Any) -> None:
         default=None,
         help="the model's training logs, if they are not where its checkpoint recorded them",
     )
+    p.add_argument(
+        "--val-logs",
+        nargs="*",
+        default=None,
+        help="the model's validation logs, if they are not where its checkpoint recorded them",
+    )
     p.add_argument("--runs", type=int, default=10, help="simulated runs per initial window")
     p.add_argument("--top", type=int, default=2, help="how many significant effects to retrain with")
-    p.add_argument("--no-retrain", action="store_true", help="skip the retraining (step 5)")
+    p.add_argument("--no-retrain", action="store_true", help="skip the retraining with the effects found (step 6)")
+    p.add_argument(
+        "--no-refit",
+        action="store_true",
+        help="a deterministic model whose runs vary far less than the real ones is diagnosed as it is, "
+        "not refitted with a Gaussian head first",
+    )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="diagnosis", help="output folder")
     p.add_argument("--quiet", action="store_true", help="no progress lines on standard error")

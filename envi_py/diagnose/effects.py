@@ -200,13 +200,23 @@ def test_memory(res: Residuals, ckpt: Checkpoint) -> tuple[float, float, float, 
     mask = _beyond_mask(res)
     x = np.nan_to_num(_diff(res, res.beyond))
     f, p, share = _f_test(res, x, mask, given=_diff(res, res.plays))
+    rows = res.beyond.shape[1] // ckpt.config.channels
+    period = ckpt.record.period_ms or float(np.median(res.dt))
     return (
         f,
         p,
         share,
-        f"the {res.beyond.shape[1] // ckpt.config.channels} rows before the window explain "
-        f"{share:.1%} of the residual differences between look-alike windows",
+        f"what happened {rows} rows ({rows * period:.0f} ms) before the model's window accounts for "
+        f"{_pct(share)} of the prediction error of {res.name} between similar situations of different runs",
     )
+
+
+def _pct(share: float) -> str:
+    return f"{share:.1%}" if abs(share) < 0.1 else f"{share:.0%}"
+
+
+def _in_units(value: float, res: Residuals) -> str:
+    return f"{value:.3g} {res.unit}".rstrip()
 
 
 def _features(res: Residuals, ckpt: Checkpoint) -> np.ndarray:
@@ -242,20 +252,21 @@ def test_noise(res: Residuals, ckpt: Checkpoint) -> tuple[float, float, float, s
     se = float(np.sqrt(np.sum((h - a @ coef2) ** 2) / dof * np.linalg.pinv(a.T @ a)[0, 0]))
     if res.pred_std is not None:
         ref = float(np.mean((res.pred_std[p.i] ** 2 + res.pred_std[p.j] ** 2) / 2))
-        what = "the model's predicted variance"
+        what = "the scatter the model predicts"
     else:
         step = lattice_step(res.real_next) or 0.0
         span = float(np.ptp(res.real_next)) or 1.0
         ref = max(step**2 / 12, (0.005 * span) ** 2)
-        what = "the resolution floor"
+        what = "the model predicts none; the sensor's resolution alone gives"
     tstat = (white - ref) / max(se, 1e-300)
     share = max(0.0, 2 * (white - ref)) / max(float(np.mean(y**2)), 1e-300)
+    sd, ref_sd = float(np.sqrt(max(white, 0.0))), float(np.sqrt(ref))
     return (
         white / max(ref, 1e-12),
         float(stats.t.sf(tstat, dof)),
         min(1.0, share),
-        f"white residual variance {white:.3g} (look-alike windows, zero distance) is {white / max(ref, 1e-12):.2f}x "
-        f"{what} ({ref:.3g})",
+        f"{res.name} scatters from step to step by sd {_in_units(sd, res)} that nothing in the window explains "
+        f"({what} sd {_in_units(ref_sd, res)})",
     )
 
 
@@ -264,9 +275,9 @@ def test_quantisation(res: Residuals, ckpt: Checkpoint) -> tuple[float, float, f
     rounding adds step^2/12 of variance the model cannot reproduce."""
     step = lattice_step(res.real_next)
     if step is None:
-        return 0.0, 1.0, 0.0, "the real readings are continuous"
+        return 0.0, 1.0, 0.0, f"the real {res.name} readings are continuous (no fixed step)"
     if ckpt.config.round_to is not None:
-        return 0.0, 1.0, 0.0, f"the model already rounds its output (readings on a {step:g} lattice)"
+        return 0.0, 1.0, 0.0, f"the model already rounds its output (readings in steps of {_in_units(step, res)})"
     n = len(res.real_next)
     off = np.abs(res.predicted / step - np.round(res.predicted / step)) > 1e-6
     k = int(off.sum())
@@ -276,8 +287,9 @@ def test_quantisation(res: Residuals, ckpt: Checkpoint) -> tuple[float, float, f
         step,
         p,
         share,
-        f"real readings sit on a lattice of step {step:g}; rounding error variance "
-        f"{step**2 / 12:.3g} is {share:.1%} of the differenced residual mean square",
+        f"real {res.name} readings come in steps of {_in_units(step, res)} and the model predicts values "
+        f"between them; rounding to that step accounts for {_pct(share)} of the prediction error between "
+        "similar situations",
     )
 
 
@@ -304,10 +316,10 @@ def test_saturation(res: Residuals, ckpt: Checkpoint) -> tuple[float, float, flo
         k, m = int(at.sum()), int(at.sum()) + adj
         p = float(stats.binom.sf(k - 1, m, 0.75)) if k > 1 else 1.0
         if p < best[1]:
-            best = (k / max(1, m - k), p, at, f"{k / len(v):.1%} of real readings sit exactly at {edge:g}")
+            best = (k / max(1, m - k), p, at, f"{_pct(k / len(v))} of real {res.name} readings sit exactly at {edge:g}")
     ratio, p, at, detail = best
     if not at.any():
-        return 0.0, 1.0, 0.0, "no pile-up at the range limits"
+        return 0.0, 1.0, 0.0, f"no pile-up of {res.name} readings at the limits of their range"
     edge = float(v[at][0])
     cfg = ckpt.config
     k = res.index
@@ -317,7 +329,13 @@ def test_saturation(res: Residuals, ckpt: Checkpoint) -> tuple[float, float, flo
     pr = res.pairs
     y = _diff(res, res.r)
     share = float(np.sum(y[hit[pr.i] | hit[pr.j]] ** 2) / max(float(np.sum(y**2)), 1e-300))
-    return float(ratio), p, share, f"{detail}, {ratio:.1f}x the adjacent bin"
+    return (
+        float(ratio),
+        p,
+        share,
+        f"{detail}{' ' + res.unit if res.unit else ''}, {ratio:.1f}x as many as just inside it (a sensor that "
+        f"clips); errors next to that limit are {_pct(share)} of the prediction error between similar situations",
+    )
 
 
 def test_drift(res: Residuals, ckpt: Checkpoint) -> tuple[float, float, float, str]:
@@ -327,7 +345,13 @@ def test_drift(res: Residuals, ckpt: Checkpoint) -> tuple[float, float, float, s
     t = res.row.astype(float)
     x = np.column_stack([_diff(res, t), _diff(res, t * _change(res))])
     f, p, share = _f_test(res, x)
-    return f, p, share, f"time in the run explains {share:.1%} of the residual differences between look-alike windows"
+    return (
+        f,
+        p,
+        share,
+        f"time since the start of the run accounts for {_pct(share)} of the prediction error of {res.name} "
+        "between similar situations (a slow change within each run: a sagging battery, warming up)",
+    )
 
 
 def _run_effects(res: Residuals) -> np.ndarray:
@@ -347,10 +371,16 @@ def test_run_to_run(res: Residuals, ckpt: Checkpoint) -> tuple[float, float, flo
     y = _diff(res, res.r)
     runs = np.unique(res.run[p.i])
     if len(runs) < 3:
-        return 0.0, 1.0, 0.0, "too few runs"
+        return 0.0, 1.0, 0.0, f"too few runs ({len(runs)}) to compare runs"
     x0 = np.column_stack([_null(res), _change(res)[p.i]])
     f, pv, share = _compare(y, x0, np.column_stack([x0, _run_effects(res)]), res.run[p.i])
-    return f, pv, share, f"per-run offsets and gains explain {share:.1%} of the residual differences ({len(runs)} runs)"
+    return (
+        f,
+        pv,
+        share,
+        f"an offset and a gain of its own for each of the {len(runs)} runs account for {_pct(share)} of the "
+        f"prediction error of {res.name} between similar situations: the runs differ from each other",
+    )
 
 
 def _best_play(res: Residuals) -> tuple[float, float, float, int]:
@@ -378,8 +408,9 @@ def test_backlash(res: Residuals, ckpt: Checkpoint) -> tuple[float, float, float
         f,
         min(1.0, p * res.play.shape[1]),
         share,
-        f"an actuator play of {PLAY_WIDTHS[k]:.0%} of the action range explains {share:.1%} of the residual "
-        f"differences between look-alike windows",
+        f"a play of {PLAY_WIDTHS[k]:.0%} of the {res.action_name} range in the actuator (a dead band the "
+        f"command must cross after each reversal) accounts for {_pct(share)} of the prediction error of "
+        f"{res.name} between similar situations",
     )
 
 
@@ -400,15 +431,22 @@ def test_jitter(res: Residuals, ckpt: Checkpoint) -> tuple[float, float, float, 
     period = ckpt.record.period_ms or float(np.median(res.dt))
     z = (res.dt / period - 1.0) * _change(res)
     if np.allclose(z, 0):
-        return 0.0, 1.0, 0.0, "no interval variation"
+        return 0.0, 1.0, 0.0, "the sampling interval never varies"
     f, p, share = _f_test(res, _diff(res, z))
     return (
         f,
         p,
         share,
-        f"the interval's deviation explains {share:.1%} of the residual differences "
-        f"(period sd {np.std(res.dt):.2g} ms)",
+        f"the sampling interval is {np.median(res.dt):.0f} ms (median; middle 90% "
+        f"{np.percentile(res.dt, 5):.0f}-{np.percentile(res.dt, 95):.0f} ms, longest {np.max(res.dt):.0f} ms); "
+        f"its variation accounts for {_pct(share)} of the prediction error of {res.name} between similar "
+        "situations",
     )
+
+
+def _gaussian_head(ckpt: Checkpoint, res: Residuals) -> dict[str, Any]:
+    """Noise's fix: a Gaussian head; none for a model that has one (retraining it changes nothing)."""
+    return {} if ckpt.config.head == "gaussian" else {"head": "gaussian"}
 
 
 def _longer_history(ckpt: Checkpoint, res: Residuals) -> dict[str, Any]:
@@ -452,6 +490,7 @@ class Candidate:
     # its what-if (:mod:`.what_if`): one outcome per state channel
     what_if: Callable[[Checkpoint, Sequence[Log], ResidualSet], list[WhatIf]] | None = None
     per_action: bool = False  # tied to one action (tried on each), else to one state
+    no_fix: str = "envi has no model change that adds it on this channel"  # why ``fix`` gave nothing
 
     def bar(self, common: float) -> float:
         """The share a significant finding of this candidate must reach."""
@@ -467,7 +506,14 @@ CANDIDATES: tuple[Candidate, ...] = (
         ("delay", "lag", "lowpass"),
         what_if=lambda ckpt, logs, res: input_what_if(ckpt, logs, res, actuator_lags(res.actions)),
     ),
-    Candidate("noise", "unmodelled noise", test_noise, lambda c, r: {"head": "gaussian"}, ("noise", "glitch")),
+    Candidate(
+        "noise",
+        "unmodelled noise",
+        test_noise,
+        _gaussian_head,
+        ("noise", "glitch"),
+        no_fix="the model already predicts a spread (Gaussian head): retraining with one changes nothing",
+    ),
     Candidate("quantisation", "sensor quantisation", test_quantisation, _round_states, ("quantise",)),
     Candidate("saturation", "saturation at range limits", test_saturation, _clip_and_remember, ("saturation",)),
     # Per-run offsets and trends in time absorb slow transients of a closed loop whose state the
@@ -584,13 +630,12 @@ def run_candidates(
             if w is not None:
                 p = min(1.0, 2 * min(p, w.p))
                 detail += (
-                    f"; feeding the model the commands through {w.label} removes {w.share:.1%} of the residual "
-                    "mean square"
+                    f"; feeding the model the commands through {w.label} removes {_pct(w.share)} of its one-step error"
                     if w.share > 0
                     else f"; what-if: {w.label}"
                 )
             if not fix:
-                detail += "; the model has no change that adds it on this channel"
+                detail += f"; {c.no_fix}"
             name = _named(c, channel, res)
             what_if = max(0.0, w.share) if w else 0.0
             raw.append(

@@ -9,10 +9,13 @@ import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
+from matplotlib.figure import Figure  # noqa: E402
+from matplotlib.patches import Rectangle  # noqa: E402
 import numpy as np  # noqa: E402
 
 from .effects import CANDIDATES, MIN_SHARE, WHAT_IF_BAR  # noqa: E402
-from .run import Diagnosis, ratio_text  # noqa: E402
+from .gap import ratio_text, share_text  # noqa: E402
+from .run import Diagnosis  # noqa: E402
 
 
 def _own_bars() -> str:
@@ -20,14 +23,21 @@ def _own_bars() -> str:
     return ", ".join(f"{c.min_share:.0%} for {c.name}" for c in CANDIDATES if c.min_share is not None)
 
 
-def _residual_map_png(d: Diagnosis, path: Path) -> None:
-    """One heat map per state and action: the mean residual over the state's value x the action's."""
+def residual_map_figure(d: Diagnosis) -> Figure:
+    """One heat map per state and action: the mean residual over the state's value x the action's.
+    A cell with fewer than 5 residuals has no mean: it is hatched grey, never drawn as zero bias."""
     maps = [(ch, m) for ch in d.residual_map for m in ch["by_action"]]
     fig, axes = plt.subplots(len(maps), 1, figsize=(7, 3.2 * len(maps)), squeeze=False)
+    cmap = plt.get_cmap("RdBu_r").with_extremes(bad=(0.0, 0.0, 0.0, 0.0))  # NaN cells show the hatching
     for ax, (ch, m) in zip(axes.ravel(), maps):
         mean = np.array(m["mean"], dtype=float)
         lim = np.nanmax(np.abs(mean)) if np.isfinite(mean).any() else 1.0
-        im = ax.imshow(mean, aspect="auto", cmap="RdBu_r", vmin=-lim, vmax=lim)
+        ax.add_patch(
+            Rectangle(
+                (-0.5, -0.5), mean.shape[1], mean.shape[0], facecolor="0.85", hatch="///", edgecolor="0.5", zorder=0
+            )
+        )
+        im = ax.imshow(np.ma.masked_invalid(mean), aspect="auto", cmap=cmap, vmin=-lim, vmax=lim, zorder=1)
         edges = m["state_edges"]
         ax.set_xticks(
             range(len(edges) - 1),
@@ -38,9 +48,13 @@ def _residual_map_png(d: Diagnosis, path: Path) -> None:
         ax.set_yticks(range(len(m["actions"])), m["actions"])
         ax.set_xlabel(f"{_signal(ch['signal'], ch['unit'])} (last reading of the window)")
         ax.set_ylabel(m["action_signal"])
-        ax.set_title(f"mean one-step residual of {ch['signal']} (real - predicted)")
-        fig.colorbar(im, ax=ax)
+        ax.set_title(f"mean one-step error of {ch['signal']} (real - predicted); hatched: < 5 residuals", fontsize=9)
+        fig.colorbar(im, ax=ax, label=ch["unit"] or None)
     fig.tight_layout()
+    return fig
+
+
+def _save(fig: Figure, path: Path) -> None:
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
@@ -49,41 +63,60 @@ def _signal(name: str, unit: str) -> str:
     return f"{name} [{unit}]" if unit else name
 
 
-def _horizon_png(d: Diagnosis, path: Path) -> None:
+def horizon_figure(d: Diagnosis) -> Figure:
+    """Per state, one line per controller version: the windowed gap over the real-vs-real floor
+    against the step (log scale; 1 is the floor)."""
     signals = list(dict.fromkeys(h["signal"] for h in d.horizon))
-    fig, axes = plt.subplots(len(signals), 1, figsize=(7, 3.2 * len(signals)), squeeze=False)
+    fig, axes = plt.subplots(len(signals), 1, figsize=(7, 3.4 * len(signals)), squeeze=False)
     for ax, sig in zip(axes.ravel(), signals):
-        for h in (h for h in d.horizon if h["signal"] == sig):
-            ax.plot(h["step"], h["w1"], label=f"{h['controller']} sim vs real")
-            ax.plot(h["step"], h["floor"], "--", alpha=0.6, label=f"{h['controller']} real vs real")
-            unit = h["unit"]
-        ax.set_xlabel("step")
-        ax.set_ylabel(f"W1 of {sig}" + (f" [{unit}]" if unit else ""))
-        ax.set_title(f"gap of {sig} vs horizon (real half against as many runs)")
-        ax.legend(fontsize=7)
+        rows = [h for h in d.horizon if h["signal"] == sig]
+        for h in rows:
+            ratio = np.array(h["ratio"], dtype=float)
+            shown = np.where(np.isfinite(ratio), ratio, np.nan)
+            ax.plot(h["step"], shown, label=f"{h['controller']} (window {h['width']} rows)")
+        ax.axhline(1.0, color="k", linestyle="--", linewidth=1, label="real-vs-real floor")
+        ax.set_yscale("log")
+        ax.set_xlabel("step (end of the window)")
+        ax.set_ylabel("W1 sim / W1 real-vs-real")
+        ax.set_title(f"gap of {sig} readings over one oscillation period, against the horizon", fontsize=9)
+        ax.legend(fontsize=7, ncol=2)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    return fig
 
 
-def _metrics_png(d: Diagnosis, path: Path) -> None:
-    g = d.gaps[0]
-    rows = g["gaps"]
-    cols = min(4, len(rows))
-    nrows = -(-len(rows) // cols)
-    fig, axes = plt.subplots(nrows, cols, figsize=(2.8 * cols, 2.3 * nrows), squeeze=False)
-    for ax in axes.ravel()[len(rows) :]:
+def _ratio_short(ratio: float) -> str:
+    return "floor 0" if ratio == float("inf") else f"{ratio:.1f}x"
+
+
+def metrics_figure(d: Diagnosis) -> Figure:
+    """One panel per goal, every controller version side by side: real (grey) and simulated (blue)
+    runs, with the version's ratio to the floor under its name."""
+    goals = [r["goal"] for r in d.gaps[0]["gaps"]]
+    cols = 2 if len(d.gaps) > 2 else min(4, len(goals))
+    nrows = -(-len(goals) // cols)
+    width = max(2.8, 0.9 * len(d.gaps) + 1.0)
+    fig, axes = plt.subplots(nrows, cols, figsize=(width * cols, 2.6 * nrows), squeeze=False)
+    for ax in axes.ravel()[len(goals) :]:
         ax.axis("off")
-    for ax, x in zip(axes.ravel(), rows):
-        ax.boxplot([x["real"], x["sim"]], tick_labels=["real", "sim"])
-        ax.set_title(f"{_signal(x['goal'], x['unit'])}\nW1/floor {ratio_text(x['ratio'])}, p={x['p']:.2g}", fontsize=8)
-    fig.suptitle(f"goal distributions, {g['controller']}")
+    for ax, goal in zip(axes.ravel(), goals):
+        rows = [next(r for r in g["gaps"] if r["goal"] == goal) for g in d.gaps]
+        data = [v for r in rows for v in (r["real"], r["sim"])]
+        pos = [3 * i + k for i in range(len(rows)) for k in (0, 1)]
+        box = ax.boxplot(data, positions=pos, widths=0.8, patch_artist=True)
+        for k, patch in enumerate(box["boxes"]):
+            patch.set_facecolor("0.8" if k % 2 == 0 else "tab:blue")
+        ax.set_xticks(
+            [3 * i + 0.5 for i in range(len(rows))],
+            [f"{g['controller']}\n{_ratio_short(r['ratio'])}" for g, r in zip(d.gaps, rows)],
+            fontsize=7,
+        )
+        ax.set_title(_signal(goal, rows[0]["unit"]), fontsize=8)
+    fig.suptitle("goal distributions per version: real (grey) and simulated (blue); under each: W1 / floor")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    return fig
 
 
-def _shrink_png(d: Diagnosis, path: Path) -> None:
+def shrink_figure(d: Diagnosis) -> Figure:
     s = d.shrink
     assert s is not None
     labels = list(s["before"]["goals"])
@@ -110,8 +143,52 @@ def _shrink_png(d: Diagnosis, path: Path) -> None:
     ax.set_title("goal gaps on the confirmation logs, before and after each fix")
     ax.legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    return fig
+
+
+def _quality_lines(d: Diagnosis) -> list[str]:
+    """Data-quality findings, before any effect: where the logs themselves are wrong."""
+    lines = ["", "## Data quality", ""]
+    if not d.quality:
+        return lines + [
+            "No pause in the time stamps, no repeated rows, no frozen or out-of-range reading, no session that "
+            "differs as a block, in the diagnosed or the training logs."
+        ]
+    lines += ["| logs | finding | files | what |", "|---|---|---:|---|"]
+    for q in d.quality:
+        lines.append(f"| {q['logs']} | {q['kind'].replace('_', ' ')} | {len(q['files'])} | {q['what']} |")
+    pauses = [(q["logs"], w) for q in d.quality if q["kind"] == "pause" for w in q["where"]]
+    if pauses:
+        lines += ["", "Pauses (file, time into the log, file row, length):", ""]
+        lines += [
+            f"- {which}: {w['file']} at {w['time_s']:.2f} s (row {w['row']}): {w['pause_s']:.1f} s"
+            for which, w in pauses
+        ]
+    return lines
+
+
+def _stage_lines(d: Diagnosis) -> list[str]:
+    """The model-class check: per version and goal, simulated against real run-to-run spread."""
+    if not d.stage:
+        return []
+    s = d.stage
+    lines = [
+        "",
+        "## Model class: simulated against real run-to-run spread",
+        "",
+        "Scatter of the real readings the model cannot predict: "
+        + "; ".join(f"{x['detail']} (p={x['p']:.2g}, {share_text(x['share'])})" for x in s["scatter"])
+        + ".",
+        "",
+        "| controller | goal | sd real | sd simulated | ratio |",
+        "|---|---|---:|---:|---:|",
+    ]
+    lines += [
+        f"| {r['controller']} | {r['goal']} | {r['sd_real']:.3g}{unit} | {r['sd_sim']:.3g}{unit} | {r['ratio']:.2f} |"
+        for r in s["goals"]
+        for unit in [f" {r['unit']}" if r["unit"] else ""]
+    ]
+    return lines
 
 
 def _gap_lines(d: Diagnosis) -> list[str]:
@@ -158,7 +235,7 @@ def _residual_lines(d: Diagnosis) -> list[str]:
         "",
         "## One-step residuals by state",
         "",
-        f"{d.misfit:.0%} of the residual mean square (in units of each state's range) is a smooth function of "
+        f"{share_text(d.misfit)} of the residual mean square (in units of each state's range) is a smooth function of "
         "the window (misfit where similar windows were seen).",
         "",
         "| state | unit | range | RMSE | RMSE / range | misfit share |",
@@ -166,7 +243,7 @@ def _residual_lines(d: Diagnosis) -> list[str]:
     ]
     lines += [
         f"| {c['signal']} | {c['unit'] or '-'} | {c['scale']:.4g} | {c['rmse']:.3g} | {c['rmse_of_range']:.2%} | "
-        f"{d.misfit_by_signal.get(c['signal'], float('nan')):.0%} |"
+        f"{share_text(d.misfit_by_signal.get(c['signal'], float('nan')))} |"
         for c in d.residual_map
     ]
     for c in d.residual_map:
@@ -207,13 +284,15 @@ def _residual_lines(d: Diagnosis) -> list[str]:
 def write_diagnosis(d: Diagnosis, out: Path) -> Path:
     """``diagnosis.md``, ``diagnosis.json`` and the PNGs they show, in ``out``."""
     out.mkdir(parents=True, exist_ok=True)
-    _residual_map_png(d, out / "residual_map.png")
-    _horizon_png(d, out / "horizon.png")
-    _metrics_png(d, out / "metrics.png")
+    _save(residual_map_figure(d), out / "residual_map.png")
+    _save(horizon_figure(d), out / "horizon.png")
+    _save(metrics_figure(d), out / "metrics.png")
     lines = [
         "# Sim-to-real diagnosis" + (f": {d.system}" if d.system else ""),
         "",
         d.verdict(),
+        *_quality_lines(d),
+        *_stage_lines(d),
         "",
         "![goal distributions](metrics.png)",
         "",
@@ -239,11 +318,11 @@ def write_diagnosis(d: Diagnosis, out: Path) -> Path:
     ]
     for f in d.findings:
         lines.append(
-            f"| {f.effect} | {'**yes**' if f.significant else 'no'} | {f.p_holm:.2g} | {f.share:.1%} | "
-            f"{f.what_if:.1%} | {f.detail} |"
+            f"| {f.effect} | {'**yes**' if f.significant else 'no'} | {f.p_holm:.2g} | {share_text(f.share)} | "
+            f"{share_text(f.what_if)} | {f.detail} |"
         )
     if d.shrink:
-        _shrink_png(d, out / "shrink.png")
+        _save(shrink_figure(d), out / "shrink.png")
         s = d.shrink
         b = s["before"]
         lines += [
@@ -266,7 +345,7 @@ def write_diagnosis(d: Diagnosis, out: Path) -> Path:
     lines += _residual_lines(d)
     lines += [
         "",
-        f"Coverage: {d.coverage['outside_share']:.1%} of simulated windows are farther from the training "
+        f"Coverage: {share_text(d.coverage['outside_share'])} of simulated windows are farther from the training "
         f"windows than 95% of training windows are from each other.",
         "",
         "Logs used to choose the effect: " + ", ".join(d.choose_logs),

@@ -6,19 +6,34 @@ from dataclasses import dataclass, field, replace
 from typing import Any, Callable, Sequence
 
 import numpy as np
+from scipy import stats
 
 from ..dataset import split_logs
 from ..logs import Log, group_by_controller
 from ..model import Checkpoint
 from ..simulate import initial_windows, rollout
 from .effects import MIN_SHARE, Finding, misfit_share, run_candidates
-from .gap import LEVEL, by_run, gap_rank, by_version, coverage, goal_gaps, horizon_gap, residual_map, windows_of
+from .gap import (
+    LEVEL,
+    by_run,
+    by_version,
+    coverage,
+    gap_rank,
+    gap_test,
+    goal_gaps,
+    horizon_gap,
+    ratio_text,
+    residual_map,
+    share_text,
+    windows_of,
+)
 from .residuals import ResidualSet, one_step_residuals
-from .shrink import scoring_of, shrink, simulate_groups
+from .data_quality import data_quality
+from .shrink import scoring_of, shrink, simulate_groups, version_label
+from .stages import refit_gaussian, spread_check, stage_text
 
-
-def ratio_text(ratio: float) -> str:
-    return "infinite" if ratio == float("inf") else f"{ratio:.1f}x"
+#: A misfit share from which the verdict discusses the misfit at all.
+MISFIT_SHARE = 0.5
 
 
 @dataclass
@@ -38,6 +53,10 @@ class Diagnosis:
     confirm_logs: list[str] = field(default_factory=list)
     system: str = ""
     misfit_by_signal: dict[str, float] = field(default_factory=dict)
+    gap_test: dict[str, Any] = field(default_factory=dict)  # :func:`~.gap.gap_test`
+    held_out: dict[str, Any] | None = None  # :func:`held_out_fit`: these logs against the model's own held-out logs
+    quality: list[dict[str, Any]] = field(default_factory=list)  # :mod:`.data_quality`, shown first
+    stage: dict[str, Any] | None = None  # :mod:`.stages`: the model class was wrong, and the refit
 
     @property
     def significant(self) -> list[Finding]:
@@ -45,64 +64,105 @@ class Diagnosis:
 
     @property
     def no_gap(self) -> bool:
-        """True when every goal of every controller version is within its fair real-vs-real floor."""
-        return not has_gap(self.gaps)
+        """True when there is no significant closed-loop gap (:func:`significant_gap`)."""
+        return not self.gap_test.get("significant", False)
 
     def _gap_text(self) -> str:
         version, worst = min(((g, r) for g in self.gaps for r in g["gaps"]), key=lambda x: gap_rank(x[1]))
         beyond = sum(r["beyond_floor"] for g in self.gaps for r in g["gaps"])
         tested = sum(len(g["gaps"]) for g in self.gaps)
         name = f"{worst['goal']} of {version['controller']}" if len(self.gaps) > 1 else worst["goal"]
-        size = (
-            "the real runs never differ in it, the simulated ones do"
-            if worst["ratio"] == float("inf")
-            else f"{worst['ratio']:.1f}x the fair real-vs-real floor"
-        )
         lead = (
             "The largest closed-loop gap beyond the floor is in"
             if worst["beyond_floor"]
             else f"No goal's gap is beyond the floor by its permutation test (p > {LEVEL:g}); the largest is in"
         )
         return (
-            f"{lead} {name} ({size}: normalised W1 {worst['w1']:.4f} against {worst['floor']:.4f} at "
-            f"{version['per_side']} runs per side; permutation test p={worst['p']:.2g}). "
+            f"{lead} {name} ({ratio_text(worst['ratio'])}; normalised W1 {worst['w1']:.4f} against the real-vs-real "
+            f"floor {worst['floor']:.4f} at {version['per_side']} runs per side; permutation test p={worst['p']:.2g}). "
             f"{beyond} of {tested} goal gaps ({len(self.gaps)} controller version{'s' * (len(self.gaps) > 1)}) "
-            f"are beyond the floor (p <= {LEVEL:g}). "
+            f"are beyond the floor (p <= {LEVEL:g} each). "
         )
 
     def _horizon_text(self) -> str:
-        exits: dict[str, list[float]] = {}
-        for h in self.horizon:
-            exits.setdefault(h["signal"], []).append(h["median_exit_step"])
-        parts = [f"{s} after a median of {np.median(v):.0f} steps" for s, v in exits.items()]
-        return "Simulated runs leave the band of real runs: " + ", ".join(parts) + "; "
+        parts = []
+        for signal in dict.fromkeys(h["signal"] for h in self.horizon):
+            rows = [h for h in self.horizon if h["signal"] == signal]
+            med = float(np.median([h["median_ratio"] for h in rows]))
+            starts = [h["above_from_step"] for h in rows if h["above_from_step"] is not None]
+            when = (
+                f"above the floor to the end of the run from step {int(np.median(starts))} on "
+                f"in {len(starts)} of {len(rows)} version{'s' * (len(rows) > 1)}"
+                if starts
+                else "back within the floor before the end of the run"
+            )
+            parts.append(f"{signal} {ratio_text(med)} the real-vs-real floor (median over the steps; {when})")
+        return (
+            "Over the horizon, the readings of a sliding window of one oscillation period differ from the real "
+            "ones by: " + "; ".join(parts) + ". "
+        )
+
+    def _misfit_text(self) -> str:
+        """The misfit, said as what the comparison with the model's own held-out logs supports."""
+        share = share_text(self.misfit)
+        if self.misfit < MISFIT_SHARE:
+            return ""
+        h = self.held_out
+        if h is None:
+            return (
+                f"{share} of the one-step error is a smooth function of the window: the model is wrong where "
+                "it has seen similar windows (no held-out logs of the training world to tell whether these logs "
+                "come from another world). "
+            )
+        comparison = (
+            f"its one-step error on these logs is {h['rms_ratio']:.2f}x that on {h['n_held_out']} of its own "
+            f"held-out logs (median RMS per log; Mann-Whitney p={h['p']:.2g}, {h['n_logs']} logs)"
+        )
+        if h["worse"]:
+            return (
+                f"{share} of the one-step error is a smooth function of the window and {comparison}: the model "
+                "is wrong where it has seen similar windows, as when these logs come from a world the training "
+                "logs do not show; training on such logs, not an added effect, closes that part. "
+            )
+        return (
+            f"{share} of the one-step error is a smooth function of the window, but {comparison}: the model is "
+            "as imprecise on logs of its own training world (more data or training, not an added effect). "
+        )
+
+    def _quality_text(self) -> str:
+        if not self.quality:
+            return ""
+        first = " ".join(f"In the {q['logs']} logs: {q['what']}" for q in self.quality[:2])
+        more = f" ({len(self.quality) - 2} more in the data-quality table.)" if len(self.quality) > 2 else ""
+        return f"Data quality first: {first}{more} "
 
     def verdict(self) -> str:
         """One paragraph a person reads first."""
+        stage = self.stage
         text = (
-            self._gap_text()
+            self._quality_text()
+            + (stage_text(stage, stage["mean_w1_before"], stage["mean_w1_after"]) if stage else "")
+            + self._gap_text()
             + self._horizon_text()
-            + f"{self.coverage['outside_share']:.0%} of simulated windows lie outside the training data. "
+            + f"{share_text(self.coverage['outside_share'])} of simulated windows lie outside the training data. "
         )
-        sig = self.significant
         if self.no_gap:
             return text + (
-                "Every goal is within its real-vs-real floor: there is no closed-loop gap to "
-                "attribute, so no candidate effect is called significant (their tests are listed "
-                "for information)."
+                f"No significant gap: every controller version's goals are within the real-vs-real floor by its "
+                f"permutation test (Holm over versions, p > {LEVEL:g}): there is no closed-loop gap to attribute, "
+                "so no candidate effect is called significant (their tests are listed for information)."
             )
-        if self.misfit >= 0.5:
-            text += (
-                f"{self.misfit:.0%} of the one-step residual is a smooth function of the window: the model is "
-                f"wrong where it has seen similar windows, as when these logs come from a world the training "
-                f"logs do not show; training on such logs, not an added effect, closes that part. "
-            )
+        text += self._misfit_text()
+        sig = self.significant
         if not sig:
-            return text + "No candidate effect explains a significant share of the one-step residuals."
+            return text + (
+                "None of the candidates explains the gap: no candidate effect explains a significant share of "
+                "the one-step errors (an effect outside the candidate list, or a misfit of the model)."
+            )
         names = ", ".join(
-            f"{f.effect} ({f.share:.0%} of residual mean square)"
+            f"{f.effect} ({share_text(f.share)} of the prediction error between similar situations)"
             if f.share >= f.what_if
-            else f"{f.effect} (its what-if removes {f.what_if:.0%} of the residual mean square)"
+            else f"{f.effect} (its what-if removes {share_text(f.what_if)} of the one-step error)"
             for f in sig
         )
         text += f"Significant candidate effects, most important first: {names}. "
@@ -119,7 +179,10 @@ class Diagnosis:
     def to_json(self) -> dict[str, Any]:
         return {
             "verdict": self.verdict(),
+            "data_quality": self.quality,
+            "stage": self.stage,
             "system": self.system,
+            "gap_test": self.gap_test,
             "findings": [f.to_json() for f in self.findings],
             "gaps": self.gaps,
             "horizon": self.horizon,
@@ -130,6 +193,7 @@ class Diagnosis:
             "runs": self.runs,
             "misfit": self.misfit,
             "misfit_by_signal": self.misfit_by_signal,
+            "held_out": self.held_out,
             "choose_logs": self.choose_logs,
             "confirm_logs": self.confirm_logs,
         }
@@ -155,6 +219,36 @@ def has_gap(gaps: Sequence[dict[str, Any]]) -> bool:
     return any(row["ratio"] > 1.0 for g in gaps for row in g["gaps"])
 
 
+def significant_gap(gaps: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """:func:`~.gap.gap_test` (the per-version permutation tests, Holm over versions), significant
+    only when some goal's gap also exceeds its floor (:func:`has_gap`)."""
+    test = gap_test(gaps)
+    return {**test, "significant": test["significant"] and has_gap(gaps)}
+
+
+def held_out_fit(
+    ckpt: Checkpoint, res: ResidualSet, n_logs: int, held_out: Sequence[Log], level: float = LEVEL
+) -> dict[str, Any] | None:
+    """Does the model fit these logs worse than its own held-out logs (validation logs of its training
+    world)? Per log, the one-step residual mean square in units of each state's range; one-sided
+    Mann-Whitney U test, these logs against the held-out ones. Misfit on logs of the training world
+    is imprecision of the model; only a fit significantly worse than there says the logs come from
+    another world. None with fewer than 3 held-out logs."""
+    if len(held_out) < 3:
+        return None
+    here = res.ms_by_run(n_logs)
+    there = one_step_residuals(ckpt, held_out).ms_by_run(len(held_out))
+    here, there = here[np.isfinite(here)], there[np.isfinite(there)]
+    p = float(stats.mannwhitneyu(here, there, alternative="greater").pvalue)
+    return {
+        "rms_ratio": float(np.sqrt(np.median(here) / max(float(np.median(there)), 1e-300))),
+        "p": p,
+        "worse": p <= level,
+        "n_logs": int(len(here)),
+        "n_held_out": int(len(there)),
+    }
+
+
 def misfit_by_signal(res: ResidualSet) -> tuple[float, dict[str, float]]:
     """The misfit share of each state, and over all of them weighted by each one's residual mean
     square in units of its range."""
@@ -174,6 +268,50 @@ def _distinct_fixes(findings: Sequence[Finding], top: int) -> list[Finding]:
     return out[:top]
 
 
+def _quality(ckpt: Checkpoint, diagnosed: Sequence[Log], training: Sequence[Log]) -> list[dict[str, Any]]:
+    """Data-quality findings of the diagnosed logs and of the model's training and validation logs,
+    each tagged with the set it was found in."""
+    states, actions = ckpt.schema.states, ckpt.schema.actions
+
+    def label(spec: Any) -> str:
+        return version_label(ckpt.system, spec)
+
+    return [
+        {"logs": which, **f.to_json()}
+        for which, logs in (("diagnosed", diagnosed), ("training", training))
+        for f in data_quality(logs, states, actions, label)
+    ]
+
+
+def _gaps(ckpt: Checkpoint, choose: Sequence[Log], runs: int, seed: int) -> tuple[list[Any], list[dict[str, Any]]]:
+    """The simulated groups and every version's goal gaps against the fair floor."""
+    scoring = scoring_of(ckpt)
+    groups = simulate_groups(ckpt, choose, runs, seed)
+    return groups, [{"controller": label, **goal_gaps(scoring, r, s, seed)} for label, r, s in groups]
+
+
+def _coverage(
+    ckpt: Checkpoint, choose: Sequence[Log], train_logs: Sequence[Log], runs: int, seed: int
+) -> dict[str, Any]:
+    """Share of simulated windows outside what the training windows cover (NaN for a model whose
+    input is not the plain window)."""
+    if not ckpt.config.plain:
+        return {
+            "threshold": float("nan"),
+            "outside_share": float("nan"),
+            "median_distance": float("nan"),
+            "train_median_distance": float("nan"),
+        }
+    hist, skip = ckpt.config.history, scoring_of(ckpt).skip
+    train_w = np.concatenate(ckpt.dataset(train_logs).X)[:, : hist * ckpt.config.row_width]
+    sims_full = [
+        rollout(ckpt, spec, initial_windows(group, hist), min(len(g) for g in group) - hist, runs=1, seed=seed)
+        for spec, group in group_by_controller(choose).items()
+    ]
+    sim_w = np.concatenate([windows_of(s, ckpt.norm.encode, hist, skip) for s in sims_full])
+    return coverage(train_w, sim_w.astype(np.float32), seed)
+
+
 def diagnose(
     ckpt: Checkpoint,
     real: Sequence[Log],
@@ -187,58 +325,63 @@ def diagnose(
     min_share: float = MIN_SHARE,
     seed: int = 0,
     progress: Callable[[str], None] | None = None,
+    refit: bool = True,
 ) -> Diagnosis:
     """Diagnose ``ckpt`` on ``real`` logs; effects are confirmed on ``confirm`` (default: half of ``real``).
     Gaps are scored on the goals of the model's system (:func:`~.shrink.scoring_of`). ``progress``
-    is told each step as it starts (the retraining of the last one takes most of the time)."""
+    is told each step as it starts (the retraining of the last one takes most of the time).
+
+    In stages: the logs' data quality first; then whether the model's class is wrong (a deterministic
+    model against runs that vary, :mod:`.stages`), in which case it is refitted with the Gaussian
+    head (unless ``refit`` is False) and the rest is the diagnosis of the refit."""
     say = progress or (lambda _text: None)
     choose, confirm_l = (list(real), list(confirm)) if confirm else split_choose_confirm(real, seed)
-    say(f"1/5 one-step residuals on {len(choose)} logs")
+    train_logs = list(train_logs) if train_logs is not None else ckpt.recorded_logs("data")
+    if val_logs is None:
+        val_logs = ckpt.recorded_logs("validation") if ckpt.record.validation else []
+    n_train = len(train_logs) + len(val_logs)
+    say(f"1/6 data quality of {len(choose) + len(confirm_l)} diagnosed and {n_train} training logs")
+    quality = _quality(ckpt, choose + confirm_l, list(train_logs) + list(val_logs))
+    say(f"2/6 one-step residuals on {len(choose)} logs")
     res = one_step_residuals(ckpt, choose)
-    scoring = scoring_of(ckpt)
-    say(f"2/5 closed-loop gaps: {runs} simulated runs per log, against the fair floor")
-    groups = simulate_groups(ckpt, choose, runs, seed)
-    gaps = [{"controller": label, **goal_gaps(scoring, r, s, seed)} for label, r, s in groups]
-    say("3/5 candidate effects on the residuals")
+    say(f"3/6 closed-loop gaps: {runs} simulated runs per log, against the fair floor")
+    groups, gaps = _gaps(ckpt, choose, runs, seed)
+    check = spread_check(ckpt, gaps, res)
+    stage: dict[str, Any] | None = None
+    if check["too_certain"]:
+        before = float(np.mean([g["mean_w1"] for g in gaps]))
+        after = None
+        if refit:
+            say("3/6 the model is deterministic and the real runs vary: refitting with a Gaussian head")
+            ckpt = refit_gaussian(ckpt, train_logs, val_logs)
+            res = one_step_residuals(ckpt, choose)
+            groups, gaps = _gaps(ckpt, choose, runs, seed)
+            after = float(np.mean([g["mean_w1"] for g in gaps]))
+        stage = {**check, "refit": refit, "mean_w1_before": before, "mean_w1_after": after}
+    say("4/6 candidate effects on the residuals")
     findings = run_candidates(res, ckpt, alpha, min_share, logs=choose)
-    if not has_gap(gaps):
+    gap_tested = significant_gap(gaps)
+    if not gap_tested["significant"]:
         findings = [replace(f, significant=False) for f in findings]
+    say("5/6 horizon and training-data coverage")
+    skip = scoring_of(ckpt).skip
     horizon = [
         {
             "controller": label,
             "signal": c.name,
             "unit": c.unit,
-            **horizon_gap(
-                np.stack([lg.states[:, k] for lg in r]), np.stack([lg.states[:, k] for lg in s]), scoring.skip, seed
-            ),
+            **horizon_gap(np.stack([lg.states[:, k] for lg in r]), np.stack([lg.states[:, k] for lg in s]), skip, seed),
         }
         for label, r, s in groups
         for k, c in enumerate(ckpt.schema.states)
     ]
-    train_logs = list(train_logs) if train_logs is not None else ckpt.recorded_logs("data")
-    if val_logs is None:
-        val_logs = ckpt.recorded_logs("validation") if ckpt.record.validation else []
-    hist = ckpt.config.history
-    say("4/5 horizon and training-data coverage")
-    cov = {
-        "threshold": float("nan"),
-        "outside_share": float("nan"),
-        "median_distance": float("nan"),
-        "train_median_distance": float("nan"),
-    }
-    if ckpt.config.plain:
-        train_w = np.concatenate(ckpt.dataset(train_logs).X)[:, : hist * ckpt.config.row_width]
-        sims_full = [
-            rollout(ckpt, spec, initial_windows(group, hist), min(len(g) for g in group) - hist, runs=1, seed=seed)
-            for spec, group in group_by_controller(choose).items()
-        ]
-        sim_w = np.concatenate([windows_of(s, ckpt.norm.encode, hist, scoring.skip) for s in sims_full])
-        cov = coverage(train_w, sim_w.astype(np.float32), seed)
+    cov = _coverage(ckpt, choose, train_logs, runs, seed)
     sig = _distinct_fixes(findings, top)
     if retrain and sig:
-        say(f"5/5 retraining with {', '.join(f.effect for f in sig)} and measuring the gap on {len(confirm_l)} logs")
+        say(f"6/6 retraining with {', '.join(f.effect for f in sig)} and measuring the gap on {len(confirm_l)} logs")
     shrunk = shrink(ckpt, sig, train_logs, val_logs, confirm_l, runs, seed) if retrain and sig else None
     misfit, misfit_each = misfit_by_signal(res)
+    held = held_out_fit(ckpt, res, len(choose), val_logs)
     return Diagnosis(
         findings,
         gaps,
@@ -253,4 +396,8 @@ def diagnose(
         [lg.name for lg in confirm_l],
         ckpt.system.name if ckpt.system is not None else "",
         misfit_each,
+        gap_tested,
+        held,
+        quality,
+        stage,
     )

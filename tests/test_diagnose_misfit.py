@@ -1,0 +1,50 @@
+"""The misfit sentence ("as when these logs come from a world the training logs do not show") rests on
+a test: the logs must fit worse than the model's own held-out logs of its training world. Logs drawn
+from the training world do not; logs of a world with an actuator lag do."""
+
+from __future__ import annotations
+
+import pytest
+
+from envi_py.controllers import ControllerSpec
+from envi_py.diagnose.residuals import one_step_residuals
+from envi_py.diagnose.run import Diagnosis, held_out_fit
+from envi_py.train import train
+from envi_py.twin import TwinProfile, generate
+
+LANE = ControllerSpec("lane-keeping", {"x": 30})
+WORLD = "as when these logs come from a world the training logs do not show"
+
+
+@pytest.fixture(scope="module")
+def model():
+    fit = generate(LANE, 18, 100, {}, seed=11, profile=TwinProfile())
+    return train("bc", fit[:12], [], seed=0, epochs=20, lr=1e-3, history=4), fit[12:]
+
+
+@pytest.mark.parametrize("seed", [21, 22])
+def test_logs_of_the_training_world_do_not_fit_worse_than_its_held_out_logs(model, seed):
+    ckpt, held_out = model
+    logs = generate(LANE, 12, 100, {}, seed=seed, profile=TwinProfile())
+    h = held_out_fit(ckpt, one_step_residuals(ckpt, logs), len(logs), held_out)
+    assert h is not None and not h["worse"] and h["n_held_out"] == 6 and h["n_logs"] == 12
+
+
+def test_logs_of_a_world_with_an_actuator_lag_fit_worse(model):
+    ckpt, held_out = model
+    logs = generate(LANE, 12, 100, {"lag": 200.0}, seed=23, profile=TwinProfile())
+    h = held_out_fit(ckpt, one_step_residuals(ckpt, logs), len(logs), held_out)
+    assert h["worse"] and h["p"] <= 0.05 and h["rms_ratio"] > 1.0
+
+
+def test_the_sentence_follows_the_test():
+    def said(held_out):
+        d = Diagnosis([], [], [], [], [], {"outside_share": 0.0}, None, misfit=0.6, held_out=held_out)
+        return d._misfit_text()
+
+    base = {"rms_ratio": 1.0, "p": 0.5, "n_logs": 12, "n_held_out": 6}
+    assert WORLD not in said({**base, "worse": False}) and "as imprecise on logs of its own" in said(
+        {**base, "worse": False}
+    )
+    assert WORLD in said({**base, "rms_ratio": 3.0, "p": 0.001, "worse": True})
+    assert WORLD not in said(None) and "no held-out logs" in said(None)
