@@ -16,7 +16,8 @@ model runs (its paired prediction f(s_i)); ``--starts`` (200) further real start
 each (the unpaired predictions, as the recorded training starts in ``envi check``). Then
 :func:`envi_py.verdicts.ppi_verdict` gives the interval for the real P at 95 %, or withdraws the claim
 when its validity check rejects: the outcome count against the paired predictions, and each real run's
-margin against its own 20 paired margins (``--no-margins``: the outcome count alone, as before). Reported per (model, version, requirement), over ``--reps`` (200)
+margin against its own 20 paired margins (``--no-margins``: the outcome count alone, as before).
+Reported per (model, version, requirement), over ``--reps`` (200)
 repetitions: coverage of the truth when the claim is kept, how often it is withdrawn, coverage of
 the interval actually reported (kept or the real-only fallback), and the width against the exact
 real-only (Clopper-Pearson) interval of the same 10 runs (median ratio).

@@ -115,6 +115,19 @@ def test_badly_biased_model_is_caught(n_real, slope, at_least):
     assert rate >= at_least
 
 
+def test_estimated_predictions_never_make_a_point_interval():
+    """3 real failures where every start's 20 simulated runs failed too: as exact probabilities the
+    interval is the point 0; as estimates from 20 runs each start keeps a chance of 0.5/21 (the real
+    lane-keeping x = 50 case, where all 66 real runs show 11 % success)."""
+    sims, y, f = np.zeros(200), np.zeros(3), np.zeros(3)
+    exact = ppi(sims, y, f)
+    assert (exact.low, exact.high) == (0.0, 0.0)
+    est = ppi(sims, y, f, sims_per_start=20)
+    g = 0.5 / 21
+    assert est.se == pytest.approx(np.sqrt(g * (1 - g) / 3)) and est.low == 0.0
+    assert est.high == pytest.approx(1.959964 * np.sqrt(g * (1 - g) / 3), rel=1e-6)
+
+
 def test_rectifier_check_values():
     chk = rectifier_check([1, 0, 1, 1], [0.5, 0.5, 0.5, 0.5], level=0.05)
     r = np.array([0.5, -0.5, 0.5, 0.5])

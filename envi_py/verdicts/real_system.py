@@ -191,12 +191,7 @@ def rectifier_check(
     """
     y, f = _paired(real_outcomes, paired_predictions)
     level = probability("level", level)
-    if sims_per_start is None:
-        shrunk = f
-    else:
-        m = count("sims_per_start", sims_per_start, 1)
-        shrunk = (m * f + 0.5) / (m + 1)
-    p = calibration_p_value(y, shrunk)
+    p = calibration_p_value(y, _shrunk(f, sims_per_start))
     if (real_margins is None) != (paired_margins is None):
         raise ValueError("real_margins and paired_margins go together: give both or neither")
     if real_margins is None:
@@ -241,17 +236,38 @@ class Estimate:
         }
 
 
-def _rectified(method: str, sim: np.ndarray, y: np.ndarray, f: np.ndarray, c: float, confidence: float) -> Estimate:
+def _shrunk(f: np.ndarray, sims_per_start: int | None) -> np.ndarray:
+    """Predictions estimated from m simulated runs as (m f + 1/2) / (m + 1): a start where the model saw
+    no failure in m runs is "rare", not "impossible" (None: the predictions are exact probabilities)."""
+    if sims_per_start is None:
+        return f
+    m = count("sims_per_start", sims_per_start, 1)
+    return (m * f + 0.5) / (m + 1)
+
+
+def _rectified(
+    method: str,
+    sim: np.ndarray,
+    y: np.ndarray,
+    f: np.ndarray,
+    c: float,
+    confidence: float,
+    sims_per_start: int | None = None,
+) -> Estimate:
     """theta = c mean(sim) + mean(Y - c f), variance c^2 var(sim)/N + var(Y - c f)/n, normal interval.
 
-    var(Y - c f) is taken as at least mean(f (1 - f)): from 10 runs the sample variance is often far too
-    small, because a run whose outcome the model did not foresee is rare and may not be among them (the
-    interval then under-covers). For any c, var(Y - c f) >= E[var(Y | start)], which a calibrated model
-    puts at E[f (1 - f)]: the floor costs nothing when the sample variance is already that large.
+    var(Y - c f) is taken as at least mean(g (1 - g)), g the predictions shrunk as in :func:`_shrunk`:
+    from 10 runs the sample variance is often far too small, because a run whose outcome the model did
+    not foresee is rare and may not be among them (the interval then under-covers). For any c,
+    var(Y - c f) >= E[var(Y | start)], which a calibrated model puts at E[f (1 - f)]; the shrinkage keeps
+    a start whose m simulated runs all agreed from counting as certain (with f = 0 everywhere and 3 real
+    failures the interval would otherwise be a point). The floor costs nothing when the sample variance
+    is already that large.
     """
     r = y - c * f
+    g = _shrunk(f, sims_per_start)
     v_sim = c**2 * float(sim.var(ddof=1)) / sim.size
-    v_real = max(float(r.var(ddof=1)), float(np.mean(f * (1 - f)))) / r.size
+    v_real = max(float(r.var(ddof=1)), float(np.mean(g * (1 - g)))) / r.size
     se = float(np.sqrt(v_sim + v_real))
     theta = c * float(sim.mean()) + float(r.mean())
     half = float(stats.norm.ppf(0.5 + confidence / 2)) * se
@@ -259,16 +275,26 @@ def _rectified(method: str, sim: np.ndarray, y: np.ndarray, f: np.ndarray, c: fl
 
 
 def ppi(
-    sim_predictions: object, real_outcomes: object, paired_predictions: object, confidence: float = 0.95
+    sim_predictions: object,
+    real_outcomes: object,
+    paired_predictions: object,
+    confidence: float = 0.95,
+    sims_per_start: int | None = None,
 ) -> Estimate:
-    """Prediction-powered estimate of the real P(goal) with its normal interval (see the module docstring)."""
+    """Prediction-powered estimate of the real P(goal) with its normal interval (see the module docstring).
+
+    ``sims_per_start``: simulated runs behind each paired prediction (None: exact probabilities)."""
     sim = unit_vector("sim_predictions", sim_predictions, 2)
     y, f = _paired(real_outcomes, paired_predictions)
-    return _rectified("ppi", sim, y, f, 1.0, probability("confidence", confidence))
+    return _rectified("ppi", sim, y, f, 1.0, probability("confidence", confidence), sims_per_start)
 
 
 def control_variate(
-    sim_predictions: object, real_outcomes: object, paired_predictions: object, confidence: float = 0.95
+    sim_predictions: object,
+    real_outcomes: object,
+    paired_predictions: object,
+    confidence: float = 0.95,
+    sims_per_start: int | None = None,
 ) -> Estimate:
     """Control-variate estimate: theta = mean(Y) - c (mean(f) - mean(sim)), c = cov(Y, f) / var(f) on the pairs.
 
@@ -279,7 +305,7 @@ def control_variate(
     y, f = _paired(real_outcomes, paired_predictions)
     var_f = float(f.var(ddof=1))
     c = float(np.cov(y, f, ddof=1)[0, 1]) / var_f if var_f > 0 else 0.0
-    return _rectified("control-variate", sim, y, f, c, probability("confidence", confidence))
+    return _rectified("control-variate", sim, y, f, c, probability("confidence", confidence), sims_per_start)
 
 
 @dataclass(frozen=True)
@@ -344,7 +370,7 @@ def ppi_verdict(
     p_required = probability("p_required", p_required, open_interval=False)
     confidence = 1.0 - probability("alpha", alpha)
     est = (ppi if estimator == "ppi" else control_variate)(
-        sim_predictions, real_outcomes, paired_predictions, confidence
+        sim_predictions, real_outcomes, paired_predictions, confidence, sims_per_start
     )
     y = outcomes("real_outcomes", real_outcomes, 2)
     real = decide(int(y.sum()), y.size, p_required, alpha)
