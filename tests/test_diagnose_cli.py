@@ -38,7 +38,12 @@ def test_deterministic_model_of_a_noisy_world_is_refitted_before_the_rest_is_dia
     assert len(d["runs"]) == 12 and set(d["confirm_logs"]).isdisjoint(d["choose_logs"])
     assert d["data_quality"] == []
     md = (out / "diagnosis.md").read_text()
-    for part in ("## Data quality", "## Model class", "metrics.png", "horizon.png", "residual_map.png"):
+    figures = ("metrics.png", "horizon.png", "residual_map.png", "residual_correlation.png")
+    for part in ("## Data quality", "## Model class", *(f"diagnosis_figures/{f}" for f in figures)):
         assert part in md
         if part.endswith(".png"):
             assert (out / part).stat().st_size > 1000
+    html = (out / "diagnosis.html").read_text()
+    assert html.count("<img") == md.count("![") and "Provenance" in html and "bc.pt" in html
+    assert md.index("| controller |") < md.index("First, the model class")  # the verdict table comes first
+    assert d["residual_correlation"] and all(len(c["auto"]) == 26 for c in d["residual_correlation"])

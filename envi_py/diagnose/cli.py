@@ -37,9 +37,9 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
         refit=not args.no_refit,
         progress=None if args.quiet else lambda text: print(f"[diagnose] {text}", file=sys.stderr, flush=True),
     )
-    md = write_diagnosis(d, Path(args.out))
+    md = write_diagnosis(d, Path(args.out), model=Path(args.model))
     print(d.verdict())
-    print(f"report: {md}")
+    print(f"report: {md.with_suffix('.html')} {md}")
     return 0
 
 

@@ -1,21 +1,22 @@
-"""The diagnosis as a person reads it: a verdict paragraph, then pictures, then the tables."""
+"""The diagnosis as a person reads it, written through the one report writer (:mod:`envi_py.report`):
+the verdict table per version first, the verdict paragraph, then data quality, the model class, the
+pictures, the candidate effects, the shrink, the gaps, the residuals, and the provenance last."""
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
+from typing import Any
 
-import matplotlib
+import numpy as np
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-from matplotlib.figure import Figure  # noqa: E402
-from matplotlib.patches import Rectangle  # noqa: E402
-import numpy as np  # noqa: E402
-
-from .effects import CANDIDATES, MIN_SHARE, WHAT_IF_BAR  # noqa: E402
-from .gap import ratio_text, share_text  # noqa: E402
-from .run import Diagnosis  # noqa: E402
+from ..report.document import Figure as ReportFigure
+from ..report.document import Provenance, Report, Section, Table, Text
+from ..report.files import write_files
+from ..report.plots import correlation_figure, png_bytes, pyplot
+from ..report.stats import Correlations
+from .effects import CANDIDATES, MIN_SHARE, WHAT_IF_BAR
+from .gap import ratio_text, share_text
+from .run import Diagnosis
 
 
 def _own_bars() -> str:
@@ -23,9 +24,12 @@ def _own_bars() -> str:
     return ", ".join(f"{c.min_share:.0%} for {c.name}" for c in CANDIDATES if c.min_share is not None)
 
 
-def residual_map_figure(d: Diagnosis) -> Figure:
+def residual_map_figure(d: Diagnosis) -> Any:
     """One heat map per state and action: the mean residual over the state's value x the action's.
     A cell with fewer than 5 residuals has no mean: it is hatched grey, never drawn as zero bias."""
+    from matplotlib.patches import Rectangle
+
+    plt = pyplot()
     maps = [(ch, m) for ch in d.residual_map for m in ch["by_action"]]
     fig, axes = plt.subplots(len(maps), 1, figsize=(7, 3.2 * len(maps)), squeeze=False)
     cmap = plt.get_cmap("RdBu_r").with_extremes(bad=(0.0, 0.0, 0.0, 0.0))  # NaN cells show the hatching
@@ -54,18 +58,14 @@ def residual_map_figure(d: Diagnosis) -> Figure:
     return fig
 
 
-def _save(fig: Figure, path: Path) -> None:
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-
-
 def _signal(name: str, unit: str) -> str:
     return f"{name} [{unit}]" if unit else name
 
 
-def horizon_figure(d: Diagnosis) -> Figure:
+def horizon_figure(d: Diagnosis) -> Any:
     """Per state, one line per controller version: the windowed gap over the real-vs-real floor
     against the step (log scale; 1 is the floor)."""
+    plt = pyplot()
     signals = list(dict.fromkeys(h["signal"] for h in d.horizon))
     fig, axes = plt.subplots(len(signals), 1, figsize=(7, 3.4 * len(signals)), squeeze=False)
     for ax, sig in zip(axes.ravel(), signals):
@@ -88,9 +88,10 @@ def _ratio_short(ratio: float) -> str:
     return "floor 0" if ratio == float("inf") else f"{ratio:.1f}x"
 
 
-def metrics_figure(d: Diagnosis) -> Figure:
+def metrics_figure(d: Diagnosis) -> Any:
     """One panel per goal, every controller version side by side: real (grey) and simulated (blue)
     runs, with the version's ratio to the floor under its name."""
+    plt = pyplot()
     goals = [r["goal"] for r in d.gaps[0]["gaps"]]
     cols = 2 if len(d.gaps) > 2 else min(4, len(goals))
     nrows = -(-len(goals) // cols)
@@ -116,7 +117,9 @@ def metrics_figure(d: Diagnosis) -> Figure:
     return fig
 
 
-def shrink_figure(d: Diagnosis) -> Figure:
+def shrink_figure(d: Diagnosis) -> Any:
+    """Per goal, the confirmation logs' gap before and after each fix, against the floor's band."""
+    plt = pyplot()
     s = d.shrink
     assert s is not None
     labels = list(s["before"]["goals"])
@@ -146,105 +149,248 @@ def shrink_figure(d: Diagnosis) -> Figure:
     return fig
 
 
-def _quality_lines(d: Diagnosis) -> list[str]:
+def _figure(name: str, fig: Any, caption: str) -> ReportFigure:
+    return ReportFigure(name, png_bytes(fig, dpi=110), caption)
+
+
+def _quality_section(d: Diagnosis) -> Section:
     """Data-quality findings, before any effect: where the logs themselves are wrong."""
-    lines = ["", "## Data quality", ""]
     if not d.quality:
-        return lines + [
-            "No pause in the time stamps, no repeated rows, no frozen or out-of-range reading, no session that "
-            "differs as a block, in the diagnosed or the training logs."
-        ]
-    lines += ["| logs | finding | files | what |", "|---|---|---:|---|"]
-    for q in d.quality:
-        lines.append(f"| {q['logs']} | {q['kind'].replace('_', ' ')} | {len(q['files'])} | {q['what']} |")
+        return Section(
+            "Data quality",
+            [
+                Text(
+                    "No pause in the time stamps, no repeated rows, no frozen or out-of-range reading, no session "
+                    "that differs as a block, in the diagnosed or the training logs."
+                )
+            ],
+        )
+    blocks: list[Any] = [
+        Table(
+            ["logs", "finding", "files", "what"],
+            [[q["logs"], q["kind"].replace("_", " "), str(len(q["files"])), q["what"]] for q in d.quality],
+            numeric=frozenset({2}),
+        )
+    ]
     pauses = [(q["logs"], w) for q in d.quality if q["kind"] == "pause" for w in q["where"]]
     if pauses:
-        lines += ["", "Pauses (file, time into the log, file row, length):", ""]
-        lines += [
-            f"- {which}: {w['file']} at {w['time_s']:.2f} s (row {w['row']}): {w['pause_s']:.1f} s"
-            for which, w in pauses
-        ]
-    return lines
+        blocks.append(
+            Table(
+                ["logs", "file", "time into the log [s]", "row", "pause [s]"],
+                [[which, w["file"], f"{w['time_s']:.2f}", str(w["row"]), f"{w['pause_s']:.1f}"] for which, w in pauses],
+                caption="Pauses in the time stamps",
+                numeric=frozenset({2, 3, 4}),
+            )
+        )
+    return Section("Data quality", blocks)
 
 
-def _stage_lines(d: Diagnosis) -> list[str]:
+def _stage_section(d: Diagnosis) -> list[Section]:
     """The model-class check: per version and goal, simulated against real run-to-run spread."""
     if not d.stage:
         return []
     s = d.stage
-    lines = [
-        "",
-        "## Model class: simulated against real run-to-run spread",
-        "",
-        "Scatter of the real readings the model cannot predict: "
-        + "; ".join(f"{x['detail']} (p={x['p']:.2g}, {share_text(x['share'])})" for x in s["scatter"])
-        + ".",
-        "",
-        "| controller | goal | sd real | sd simulated | ratio |",
-        "|---|---|---:|---:|---:|",
+    return [
+        Section(
+            "Model class: simulated against real run-to-run spread",
+            [
+                Text(
+                    "Scatter of the real readings the model cannot predict: "
+                    + "; ".join(f"{x['detail']} (p={x['p']:.2g}, {share_text(x['share'])})" for x in s["scatter"])
+                    + "."
+                ),
+                Table(
+                    ["controller", "goal", "sd real", "sd simulated", "ratio"],
+                    [
+                        [
+                            r["controller"],
+                            r["goal"],
+                            f"{r['sd_real']:.3g}{u}",
+                            f"{r['sd_sim']:.3g}{u}",
+                            f"{r['ratio']:.2f}",
+                        ]
+                        for r in s["goals"]
+                        for u in [f" {r['unit']}" if r["unit"] else ""]
+                    ],
+                    numeric=frozenset({2, 3, 4}),
+                ),
+            ],
+        )
     ]
-    lines += [
-        f"| {r['controller']} | {r['goal']} | {r['sd_real']:.3g}{unit} | {r['sd_sim']:.3g}{unit} | {r['ratio']:.2f} |"
-        for r in s["goals"]
-        for unit in [f" {r['unit']}" if r["unit"] else ""]
-    ]
-    return lines
 
 
-def _gap_lines(d: Diagnosis) -> list[str]:
-    lines = ["", "## Where the gap lies", ""]
-    lines.append(
-        "Per goal: W1 between a real half and as many simulated runs (matched), over the goal's scale; the fair "
-        "floor between the two real halves (m = n_real // 2 runs per side, 10 random splits); their ratio and the "
-        "range the ratio takes when simulated runs are exchangeable with real ones (95%); the permutation test's "
-        "p-value (99 relabellings, all real runs against as many simulated); and the W1 of all simulated against "
-        "all real runs with a bootstrap 95% interval. Ranked: goals beyond the floor (p <= 0.05) first, each group by "
-        "its ratio, largest first."
+CANDIDATES_TEXT = (
+    "Each one-step residual is compared with the residual of the most similar window of another run "
+    "(the model's misfit cancels there, an unmodelled effect does not); every candidate is tried on every "
+    "state it can act on (on every action for an actuator's play). Holm-corrected p-values; "
+    "*share* is the part of those differences' mean square the effect accounts for; "
+    "*what-if* is the part of the one-step residual mean square removed by feeding the model its inputs "
+    "as the effect would have changed them (no retraining; it sees a misfit the pairs cannot); "
+    "significant = p_holm < 0.05 and share >= {min_share:.0%} ({own}) or what-if >= {what_if:.0%}; backlash, "
+    "a specific memory, is also significant (and named first) when memory leads by its share and backlash "
+    "explains something beyond the rows before the window."
+)
+
+
+def _candidates_section(d: Diagnosis) -> Section:
+    return Section(
+        "Candidate effects",
+        [
+            Text(CANDIDATES_TEXT.format(min_share=MIN_SHARE, own=_own_bars(), what_if=WHAT_IF_BAR)),
+            Table(
+                ["effect", "significant", "p (Holm)", "share", "what-if", "evidence"],
+                [
+                    [
+                        f.effect,
+                        "yes" if f.significant else "no",
+                        f"{f.p_holm:.2g}",
+                        share_text(f.share),
+                        share_text(f.what_if),
+                        f.detail,
+                    ]
+                    for f in d.findings
+                ],
+                numeric=frozenset({2, 3, 4}),
+            ),
+        ],
     )
-    lines.append("")
+
+
+def _shrink_section(d: Diagnosis) -> list[Section]:
+    if not d.shrink:
+        return []
+    s = d.shrink
+    b = s["before"]
+    rows = [["as trained", f"{b['mean_w1']:.4f}", f"{b['inside_floor']}/{b['n_goals']}", "-"]]
+    rows += [
+        [
+            f"+ {a['effect']} {a['fix']}",
+            f"{a['mean_w1']:.4f}",
+            f"{a['inside_floor']}/{a['n_goals']}",
+            f"{a['shrink']:+.0%}",
+        ]
+        for a in s["after"]
+    ]
+    return [
+        Section(
+            "How far the gap shrinks (confirmation logs)",
+            [
+                _figure(
+                    "shrink",
+                    shrink_figure(d),
+                    "Goal gaps on the confirmation logs (normalised W1 at matched sizes), before and after each "
+                    "retrained fix, against the real-vs-real floor and its 95 % range.",
+                ),
+                Table(
+                    ["model", "mean normalised W1 (matched)", f"goals within the floor (p > {b['level']:g})", "shrink"],
+                    rows,
+                    numeric=frozenset({1, 2, 3}),
+                ),
+                Text(f"Real-vs-real floor: {b['mean_floor']:.4f}."),
+            ],
+        )
+    ]
+
+
+GAPS_TEXT = (
+    "Per goal: W1 between a real half and as many simulated runs (matched), over the goal's scale; the fair "
+    "floor between the two real halves (m = n_real // 2 runs per side, 10 random splits); their ratio and the "
+    "range the ratio takes when simulated runs are exchangeable with real ones (95%); the permutation test's "
+    "p-value (all real runs against as many simulated); and the W1 of all simulated against all real runs with "
+    "a bootstrap 95% interval. Ranked: goals beyond the floor (p <= 0.05) first, each group by its ratio, "
+    "largest first."
+)
+
+
+def _gaps_section(d: Diagnosis) -> Section:
+    blocks: list[Any] = [Text(GAPS_TEXT)]
     for g in d.gaps:
-        lines += [
-            f"### {g['controller']} ({g['n_real']} real runs, {g['n_sim']} simulated, {g['per_side']} per side)",
-            "",
-            "| goal | unit | W1 sim (matched) | floor | ratio | ratio if sim were real | p | W1 all runs (95%) |",
-            "|---|---|---:|---:|---:|---:|---:|---:|",
-        ]
-        lines += [
-            f"| {x['goal']} | {x['unit'] or '-'} | {x['w1']:.4f} | {x['floor']:.4f} | {ratio_text(x['ratio'])} | "
-            f"{x['ratio_null_band'][0]:.2f}..{x['ratio_null_band'][1]:.2f} | {x['p']:.2g} | "
-            f"{x['w1_all']:.4f} ({x['ci'][0]:.4f}..{x['ci'][1]:.4f}) |"
-            for x in g["gaps"]
-        ]
-        lines.append("")
-    lines += [
-        "Per controller version (mean over the goals; p: permutation test on that mean):",
-        "",
-        "| controller | mean W1 (matched) | mean floor | p | goals beyond the floor | worst goal (ratio) |",
-        "|---|---:|---:|---:|---:|---|",
-    ]
-    lines += [
-        f"| {v['controller']} | {v['mean_w1']:.4f} | {v['mean_floor']:.4f} | {v['p']:.2g} | {v['beyond_floor']} | "
-        f"{v['worst_goal']} ({ratio_text(v['worst_ratio'])}) |"
-        for v in d.versions
-    ]
-    return lines
+        blocks.append(
+            Table(
+                [
+                    "goal",
+                    "unit",
+                    "W1 sim (matched)",
+                    "floor",
+                    "ratio",
+                    "ratio if sim were real",
+                    "p",
+                    "W1 all runs (95%)",
+                ],
+                [
+                    [
+                        x["goal"],
+                        x["unit"] or "-",
+                        f"{x['w1']:.4f}",
+                        f"{x['floor']:.4f}",
+                        ratio_text(x["ratio"]),
+                        f"{x['ratio_null_band'][0]:.2f}..{x['ratio_null_band'][1]:.2f}",
+                        f"{x['p']:.2g}",
+                        f"{x['w1_all']:.4f} ({x['ci'][0]:.4f}..{x['ci'][1]:.4f})",
+                    ]
+                    for x in g["gaps"]
+                ],
+                caption=f"{g['controller']}: {g['n_real']} real runs, {g['n_sim']} simulated, {g['per_side']} per side",
+                numeric=frozenset({2, 3, 4, 5, 6, 7}),
+            )
+        )
+    blocks.append(
+        _figure(
+            "horizon",
+            horizon_figure(d),
+            "Gap of each state's readings over one oscillation period of the real runs (phase-blind), over the "
+            "real-vs-real floor, against the step: 1 is the floor.",
+        )
+    )
+    return Section("Where the gap lies", blocks)
 
 
-def _residual_lines(d: Diagnosis) -> list[str]:
-    lines = [
-        "",
-        "## One-step residuals by state",
-        "",
-        f"{share_text(d.misfit)} of the residual mean square (in units of each state's range) is a smooth function of "
-        "the window (misfit where similar windows were seen).",
-        "",
-        "| state | unit | range | RMSE | RMSE / range | misfit share |",
-        "|---|---|---:|---:|---:|---:|",
-    ]
-    lines += [
-        f"| {c['signal']} | {c['unit'] or '-'} | {c['scale']:.4g} | {c['rmse']:.3g} | {c['rmse_of_range']:.2%} | "
-        f"{share_text(d.misfit_by_signal.get(c['signal'], float('nan')))} |"
-        for c in d.residual_map
+def _correlation_figure(d: Diagnosis) -> list[ReportFigure]:
+    if not d.correlation:
+        return []
+    curves = {
+        (c["state"], c["action"]): Correlations(
+            np.asarray(c["lags"]),
+            np.asarray(c["auto"]),
+            np.asarray(c["cross_lags"]),
+            np.asarray(c["cross"]),
+            float(c["band"]),
+            int(c["n"]),
+        )
+        for c in d.correlation
+    }
+    return [correlation_figure(curves, {c["state"]: c["unit"] for c in d.correlation}, name="residual_correlation")]
+
+
+def _residuals_section(d: Diagnosis) -> Section:
+    units = {c["signal"]: c["unit"] for c in d.residual_map}
+    blocks: list[Any] = [
+        Text(
+            f"{share_text(d.misfit)} of the residual mean square (in units of each state's range) is a smooth "
+            "function of the window (misfit where similar windows were seen)."
+        ),
+        Table(
+            ["state", "unit", "range", "RMSE", "RMSE / range", "misfit share"],
+            [
+                [
+                    c["signal"],
+                    c["unit"] or "-",
+                    f"{c['scale']:.4g}",
+                    f"{c['rmse']:.3g}",
+                    f"{c['rmse_of_range']:.2%}",
+                    share_text(d.misfit_by_signal.get(c["signal"], float("nan"))),
+                ]
+                for c in d.residual_map
+            ],
+            numeric=frozenset({2, 3, 4, 5}),
+        ),
+        _figure(
+            "residual_map",
+            residual_map_figure(d),
+            "Mean one-step error (real - predicted) by the state's last reading and the action's last command; "
+            "hatched cells hold fewer than 5 residuals.",
+        ),
+        *_correlation_figure(d),
     ]
     for c in d.residual_map:
         cells = [
@@ -253,106 +399,102 @@ def _residual_lines(d: Diagnosis) -> list[str]:
             for m in c["by_action"]
             for x in m["significant"][:6]
         ]
-        lines += [
-            "",
-            f"### {_signal(c['signal'], c['unit'])}",
-            "",
-            "Cells with significant bias (Bonferroni): " + (", ".join(cells) or "none") + ".",
-            "",
-            "By phase of the run (bias, RMS): "
+        blocks.append(
+            Text(
+                f"{_signal(c['signal'], c['unit'])}: cells with significant bias (Bonferroni): "
+                + (", ".join(cells) or "none")
+                + ". By phase of the run (bias, RMS): "
+                + ", ".join(
+                    f"rows {p['rows'][0]:.0f}-{p['rows'][1]:.0f}: {p['bias']:+.3g}, {p['rms']:.3g}"
+                    for p in c["by_phase"]
+                )
+                + "."
+            )
+        )
+    blocks.append(
+        Text(
+            "Logs with the largest one-step residuals (RMS over each state's range, the RMS of each state, and the "
+            "mean square over the median log's): "
             + ", ".join(
-                f"rows {p['rows'][0]:.0f}-{p['rows'][1]:.0f}: {p['bias']:+.3g}, {p['rms']:.3g}" for p in c["by_phase"]
+                f"{r['log']} {r['rms_of_range']:.2%} ("
+                + ", ".join(f"{k} {v:.3g}{' ' + units[k] if units.get(k) else ''}" for k, v in r["rms"].items())
+                + f"; {r['ratio']:.1f}x)"
+                for r in d.runs[:5]
             )
-            + ".",
-        ]
-    units = {c["signal"]: c["unit"] for c in d.residual_map}
-    lines += [
-        "",
-        "Logs with the largest one-step residuals (RMS over each state's range, the RMS of each state, and the "
-        "mean square over the median log's): "
-        + ", ".join(
-            f"{r['log']} {r['rms_of_range']:.2%} ("
-            + ", ".join(f"{k} {v:.3g}{' ' + units[k] if units.get(k) else ''}" for k, v in r["rms"].items())
-            + f"; {r['ratio']:.1f}x)"
-            for r in d.runs[:5]
+            + "."
         )
-        + ".",
-    ]
-    return lines
+    )
+    return Section("One-step residuals by state", blocks)
 
 
-def write_diagnosis(d: Diagnosis, out: Path) -> Path:
-    """``diagnosis.md``, ``diagnosis.json`` and the PNGs they show, in ``out``."""
-    out.mkdir(parents=True, exist_ok=True)
-    _save(residual_map_figure(d), out / "residual_map.png")
-    _save(horizon_figure(d), out / "horizon.png")
-    _save(metrics_figure(d), out / "metrics.png")
-    lines = [
-        "# Sim-to-real diagnosis" + (f": {d.system}" if d.system else ""),
-        "",
-        d.verdict(),
-        *_quality_lines(d),
-        *_stage_lines(d),
-        "",
-        "![goal distributions](metrics.png)",
-        "",
-        "![gap vs horizon](horizon.png)",
-        "",
-        "![residual map](residual_map.png)",
-        "",
-        "## Candidate effects",
-        "",
-        "Each one-step residual is compared with the residual of the most similar window of another run "
-        "(the model's misfit cancels there, an unmodelled effect does not); every candidate is tried on every "
-        "state it can act on (on every action for an actuator's play). Holm-corrected p-values; "
-        "*share* is the part of those differences' mean square the effect accounts for; "
-        "*what-if* is the part of the one-step residual mean square removed by feeding the model its inputs "
-        "as the effect would have changed them (no retraining; it sees a misfit the pairs cannot); "
-        f"significant = p_holm < 0.05 and share >= {MIN_SHARE:.0%} ({_own_bars()}) or what-if >= "
-        f"{WHAT_IF_BAR:.0%}; backlash, a specific memory, is also significant "
-        "(and named first) when memory leads by its share and backlash explains something beyond the rows "
-        "before the window.",
-        "",
-        "| effect | significant | p (Holm) | share | what-if | evidence |",
-        "|---|---|---:|---:|---:|---|",
+def _verdict_table(d: Diagnosis) -> Table:
+    """One row per controller version: the closed-loop gap over the goals against the fair floor."""
+    held = {v["controller"]: v for v in d.gap_test.get("versions", [])}
+    return Table(
+        [
+            "controller",
+            "mean W1 (matched)",
+            "mean floor",
+            "p",
+            "p (Holm)",
+            "goals beyond the floor",
+            "worst goal (ratio)",
+        ],
+        [
+            [
+                v["controller"],
+                f"{v['mean_w1']:.4f}",
+                f"{v['mean_floor']:.4f}",
+                f"{v['p']:.2g}",
+                f"{held[v['controller']]['p_holm']:.2g}" if v["controller"] in held else "-",
+                str(v["beyond_floor"]),
+                f"{v['worst_goal']} ({ratio_text(v['worst_ratio'])})",
+            ]
+            for v in d.versions
+        ],
+        numeric=frozenset({1, 2, 3, 4, 5}),
+    )
+
+
+def write_diagnosis(d: Diagnosis, out: Path, model: Path | None = None) -> Path:
+    """``diagnosis.md``, ``diagnosis.html``, ``diagnosis.json`` and ``diagnosis_figures/`` in ``out``;
+    ``model``: the diagnosed checkpoint, named and hashed in the provenance. Returns the Markdown path."""
+    sections = [
+        _quality_section(d),
+        *_stage_section(d),
+        Section(
+            "Goal distributions",
+            [
+                _figure(
+                    "metrics",
+                    metrics_figure(d),
+                    "Goal distributions of every version: real (grey) and simulated (blue) runs; under each "
+                    "version its W1 over the real-vs-real floor.",
+                )
+            ],
+        ),
+        _candidates_section(d),
+        *_shrink_section(d),
+        _gaps_section(d),
+        _residuals_section(d),
+        Section(
+            "Training-data coverage and logs",
+            [
+                Text(
+                    f"Coverage: {share_text(d.coverage['outside_share'])} of simulated windows are farther from the "
+                    "training windows than 95% of training windows are from each other."
+                ),
+                Text("Logs used to choose the effect: " + ", ".join(d.choose_logs)),
+                Text("Confirmation logs: " + ", ".join(d.confirm_logs)),
+            ],
+        ),
     ]
-    for f in d.findings:
-        lines.append(
-            f"| {f.effect} | {'**yes**' if f.significant else 'no'} | {f.p_holm:.2g} | {share_text(f.share)} | "
-            f"{share_text(f.what_if)} | {f.detail} |"
-        )
-    if d.shrink:
-        _save(shrink_figure(d), out / "shrink.png")
-        s = d.shrink
-        b = s["before"]
-        lines += [
-            "",
-            "## How far the gap shrinks (confirmation logs)",
-            "",
-            "![before and after](shrink.png)",
-            "",
-            f"| model | mean normalised W1 (matched) | goals within the floor (p > {b['level']:g}) | shrink |",
-            "|---|---:|---:|---:|",
-            f"| as trained | {b['mean_w1']:.4f} | {b['inside_floor']}/{b['n_goals']} | - |",
-        ]
-        for a in s["after"]:
-            lines.append(
-                f"| + {a['effect']} {a['fix']} | {a['mean_w1']:.4f} | {a['inside_floor']}/{a['n_goals']} | "
-                f"{a['shrink']:+.0%} |"
-            )
-        lines.append(f"\nReal-vs-real floor: {b['mean_floor']:.4f}.")
-    lines += _gap_lines(d)
-    lines += _residual_lines(d)
-    lines += [
-        "",
-        f"Coverage: {share_text(d.coverage['outside_share'])} of simulated windows are farther from the training "
-        f"windows than 95% of training windows are from each other.",
-        "",
-        "Logs used to choose the effect: " + ", ".join(d.choose_logs),
-        "",
-        "Confirmation logs: " + ", ".join(d.confirm_logs),
-    ]
-    md = out / "diagnosis.md"
-    md.write_text("\n".join(lines) + "\n")
-    (out / "diagnosis.json").write_text(json.dumps(d.to_json(), indent=1, default=float))
-    return md
+    report = Report(
+        "Sim-to-real diagnosis" + (f": {d.system}" if d.system else ""),
+        _verdict_table(d),
+        Provenance.collect(model=model, system=d.system or None),
+        [Text(d.verdict())],
+        sections,
+        d.to_json(),
+    )
+    return write_files(report, out, "diagnosis").markdown

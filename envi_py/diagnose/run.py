@@ -11,6 +11,7 @@ from scipy import stats
 from ..dataset import split_logs
 from ..logs import Log, group_by_controller
 from ..model import Checkpoint
+from ..report.stats import residual_correlations
 from ..simulate import initial_windows, rollout
 from .effects import MIN_SHARE, Finding, misfit_share, run_candidates
 from .gap import (
@@ -57,6 +58,7 @@ class Diagnosis:
     held_out: dict[str, Any] | None = None  # :func:`held_out_fit`: these logs against the model's own held-out logs
     quality: list[dict[str, Any]] = field(default_factory=list)  # :mod:`.data_quality`, shown first
     stage: dict[str, Any] | None = None  # :mod:`.stages`: the model class was wrong, and the refit
+    correlation: list[dict[str, Any]] = field(default_factory=list)  # :func:`residual_correlation`
 
     @property
     def significant(self) -> list[Finding]:
@@ -196,6 +198,7 @@ class Diagnosis:
             "held_out": self.held_out,
             "choose_logs": self.choose_logs,
             "confirm_logs": self.confirm_logs,
+            "residual_correlation": self.correlation,
         }
 
 
@@ -312,6 +315,34 @@ def _coverage(
     return coverage(train_w, sim_w.astype(np.float32), seed)
 
 
+def residual_correlation(res: ResidualSet, max_lag: int = 25) -> list[dict[str, Any]]:
+    """MATLAB ``resid``'s curves per (state, action): the one-step residual's auto-correlation and its
+    cross-correlation with the action's last command, over the residuals of all diagnosed logs end to
+    end (the few lags that straddle two logs are a small share of thousands of rows). A constant
+    residual (a state the model predicts exactly) has no curve."""
+    out = []
+    for s in res.states:
+        for j, action in enumerate(res.actions):
+            try:
+                c = residual_correlations(s.r, res.action_values[:, j], max_lag)
+            except ValueError:
+                continue
+            out.append(
+                {
+                    "state": s.name,
+                    "unit": s.unit,
+                    "action": action,
+                    "n": c.n,
+                    "band": c.band,
+                    "lags": c.lags.tolist(),
+                    "auto": c.auto.tolist(),
+                    "cross_lags": c.cross_lags.tolist(),
+                    "cross": c.cross.tolist(),
+                }
+            )
+    return out
+
+
 def diagnose(
     ckpt: Checkpoint,
     real: Sequence[Log],
@@ -400,4 +431,5 @@ def diagnose(
         held,
         quality,
         stage,
+        residual_correlation(res),
     )
