@@ -140,3 +140,66 @@ def test_a_robot_that_never_leaves_its_setpoint_has_no_gap_to_attribute(monkeypa
     d = diagnose(ckpt, _logs(case, 16, 100, 1), train_logs=fit[:12], val_logs=fit[12:], runs=2, retrain=True)
     assert d.no_gap and d.significant == [] and d.shrink is None
     assert "no closed-loop gap to attribute" in d.verdict()
+
+
+def _world_result(world, case, expected, top, mode="withheld", seed=0, novel=False, head="deterministic"):
+    return {
+        "world": world,
+        "case": case,
+        "seed": seed,
+        "mode": mode,
+        "expected": expected,
+        "top": top,
+        "significant": [top] if top else [],
+        "findings": {},
+        "novel": novel,
+        "head": head,
+    }
+
+
+def test_score_keeps_worlds_apart_and_scores_novel_effects_by_naming_nothing():
+    rs = [
+        _world_result("steered", "delay", "memory_delay", "memory_delay"),
+        _world_result("diffdrive", "delay", "memory_delay", "noise"),
+        _world_result("diffdrive", "kick", None, None, novel=True),
+        _world_result("diffdrive", "kick", None, "noise", novel=True, seed=1),
+        _world_result("diffdrive", "none_gaussian", None, None, head="gaussian"),
+    ]
+    s = score(rs, "withheld", "diffdrive")
+    assert s.top1 == 0.0 and s.top1_by_case == {"delay": 0.0}
+    assert s.novel_none == 0.5 and s.novel_none_by_case == {"kick": 0.5}
+    assert s.false_alarm == 0.0 and "kick" not in s.false_alarm_by_case
+    assert score(rs, "withheld", "steered").top1 == 1.0
+    assert "none 50%" in to_markdown([s], TINY)
+
+
+def test_cli_prints_the_cross_world_table_from_resumed_results(tmp_path, capsys):
+    """Every trial is already in results.jsonl, so nothing is trained: the command only scores."""
+    from envi_py.diagnose.validate import ALL_CASES
+
+    rows = []
+    for world in ("steered", "diffdrive"):
+        for c in ALL_CASES:
+            if world in c.worlds:
+                top = c.expected if world == "steered" else None
+                rows.append(_world_result(world, c.name, c.expected, top, novel=c.novel, head=c.head))
+    (tmp_path / "results.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    args = ["diagnose", "validate", "--world", "steered", "diffdrive", "--seeds", "1", "--mode", "withheld"]
+    assert main(args + ["--out", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert (
+        "# Cross-world validation" in out and "| case | kind | steered (tuned) withheld | diffdrive withheld |" in out
+    )
+    assert "| backlash | effect | 1/1 (100%, 3%-100%) | 0/1 (0%, 0%-98%) |" in out
+    assert "| kick | novel | - | 1/1 (100%, 3%-100%) |" in out
+    line = next(x for x in out.splitlines() if x.startswith("| negative controls without a false alarm, gaussian"))
+    assert line.endswith("| 1/1 (100%, 3%-100%) | 1/1 (100%, 3%-100%) |")
+    assert len((tmp_path / "results.jsonl").read_text().splitlines()) == len(rows)  # nothing was rerun
+
+
+def test_a_case_is_refused_in_a_world_that_cannot_inject_it():
+    from envi_py.diagnose.validate import ALL_CASES
+
+    kick = next(c for c in ALL_CASES if c.name == "kick")
+    with pytest.raises(ValueError, match="cannot be injected in the 'steered' world"):
+        trial(kick, 0, size=TINY, world="steered")
