@@ -203,3 +203,36 @@ def test_a_case_is_refused_in_a_world_that_cannot_inject_it():
     kick = next(c for c in ALL_CASES if c.name == "kick")
     with pytest.raises(ValueError, match="cannot be injected in the 'steered' world"):
         trial(kick, 0, size=TINY, world="steered")
+
+
+def test_injected_effects_are_given_in_the_units_of_their_layers():
+    from envi_py.diagnose.validate import ALL_CASES, injected_layer
+
+    by = {c.name: c for c in ALL_CASES}
+    assert injected_layer(by["delay"], 40.0) == ("delay", 2.0)
+    assert injected_layer(by["lag"], 40.0) == ("lag", 3.0)
+    assert injected_layer(by["backlash"], 40.0) == ("play", 20.0)
+    assert injected_layer(by["saturation"], 40.0) == ("saturation", 51.0)
+    assert injected_layer(by["noise"], 40.0) == ("noise", 3.0)
+    assert injected_layer(by["battery"], 40.0) is None and injected_layer(by["none"], 40.0) is None
+
+
+def test_the_layer_table_counts_coverage_and_the_floor():
+    from envi_py.diagnose.validate import layer_table
+
+    def row(seed, covered, within, shrink):
+        r = _world_result("diffdrive", "delay", "memory_delay", "memory_delay", mode="verification", seed=seed)
+        r["layer"] = {
+            "fitted": f"delay {seed} ticks [{seed}, {seed}]",
+            "injected": {"kind": "delay", "value": 2.0},
+            "covered": covered,
+            "within_1.5_floor": within,
+            "shrink": shrink,
+            "shrink_ci": [shrink - 0.1, shrink + 0.1],
+        }
+        return r
+
+    lines = layer_table([row(2, True, True, 0.8), row(3, False, True, 0.6), row(1, False, False, 0.4)])
+    line = next(x for x in lines if x.startswith("| diffdrive | delay |"))
+    assert "| 3 | delay 2 ticks [2, 2]; delay 3 ticks [3, 3]; delay 1 ticks [1, 1] | delay 2 |" in line
+    assert "| 1/3 (33%, 1%-91%) | 2/3 (67%, 9%-99%) | +60% [+50%, +70%] |" in line

@@ -41,7 +41,7 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
 
 
 def _cmd_validate(args: argparse.Namespace) -> int:
-    from .validate import ALL_CASES, Size, cross_table, run_validation, score, to_markdown
+    from .validate import ALL_CASES, Size, cross_table, layer_table, run_validation, score, to_markdown
 
     worlds = list(dict.fromkeys(args.world))
     known = {c.name: c for c in ALL_CASES}
@@ -66,6 +66,8 @@ def _cmd_validate(args: argparse.Namespace) -> int:
     md = to_markdown(scores, size)
     if len(worlds) > 1:
         md = cross_table(results, args.mode, worlds) + "\n\n" + md
+    else:
+        md += "\n".join(layer_table(results, worlds))
     (out / "report.md").write_text(md + "\n")
     (out / "scores.json").write_text(json.dumps([asdict(s) for s in scores], indent=1) + "\n")
     print(md)

@@ -294,7 +294,7 @@ def grid_of(kind: str, versions: Sequence[_Version], ckpt: Checkpoint) -> list[L
     if kind == "run_gain":
         return [Layer(kind, g) for g in (0, 0.05, 0.1, 0.15, 0.2, 0.3, 0.4)]
     if kind == "noise":
-        return [Layer(kind, round(f * s_range, 4)) for f in (0, 0.005, 0.01, 0.02, 0.03, 0.05, 0.08)]
+        return [Layer(kind, round(f * s_range, 4)) for f in np.arange(17) * 0.005]
     if kind == "quantise":
         return [Layer(kind, q) for q in (0, 1, 2, 3, 4, 5, 6, 8)]
     lows = sorted(set(np.percentile(states, [0, 1, 2, 5]).round(2)))

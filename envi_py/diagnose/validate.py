@@ -153,10 +153,74 @@ def _where(ckpt: Any, case: Case, size: Size, seed: int, world: str = TUNED_ON) 
     return {"run_auc": auc, "residual_ms_by_fifth": by_fifth, "worst_fifth": int(np.argmax(by_fifth))}
 
 
+def injected_layer(case: Case, period_ms: float) -> tuple[str, float] | None:
+    """The effect layer standing for the case's injected effect and its value in the layer's units,
+    where the units correspond (a battery's speed sag or a run variation of speed and grip have no
+    single gain that equals them, so they are not scored for coverage)."""
+    from ..twin.effects import EFFECTS
+
+    for name, value in case.effects.items():
+        if name not in EFFECTS:
+            continue
+        params = EFFECTS[name].params
+        full = {k: float(value.get(k, p.default)) if isinstance(value, dict) else p.default for k, p in params.items()}
+        if not isinstance(value, dict):
+            full[EFFECTS[name].primary] = float(value)
+        if name == "delay":
+            return "delay", full["ticks"]
+        if name == "lag":
+            return "lag", full["tau_ms"] / period_ms
+        if name == "backlash":
+            return "play", full["width_deg"]
+        if name in ("noise", "quantise"):
+            return name, full["sigma" if name == "noise" else "step"]
+        if name == "saturation":
+            return "saturation", full["high"]
+    return None
+
+
+def _layer_trial(ckpt: Any, case: Case, diag: Sequence[Log], d: Any, size: Size, seed: int) -> dict[str, Any] | None:
+    """Shrink where the gap is: the layers of the diagnosed top candidate, fitted on the logs the
+    diagnosis chose on and confirmed on its confirmation logs (used for neither)."""
+    from .layers import FOR_CANDIDATE, fit_and_confirm
+
+    top = d.significant[0].candidate if d.significant else None
+    if top not in FOR_CANDIDATE:
+        return None
+    by_name = {lg.name: lg for lg in diag}
+    choose = [by_name[n] for n in d.choose_logs]
+    confirm = [by_name[n] for n in d.confirm_logs]
+    r = fit_and_confirm(ckpt, top, choose, confirm, runs=size.runs, seed=seed, boot=200)
+    assert r is not None
+    fit, conf = r["fit"], r["confirm"]
+    layer = fit["layer"]
+    out = {
+        "candidate": top,
+        "kind": layer["kind"],
+        "fitted": fit["text"],
+        "value": layer["high"] if layer["kind"] == "saturation" else layer["value"],
+        "interval": fit["interval"],
+        **{k: conf[k] for k in ("before", "after", "floor", "shrink", "shrink_ci", "within_1.5_floor")},
+    }
+    truth = injected_layer(case, ckpt.period_ms)
+    if truth is not None:
+        out["injected"] = {"kind": truth[0], "value": truth[1]}
+        out["covered"] = truth[0] == layer["kind"] and fit["interval"][0] <= truth[1] <= fit["interval"][1]
+    return out
+
+
 def trial(
-    case: Case, seed: int, mode: str = "withheld", size: Size = Size(), shrink: bool = True, world: str = TUNED_ON
+    case: Case,
+    seed: int,
+    mode: str = "withheld",
+    size: Size = Size(),
+    shrink: bool = True,
+    world: str = TUNED_ON,
+    layers: bool = True,
 ) -> dict[str, Any]:
-    """One blind diagnosis of one case and seed in one world family; plain data for the results file."""
+    """One blind diagnosis of one case and seed in one world family; plain data for the results file.
+    In the verification mode an effect case also fits the diagnosed candidate's effect layers
+    (``layers``; :mod:`.layers`): retraining on the clean logs cannot add the effect there."""
     if world not in case.worlds:
         raise ValueError(f"case {case.name!r} cannot be injected in the {world!r} world")
     import torch
@@ -223,6 +287,10 @@ def trial(
         }
     if mode == "verification" and case.expected is not None:
         out["where"] = _where(ckpt, case, size, seed, world)
+        if layers:
+            layer = _layer_trial(ckpt, case, diag, d, size, seed)
+            if layer is not None:
+                out["layer"] = layer
     return out
 
 
@@ -514,6 +582,7 @@ def cross_table(results: Sequence[dict[str, Any]], modes: Sequence[str], worlds:
     lines += ["", f"| summary | {head} |", "|---|" + "---|" * len(cols)]
     for name, pred in summary:
         lines.append(f"| {name} | " + " | ".join(_rate(pick(w, m, pred)) for w, m in cols) + " |")
+    lines += layer_table(results, worlds)
     seeds = sorted({int(r["seed"]) for r in results})
     errors = sum("error" in r for r in results)
     lines += [
@@ -523,3 +592,35 @@ def cross_table(results: Sequence[dict[str, Any]], modes: Sequence[str], worlds:
         + ".",
     ]
     return "\n".join(lines)
+
+
+def layer_table(results: Sequence[dict[str, Any]], worlds: Sequence[str] = WORLDS) -> list[str]:
+    """Markdown lines: per world and case, the verification-mode trials whose diagnosed candidate had
+    an effect layer: the fitted parameters, how often the interval covers the injected value (where
+    the units correspond), how often the layered model is within 1.5x the fair floor on the
+    confirmation logs, and the median shrink with the median of its bootstrap interval's ends."""
+    rows = [r for r in results if "layer" in r and r.get("world", TUNED_ON) in worlds]
+    if not rows:
+        return []
+    lines = [
+        "",
+        "Shrink where the gap is (verification mode; effect layer of the diagnosed candidate fitted on the "
+        "choose logs, gap re-measured on the confirmation logs):",
+        "",
+        "| world | case | trials | fitted (interval) | injected | interval covers | within 1.5x floor | "
+        "median shrink [median CI] |",
+        "|---|---|---:|---|---|---|---|---|",
+    ]
+    for w in worlds:
+        for c in dict.fromkeys(r["case"] for r in rows if r.get("world", TUNED_ON) == w):
+            ls = [r["layer"] for r in rows if r.get("world", TUNED_ON) == w and r["case"] == c]
+            inj = {f"{x['injected']['kind']} {x['injected']['value']:g}" for x in ls if "injected" in x}
+            cov = [x["covered"] for x in ls if "covered" in x]
+            lo = float(np.median([x["shrink_ci"][0] for x in ls]))
+            hi = float(np.median([x["shrink_ci"][1] for x in ls]))
+            lines.append(
+                f"| {w} | {c} | {len(ls)} | {'; '.join(x['fitted'] for x in ls)} | {', '.join(sorted(inj)) or '-'} | "
+                f"{_rate(cov)} | {_rate([x['within_1.5_floor'] for x in ls])} | "
+                f"{float(np.median([x['shrink'] for x in ls])):+.0%} [{lo:+.0%}, {hi:+.0%}] |"
+            )
+    return lines
