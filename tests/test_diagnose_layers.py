@@ -92,3 +92,16 @@ def test_fitted_layers_are_saved_beside_the_model_and_read_back(tmp_path):
     with pytest.raises(ValueError, match="m.pt.layers.json: not a layers file"):
         load_layers(model)
     assert load_layers(tmp_path / "other.pt") == []
+
+
+def test_a_fix_the_model_already_has_is_not_a_change(clean_model):
+    from envi_py.diagnose.effects import Finding
+    from envi_py.diagnose.shrink import changes_model
+
+    def finding(fix):
+        return Finding("noise", 1.0, 0.0, 0.5, "", fix)
+
+    assert not changes_model(clean_model, finding({"head": "deterministic"}))
+    assert changes_model(clean_model, finding({"head": "gaussian"}))
+    assert changes_model(clean_model, finding({"history": 8}))
+    assert not changes_model(clean_model, finding({"history": clean_model.config.history}))

@@ -43,6 +43,7 @@ def test_adding_the_diagnosed_noise_shrinks_the_gap():
     r = trial(BY_NAME["noise"], seed=0, size=TINY, shrink=True)
     s = r["shrink"]
     assert s["effect"] == "noise" and s["after"] < 0.8 * s["before"], s
+    assert not s["unchanged"] and 0 < s["shrink_ci"][0] <= s["shrink"] <= s["shrink_ci"][1], s
 
 
 def _result(case: str, expected: str | None, top: str | None, mode: str = "withheld") -> dict:

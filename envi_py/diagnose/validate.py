@@ -284,6 +284,8 @@ def trial(
             "shrink": a["shrink"],
             "inside_before": b["inside_floor"],
             "inside_after": a["inside_floor"],
+            "shrink_ci": a.get("shrink_ci"),
+            "unchanged": a.get("unchanged", False),
         }
     if mode == "verification" and case.expected is not None:
         out["where"] = _where(ckpt, case, size, seed, world)
