@@ -16,7 +16,9 @@ from envi_py.diagnose.layers import (
     layers_path,
     load_layers,
     save_layers,
+    simulate_layered,
 )
+from envi_py.diagnose.gap import cut_logs
 from envi_py.diagnose.validate import LANE, world_logs
 from envi_py.simulate import initial_windows, rollout
 from envi_py.train import train
@@ -51,13 +53,16 @@ def test_bad_layers_are_refused():
 
 
 def test_the_identity_layer_rolls_out_as_the_model_alone(clean_model):
-    logs = world_logs("steered", LANE, 3, 40, {}, 5)
+    logs = cut_logs(world_logs("steered", LANE, 3, 40, {}, 5), 34)
     init = initial_windows(logs, clean_model.config.history)
     plain = rollout(clean_model, LANE, init, 30, runs=2, seed=3)
     for kind in ("delay", "noise", "play"):
         assert np.array_equal(layered_rollout(clean_model, LANE, init, 30, Layer(kind), runs=2, seed=3), plain)
     delayed = layered_rollout(clean_model, LANE, init, 30, Layer("delay", 1), runs=2, seed=3)
     assert not np.array_equal(delayed, plain)
+    sims = simulate_layered(clean_model, LANE, logs, Layer("delay", 1), runs=2, seed=3)
+    assert len(sims) == 6 and np.array_equal(sims[1].states, delayed[1, :, :1])
+    assert np.array_equal(sims[1].actions, delayed[1, :, 1:]) and np.array_equal(sims[1].time, logs[0].time)
 
 
 def test_a_fitted_noise_layer_recovers_the_injected_noise_and_shrinks_the_gap_on_confirmation_logs(clean_model):

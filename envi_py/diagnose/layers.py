@@ -234,17 +234,28 @@ def _versions(scoring: Scoring, logs: Sequence[Log]) -> list[_Version]:
     return out
 
 
+def simulate_layered(
+    ckpt: Checkpoint, controller: ControllerSpec, init_logs: Sequence[Log], layer: Layer, runs: int = 1, seed: int = 0
+) -> list[Log]:
+    """``runs`` layered simulations from each log's initial window, as logs (initial log, then
+    replicate), each as long as its initial log and with its time stamps and metadata (all logs must
+    have one length: cut them first)."""
+    hist, ns = ckpt.config.history, ckpt.config.n_state
+    if len({len(lg) for lg in init_logs}) != 1:
+        raise ValueError("simulate_layered: the initial logs must have one length (cut them first)")
+    rows = layered_rollout(
+        ckpt, controller, initial_windows(init_logs, hist), len(init_logs[0]) - hist, layer, runs, seed
+    )
+    out = []
+    for i, tr in enumerate(rows):
+        src = init_logs[i // runs]
+        out.append(Log(None, src.time.copy(), tr[:, :ns].copy(), tr[:, ns:].copy(), src.meta))
+    return out
+
+
 def _simulate_table(ckpt: Checkpoint, scoring: Scoring, v: _Version, layer: Layer, runs: int, seed: int) -> np.ndarray:
     """(R*runs, G): the goal table of ``runs`` layered simulations from each log's initial window."""
-    hist = ckpt.config.history
-    steps = len(v.logs[0]) - hist
-    rows = layered_rollout(ckpt, v.spec, initial_windows(v.logs, hist), steps, layer, runs, seed)
-    ns = ckpt.config.n_state
-    sims = []
-    for i, tr in enumerate(rows):
-        src = v.logs[i // runs]
-        sims.append(Log(None, src.time.copy(), tr[:, :ns].copy(), tr[:, ns:].copy(), src.meta))
-    return scoring.table(scoring.runs(sims))
+    return scoring.table(scoring.runs(simulate_layered(ckpt, v.spec, v.logs, layer, runs, seed)))
 
 
 def layered_commands(layer: Layer, actions: np.ndarray) -> np.ndarray:
@@ -478,10 +489,11 @@ def layers_path(model_path: str | Path) -> Path:
     return p.with_name(p.name + ".layers.json")
 
 
-def save_layers(model_path: str | Path, fits: Sequence[Fit]) -> Path:
-    """Write the fitted layers beside the model."""
+def save_layers(model_path: str | Path, fits: Sequence[Fit | dict[str, Any]]) -> Path:
+    """Write the fitted layers (fits, or their JSON as :func:`fit_and_confirm` returns it) beside the model."""
     path = layers_path(model_path)
-    path.write_text(json.dumps({"layers": [f.to_json() for f in fits]}, indent=1) + "\n")
+    entries = [f.to_json() if isinstance(f, Fit) else f for f in fits]
+    path.write_text(json.dumps({"layers": entries}, indent=1) + "\n")
     return path
 
 
