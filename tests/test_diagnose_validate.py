@@ -37,6 +37,11 @@ def test_verification_mode_names_a_lagging_actuator_by_its_what_if():
     r = trial(BY_NAME["lag"], seed=0, mode="verification", size=TINY, shrink=False)
     assert r["top"] == "memory_delay", r["findings"]
     assert r["findings"]["memory_delay"]["what_if"] > 0.5, r["findings"]
+    # retraining on the clean logs cannot add the lag; a lag or delay layer fitted on the logs the
+    # diagnosis chose on shrinks the gap on its confirmation logs
+    layer = r["layer"]
+    assert layer["candidate"] == "memory_delay" and layer["kind"] in ("delay", "lag"), layer
+    assert layer["shrink_ci"][0] > 0 and layer["after"] < layer["before"], layer
 
 
 def test_adding_the_diagnosed_noise_shrinks_the_gap():

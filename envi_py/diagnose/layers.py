@@ -299,7 +299,7 @@ def grid_of(kind: str, versions: Sequence[_Version], ckpt: Checkpoint) -> list[L
     if kind == "lag":
         return [Layer(kind, t) for t in (0, 0.5, 1, 1.5, 2, 2.5, 3, 3.5, 4, 5, 6, 8, 10, 13)]
     if kind == "play":
-        return [Layer(kind, round(f * a_range, 4)) for f in (0, 0.05, 0.1, 0.15, 0.2, 0.25, 0.3, 0.4, 0.5)]
+        return [Layer(kind, round(f * a_range, 4)) for f in (0, 0.05, 0.1, 0.15, 0.2, 0.3, 0.4, 0.5, 0.6, 0.8, 1.0)]
     if kind == "gain_drift":
         return [Layer(kind, g) for g in (-0.5, -0.4, -0.3, -0.2, -0.1, 0.0, 0.1, 0.2, 0.3)]
     if kind == "run_gain":
