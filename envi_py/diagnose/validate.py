@@ -589,7 +589,7 @@ def cross_table(results: Sequence[dict[str, Any]], modes: Sequence[str], worlds:
     errors = sum("error" in r for r in results)
     lines += [
         "",
-        f"{len(results)} trials over {len(seeds)} seed(s) per case"
+        f"{len(results)} trials, seeds {', '.join(map(str, seeds))}; a cell's denominator is its number of trials"
         + (f"; {errors} failed and are scored as misses (see `results.jsonl`)" if errors else "")
         + ".",
     ]
