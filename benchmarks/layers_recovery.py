@@ -6,7 +6,7 @@ the effect to fit the layer of the effect's own candidate (the diagnosis is bypa
 measures the layer, not the ranking), 12 other logs to confirm it. Prints a markdown table and
 writes JSON.
 
-    python benchmarks/layers_recovery.py --world diffdrive --seeds 2 [--out bench_out/layers_recovery.json]
+    PYTHONPATH=. python benchmarks/layers_recovery.py --world diffdrive --seeds 2 [--out bench_out/layers_recovery.json]
 """
 
 from __future__ import annotations
