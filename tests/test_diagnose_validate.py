@@ -37,12 +37,18 @@ def test_verification_mode_names_a_lagging_actuator_by_its_what_if():
     r = trial(BY_NAME["lag"], seed=0, mode="verification", size=TINY, shrink=False)
     assert r["top"] == "memory_delay", r["findings"]
     assert r["findings"]["memory_delay"]["what_if"] > 0.5, r["findings"]
+    # retraining on the clean logs cannot add the lag; a lag or delay layer fitted on the logs the
+    # diagnosis chose on shrinks the gap on its confirmation logs
+    layer = r["layer"]
+    assert layer["candidate"] == "memory_delay" and layer["kind"] in ("delay", "lag"), layer
+    assert layer["shrink_ci"][0] > 0 and layer["after"] < layer["before"], layer
 
 
 def test_adding_the_diagnosed_noise_shrinks_the_gap():
     r = trial(BY_NAME["noise"], seed=0, size=TINY, shrink=True)
     s = r["shrink"]
     assert s["effect"] == "noise" and s["after"] < 0.8 * s["before"], s
+    assert not s["unchanged"] and 0 < s["shrink_ci"][0] <= s["shrink"] <= s["shrink_ci"][1], s
 
 
 def _result(case: str, expected: str | None, top: str | None, mode: str = "withheld") -> dict:
@@ -140,3 +146,99 @@ def test_a_robot_that_never_leaves_its_setpoint_has_no_gap_to_attribute(monkeypa
     d = diagnose(ckpt, _logs(case, 16, 100, 1), train_logs=fit[:12], val_logs=fit[12:], runs=2, retrain=True)
     assert d.no_gap and d.significant == [] and d.shrink is None
     assert "no closed-loop gap to attribute" in d.verdict()
+
+
+def _world_result(world, case, expected, top, mode="withheld", seed=0, novel=False, head="deterministic"):
+    return {
+        "world": world,
+        "case": case,
+        "seed": seed,
+        "mode": mode,
+        "expected": expected,
+        "top": top,
+        "significant": [top] if top else [],
+        "findings": {},
+        "novel": novel,
+        "head": head,
+    }
+
+
+def test_score_keeps_worlds_apart_and_scores_novel_effects_by_naming_nothing():
+    rs = [
+        _world_result("steered", "delay", "memory_delay", "memory_delay"),
+        _world_result("diffdrive", "delay", "memory_delay", "noise"),
+        _world_result("diffdrive", "kick", None, None, novel=True),
+        _world_result("diffdrive", "kick", None, "noise", novel=True, seed=1),
+        _world_result("diffdrive", "none_gaussian", None, None, head="gaussian"),
+    ]
+    s = score(rs, "withheld", "diffdrive")
+    assert s.top1 == 0.0 and s.top1_by_case == {"delay": 0.0}
+    assert s.novel_none == 0.5 and s.novel_none_by_case == {"kick": 0.5}
+    assert s.false_alarm == 0.0 and "kick" not in s.false_alarm_by_case
+    assert score(rs, "withheld", "steered").top1 == 1.0
+    assert "none 50%" in to_markdown([s], TINY)
+
+
+def test_cli_prints_the_cross_world_table_from_resumed_results(tmp_path, capsys):
+    """Every trial is already in results.jsonl, so nothing is trained: the command only scores."""
+    from envi_py.diagnose.validate import ALL_CASES
+
+    rows = []
+    for world in ("steered", "diffdrive"):
+        for c in ALL_CASES:
+            if world in c.worlds:
+                top = c.expected if world == "steered" else None
+                rows.append(_world_result(world, c.name, c.expected, top, novel=c.novel, head=c.head))
+    (tmp_path / "results.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    args = ["diagnose", "validate", "--world", "steered", "diffdrive", "--seeds", "1", "--mode", "withheld"]
+    assert main(args + ["--out", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert (
+        "# Cross-world validation" in out and "| case | kind | steered (tuned) withheld | diffdrive withheld |" in out
+    )
+    assert "| backlash | effect | 1/1 (100%, 3%-100%) | 0/1 (0%, 0%-98%) |" in out
+    assert "| kick | novel | - | 1/1 (100%, 3%-100%) |" in out
+    line = next(x for x in out.splitlines() if x.startswith("| negative controls without a false alarm, gaussian"))
+    assert line.endswith("| 1/1 (100%, 3%-100%) | 1/1 (100%, 3%-100%) |")
+    assert len((tmp_path / "results.jsonl").read_text().splitlines()) == len(rows)  # nothing was rerun
+
+
+def test_a_case_is_refused_in_a_world_that_cannot_inject_it():
+    from envi_py.diagnose.validate import ALL_CASES
+
+    kick = next(c for c in ALL_CASES if c.name == "kick")
+    with pytest.raises(ValueError, match="cannot be injected in the 'steered' world"):
+        trial(kick, 0, size=TINY, world="steered")
+
+
+def test_injected_effects_are_given_in_the_units_of_their_layers():
+    from envi_py.diagnose.validate import ALL_CASES, injected_layer
+
+    by = {c.name: c for c in ALL_CASES}
+    assert injected_layer(by["delay"], 40.0) == ("delay", 2.0)
+    assert injected_layer(by["lag"], 40.0) == ("lag", 3.0)
+    assert injected_layer(by["backlash"], 40.0) == ("play", 20.0)
+    assert injected_layer(by["saturation"], 40.0) == ("saturation", 51.0)
+    assert injected_layer(by["noise"], 40.0) == ("noise", 3.0)
+    assert injected_layer(by["battery"], 40.0) is None and injected_layer(by["none"], 40.0) is None
+
+
+def test_the_layer_table_counts_coverage_and_the_floor():
+    from envi_py.diagnose.validate import layer_table
+
+    def row(seed, covered, within, shrink):
+        r = _world_result("diffdrive", "delay", "memory_delay", "memory_delay", mode="verification", seed=seed)
+        r["layer"] = {
+            "fitted": f"delay {seed} ticks [{seed}, {seed}]",
+            "injected": {"kind": "delay", "value": 2.0},
+            "covered": covered,
+            "within_1.5_floor": within,
+            "shrink": shrink,
+            "shrink_ci": [shrink - 0.1, shrink + 0.1],
+        }
+        return r
+
+    lines = layer_table([row(2, True, True, 0.8), row(3, False, True, 0.6), row(1, False, False, 0.4)])
+    line = next(x for x in lines if x.startswith("| diffdrive | delay |"))
+    assert "| 3 | delay 2 ticks [2, 2]; delay 3 ticks [3, 3]; delay 1 ticks [1, 1] | delay 2 |" in line
+    assert "| 1/3 (33%, 1%-91%) | 2/3 (67%, 9%-99%) | +60% [+50%, +70%] |" in line

@@ -44,13 +44,14 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
 
 
 def _cmd_validate(args: argparse.Namespace) -> int:
-    from .validate import CASES, Size, run_validation, score, to_markdown
+    from .validate import ALL_CASES, Size, cross_table, layer_table, run_validation, score, to_markdown
 
-    known = {c.name: c for c in CASES}
+    worlds = list(dict.fromkeys(args.world))
+    known = {c.name: c for c in ALL_CASES}
     unknown = set(args.cases or ()) - set(known)
     if unknown:
         raise ValueError(f"unknown case(s) {', '.join(sorted(unknown))}; known: {', '.join(known)}")
-    cases = [known[n] for n in args.cases] if args.cases else list(CASES)
+    cases = [known[n] for n in args.cases] if args.cases else list(ALL_CASES)
     size = Size(
         train=args.train,
         val=args.val,
@@ -62,11 +63,14 @@ def _cmd_validate(args: argparse.Namespace) -> int:
         runs=args.runs,
     )
     out = Path(args.out)
-    results = run_validation(
-        out, cases, range(args.first_seed, args.first_seed + args.seeds), args.mode, size, args.shrink_seeds, args.jobs
-    )
-    scores = [score(results, m) for m in args.mode]
+    seeds = range(args.first_seed, args.first_seed + args.seeds)
+    results = run_validation(out, cases, seeds, args.mode, size, args.shrink_seeds, args.jobs, worlds)
+    scores = [score(results, m, w) for w in worlds for m in args.mode]
     md = to_markdown(scores, size)
+    if len(worlds) > 1:
+        md = cross_table(results, args.mode, worlds) + "\n\n" + md
+    else:
+        md += "\n".join(layer_table(results, worlds))
     (out / "report.md").write_text(md + "\n")
     (out / "scores.json").write_text(json.dumps([asdict(s) for s in scores], indent=1) + "\n")
     print(md)
@@ -124,7 +128,15 @@ def register(sub: Any) -> None:
     v = modes.add_parser("validate", help="score the diagnosis on twin data whose effect is known and withheld")
     d = Size()
     v.add_argument(
-        "--cases", nargs="*", default=None, help="validation cases (default: all, incl. the negative control)"
+        "--cases", nargs="*", default=None, help="validation cases (default: all, incl. the negative controls)"
+    )
+    v.add_argument(
+        "--world",
+        nargs="+",
+        choices=("steered", "diffdrive"),
+        default=["steered"],
+        help="world families: steered (the line follower every threshold was chosen on), diffdrive (a "
+        "differential-drive robot on a curved track, never used to choose one); two print the cross-world table",
     )
     v.add_argument("--seeds", type=int, default=20, help="seeds per case (default 20)")
     v.add_argument("--first-seed", type=int, default=0)

@@ -1,6 +1,11 @@
 """How far the gap shrinks: retrain with a candidate effect added (same data, same seed, same
 hyper-parameters), simulate the confirmation logs with both models, compare the gaps on the
-system's goals against the fair floor."""
+system's goals against the fair floor, with a bootstrap interval of the shrink over confirmation logs.
+
+A fix that leaves the model's configuration as it is (a Gaussian head for noise on a model that has
+one) is not retrained and is reported as ``unchanged``: it cannot shrink anything. Retraining adds an
+effect only when the training logs show it; when they do not (a model of a clean robot verified
+against a worn one), :mod:`.layers` fits the effect on the logs that show the gap instead."""
 
 from __future__ import annotations
 
@@ -8,6 +13,7 @@ from dataclasses import asdict
 from typing import Any, Sequence
 
 import numpy as np
+from scipy import stats
 
 from ..controllers import ControllerSpec
 from ..logs import Log, group_by_controller
@@ -29,10 +35,23 @@ def scoring_of(ckpt: Checkpoint, skip: int | None = None) -> Scoring:
     return Scoring.of(ckpt.system, ckpt.schema, ckpt.config.history if skip is None else skip, ckpt.period_ms)
 
 
+def _config_of(ckpt: Checkpoint) -> dict[str, Any]:
+    return {k: v for k, v in asdict(ckpt.config).items() if k not in ("n_state", "n_action", "kind")}
+
+
+def changes_model(ckpt: Checkpoint, finding: Finding) -> bool:
+    """Does the finding's fix change the model's configuration at all?"""
+    cfg = _config_of(ckpt)
+    return any(
+        cfg.get(k) != (list(v) if isinstance(v, tuple) and isinstance(cfg.get(k), list) else v)
+        for k, v in finding.fix.items()
+    )
+
+
 def retrain_with(ckpt: Checkpoint, finding: Finding, train_logs: Sequence[Log], val_logs: Sequence[Log]) -> Checkpoint:
     """The same training as ``ckpt`` with the finding's model change applied."""
     rec = ckpt.record
-    cfg = {k: v for k, v in asdict(ckpt.config).items() if k not in ("n_state", "n_action", "kind")}
+    cfg = _config_of(ckpt)
     cfg.update(finding.fix)
     hyper = {k: rec.hyper[k] for k in ("epochs", "lr", "eval_every") if k in rec.hyper}
     return train(rec.algorithm, train_logs, val_logs, seed=rec.seed, **hyper, **cfg)
@@ -83,6 +102,49 @@ def gap_summary(groups: Sequence[Group], scoring: Scoring, seed: int) -> dict[st
     }
 
 
+def _per_log_tables(groups: Sequence[Group], scoring: Scoring) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Per version: the real goal table (R, G), the simulated one reshaped (R, runs, G) by initial
+    log, and the goals' scales."""
+    out = []
+    for _, real, sim in groups:
+        rr = scoring.runs(real)
+        mr, ms = scoring.table(rr), scoring.table(scoring.runs(sim))
+        out.append((mr, ms.reshape(mr.shape[0], -1, mr.shape[1]), scoring.scales(rr)))
+    return out
+
+
+def shrink_interval(
+    before: Sequence[Group], after: Sequence[Group], scoring: Scoring, seed: int, boot: int = 500
+) -> list[float]:
+    """95% bootstrap interval (percentile, :func:`scipy.stats.bootstrap`) of ``1 - gap_after /
+    gap_before`` over confirmation logs, resampled within each version with their simulations; the
+    gap is the mean normalised W1 over goals of all real against all simulated runs."""
+    tb, ta = _per_log_tables(before, scoring), _per_log_tables(after, scoring)
+    sizes = [t[0].shape[0] for t in tb]
+    owner = np.concatenate([np.full(n, k) for k, n in enumerate(sizes)])
+    offsets = np.cumsum([0] + sizes)
+
+    def gap(t: tuple[np.ndarray, np.ndarray, np.ndarray], i: np.ndarray) -> float:
+        mr, ms, scale = t
+        sim = ms[i].reshape(-1, ms.shape[2])
+        return float(np.mean([stats.wasserstein_distance(mr[i, j], sim[:, j]) / scale[j] for j in range(mr.shape[1])]))
+
+    def statistic(idx: np.ndarray) -> float:
+        idx = np.asarray(idx, dtype=int)
+        b, a = [], []
+        for k in range(len(sizes)):
+            i = idx[owner[idx] == k] - offsets[k]
+            if len(i):
+                b.append(gap(tb[k], i))
+                a.append(gap(ta[k], i))
+        return 1 - float(np.mean(a)) / max(float(np.mean(b)), 1e-12)
+
+    res = stats.bootstrap(
+        (np.arange(len(owner)),), statistic, n_resamples=boot, vectorized=False, method="percentile", random_state=seed
+    )
+    return [float(res.confidence_interval.low), float(res.confidence_interval.high)]
+
+
 def shrink(
     ckpt: Checkpoint,
     findings: Sequence[Finding],
@@ -93,19 +155,37 @@ def shrink(
     seed: int = 0,
 ) -> dict[str, Any]:
     """Before/after gaps on the confirmation logs for each finding, plus the untouched model. Every
-    model is scored on the same rows: after the longest initial window any of them copies."""
+    model is scored on the same rows: after the longest initial window any of them copies. Each
+    retrained fix has ``shrink_ci`` (:func:`shrink_interval`); a fix that changes nothing is
+    ``unchanged`` with the untouched model's figures and no interval."""
     scoring = scoring_of(ckpt, max([ckpt.config.history] + [int(f.fix.get("history", 0)) for f in findings]))
-    before = gap_summary(simulate_groups(ckpt, confirm_logs, runs, seed), scoring, seed)
+    base_groups = simulate_groups(ckpt, confirm_logs, runs, seed)
+    before = gap_summary(base_groups, scoring, seed)
     after = []
     for f in findings:
+        if not changes_model(ckpt, f):
+            after.append(
+                {
+                    "effect": f.effect,
+                    "fix": f.to_json()["fix"],
+                    **before,
+                    "shrink": 0.0,
+                    "shrink_ci": None,
+                    "unchanged": True,
+                }
+            )
+            continue
         fixed = retrain_with(ckpt, f, train_logs, val_logs)
-        summary = gap_summary(simulate_groups(fixed, confirm_logs, runs, seed), scoring, seed)
+        groups = simulate_groups(fixed, confirm_logs, runs, seed)
+        summary = gap_summary(groups, scoring, seed)
         after.append(
             {
                 "effect": f.effect,
                 "fix": f.to_json()["fix"],
                 **summary,
                 "shrink": 1 - summary["mean_w1"] / max(before["mean_w1"], 1e-12),
+                "shrink_ci": shrink_interval(base_groups, groups, scoring, seed),
+                "unchanged": False,
             }
         )
     return {"before": before, "after": after, "confirm_logs": [lg.name for lg in confirm_logs]}

@@ -1,0 +1,509 @@
+"""Effect layers: a diagnosed effect added as a small parametric layer around the learnt model.
+
+Retraining cannot add an effect the training logs do not show (verification mode: the model was
+trained on a clean robot, the gap is in other logs). A layer can: it sits between the model and the
+controller, with one or two physical parameters that are *fitted on the logs that show the gap*.
+
+Action layers change what the model sees of the controller's commands (the log keeps the commands
+themselves): ``delay`` (k ticks), ``lag`` (first order, tau in rows), ``play`` (backlash of a full
+width), ``gain_drift`` (gain changing linearly over the run) and ``run_gain`` (a gain per run, its
+sd). State layers change what the controller and the log see of the model's predicted states (the
+model keeps its own prediction): ``noise`` (Gaussian sd), ``quantise`` (step) and ``saturation``
+(clipping limits).
+
+Fitting chooses the value of a small grid (which always holds the identity, "no effect") whose
+model is closest to the logs that show the gap, by one of two criteria:
+
+- action layers that act the same in every run (``delay``, ``lag``, ``play``, ``gain_drift``): the
+  one-step residuals. The real windows are fed to the model with their commands passed through the
+  layer, and the value with the least squared one-step error (the Gaussian likelihood at a common
+  variance) wins. It is sharp where the closed-loop goals are not: a delay changes the oscillation's
+  period and amplitude, which a model extrapolating outside its training states also changes, so a
+  goal-based fit of a 2-tick delay lands on 3-5 ticks; the one-step error is smallest exactly where
+  the model sees the commands the robot acted on.
+- layers whose effect is a distribution over runs or rows (``run_gain``, ``noise``, ``quantise``,
+  ``saturation``): simulation. Every value is simulated from each fitting log's initial window
+  (common random numbers: the same seed for every value) and the one whose runs are closest to the
+  real ones on the system's goals (mean normalised W1) wins; a one-step error cannot see a spread
+  across runs, and a deterministic model has no likelihood of noise.
+
+The fitted value's interval is a bootstrap over fitting logs on the cached per-log errors or
+simulations (resample logs, take the best value again). The shrink is then measured on confirmation
+logs used neither for fitting nor for choosing the effect: the matched W1 and the fair floor of
+:func:`envi_py.verify.fair_reference` before and after, and a bootstrap interval of the shrink over
+confirmation logs (:func:`scipy.stats.bootstrap`).
+
+A fitted layer is saved as JSON beside the model (``<model>.layers.json``) and simulated by
+:func:`layered_rollout`, the PyTorch rollout with the layer applied at each step.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+import torch
+from scipy import stats
+
+from ..controllers import ControllerSpec
+from ..logs import Log, group_by_controller
+from ..model import Checkpoint
+from ..simulate import initial_rows, initial_windows
+from ..verify import Scoring, fair_reference
+from .gap import cut_logs
+from .shrink import scoring_of
+
+ACTION_LAYERS = ("delay", "lag", "play", "gain_drift", "run_gain")
+#: Fitted on one-step residuals (the rest by simulation; see the module's docstring).
+RESIDUAL_FIT = ("delay", "lag", "play", "gain_drift")
+STATE_LAYERS = ("noise", "quantise", "saturation")
+LAYERS = ACTION_LAYERS + STATE_LAYERS
+
+#: Which layers stand for each diagnosis candidate (``jitter`` has none: an interval-dependent step
+#: needs the model to take the interval, which only retraining gives).
+FOR_CANDIDATE: dict[str, tuple[str, ...]] = {
+    "memory_delay": ("delay", "lag"),
+    "noise": ("noise",),
+    "quantisation": ("quantise",),
+    "saturation": ("saturation",),
+    "drift": ("gain_drift",),
+    "run_to_run": ("run_gain",),
+    "backlash": ("play",),
+}
+
+UNITS = {
+    "delay": "ticks",
+    "lag": "rows",
+    "play": "action units",
+    "gain_drift": "fraction",
+    "run_gain": "fraction",
+    "noise": "state units",
+    "quantise": "state units",
+    "saturation": "state units",
+}
+
+
+@dataclass(frozen=True)
+class Layer:
+    """One effect layer: its kind and parameters (``value``; ``low``/``high`` for saturation)."""
+
+    kind: str
+    value: float = 0.0
+    low: float = -math.inf
+    high: float = math.inf
+
+    def __post_init__(self) -> None:
+        if self.kind not in LAYERS:
+            raise ValueError(f"unknown effect layer {self.kind!r}; known: {', '.join(LAYERS)}")
+        if not math.isfinite(self.value) or self.value < 0 and self.kind not in ("gain_drift",):
+            raise ValueError(f"effect layer {self.kind}: parameter must be finite and not negative, got {self.value}")
+
+    @property
+    def identity(self) -> bool:
+        """Does the layer change nothing (the grid's 'no effect' point)?"""
+        if self.kind == "saturation":
+            return self.low == -math.inf and self.high == math.inf
+        return self.value == 0
+
+    def to_json(self) -> dict[str, Any]:
+        """Plain JSON (an open clipping limit is null)."""
+        return {k: (None if isinstance(v, float) and math.isinf(v) else v) for k, v in asdict(self).items()}
+
+    @staticmethod
+    def from_json(d: dict[str, Any]) -> "Layer":
+        return Layer(
+            d["kind"],
+            float(d.get("value", 0.0)),
+            -math.inf if d.get("low") is None else float(d["low"]),
+            math.inf if d.get("high") is None else float(d["high"]),
+        )
+
+    def text(self) -> str:
+        if self.kind == "saturation":
+            return f"saturation [{self.low:g}, {self.high:g}]"
+        return f"{self.kind} {self.value:g} {UNITS[self.kind]}"
+
+
+class _ActionState:
+    """The per-run memory of an action layer over one rollout."""
+
+    def __init__(self, layer: Layer, window_actions: np.ndarray, steps: int, rng: np.random.Generator) -> None:
+        self.layer, self.steps, self.t = layer, max(steps, 1), 0
+        self.history = [a for a in np.moveaxis(window_actions, 1, 0)]  # commands so far, each (B, |a|)
+        self.state = window_actions[:, -1].copy()
+        self.gain = 1 + (
+            layer.value * rng.standard_normal((window_actions.shape[0], 1)) if layer.kind == "run_gain" else 0
+        )
+
+    def __call__(self, command: np.ndarray) -> np.ndarray:
+        """What the model sees of this step's command."""
+        kind, v = self.layer.kind, self.layer.value
+        self.history.append(command)
+        self.t += 1
+        if kind == "delay":
+            k = int(round(v))
+            return self.history[-1 - k] if k < len(self.history) else self.history[0]
+        if kind == "lag":
+            a = 1.0 if v <= 0 else 1 - math.exp(-1 / v)
+            self.state = self.state + (command - self.state) * a
+            return self.state
+        if kind == "play":
+            self.state = np.clip(self.state, command - v / 2, command + v / 2)
+            return self.state
+        if kind == "gain_drift":
+            return command * (1 + v * self.t / self.steps)
+        return command * self.gain
+
+
+def _state_layer(layer: Layer, s: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """What the controller and the log see of the model's predicted states."""
+    if layer.kind == "noise":
+        return s + layer.value * rng.standard_normal(s.shape)
+    if layer.kind == "quantise":
+        return np.round(s / layer.value) * layer.value if layer.value > 0 else s
+    if layer.kind == "saturation":
+        return np.clip(s, layer.low, layer.high)
+    return s
+
+
+@torch.no_grad()
+def layered_rollout(
+    ckpt: Checkpoint,
+    controller: ControllerSpec,
+    init: np.ndarray,
+    steps: int,
+    layer: Layer,
+    runs: int = 1,
+    seed: int = 0,
+) -> np.ndarray:
+    """:func:`envi_py.simulate.rollout` with ``layer`` around the model: returns the logged rows
+    (K*runs, l+steps, |s|+|a|): the states the controller saw and the commands it gave."""
+    cfg = ckpt.config
+    k, hist, chans = init.shape
+    if hist != cfg.history or chans != cfg.channels:
+        raise ValueError(f"initial windows are {hist}x{chans}, the model needs {cfg.history}x{cfg.channels}")
+    ns = cfg.n_state
+    ctrl = controller.build(ns, cfg.n_action, ckpt.period_ms)
+    batch = k * runs
+    out = np.empty((batch, hist + steps, chans))
+    out[:, :hist] = np.repeat(init, runs, axis=0)
+    view = out.copy()  # the rows the model sees
+    ctrl.reset(batch)
+    ctrl.warmup(*initial_rows(out[:, :hist], ckpt))
+    gen = torch.Generator().manual_seed(int(seed)) if cfg.stochastic else None
+    intervals = np.random.default_rng([int(seed), 1])
+    rng = np.random.default_rng([int(seed), 2])
+    acts = _ActionState(layer, out[:, :hist, ns:], steps, rng) if layer.kind in ACTION_LAYERS else None
+    window_np = ckpt.encode_rows(view[:, :hist], 0, intervals)
+    ctx = ckpt.context(window_np)
+    context = None if ctx is None else torch.from_numpy(ctx)
+    window = torch.from_numpy(window_np)
+    for t in range(steps):
+        s = ckpt.next_state(ckpt.model_input(window, context), gen)
+        seen = _state_layer(layer, s, rng)
+        command = np.asarray(ctrl(seen), dtype=np.float64).reshape(batch, -1)
+        out[:, hist + t, :ns], out[:, hist + t, ns:] = seen, command
+        view[:, hist + t, :ns], view[:, hist + t, ns:] = s, command if acts is None else acts(command)
+        row = torch.from_numpy(
+            ckpt.encode_rows(view[:, hist + t : hist + t + 1], hist + t, intervals, window[:, -1:].numpy())
+        )
+        window = torch.cat([window[:, 1:], row], dim=1)
+    return out
+
+
+@dataclass
+class _Version:
+    """One controller version's logs cut to one length, and their goal table."""
+
+    spec: ControllerSpec
+    logs: list[Log]
+    real: np.ndarray  # (R, G)
+    scale: np.ndarray  # (G,)
+
+
+def _versions(scoring: Scoring, logs: Sequence[Log]) -> list[_Version]:
+    out = []
+    for spec, group in group_by_controller(logs).items():
+        cut = cut_logs(group, min(len(lg) for lg in group))
+        runs = scoring.runs(cut)
+        out.append(_Version(spec, cut, scoring.table(runs), scoring.scales(runs)))
+    return out
+
+
+def simulate_layered(
+    ckpt: Checkpoint, controller: ControllerSpec, init_logs: Sequence[Log], layer: Layer, runs: int = 1, seed: int = 0
+) -> list[Log]:
+    """``runs`` layered simulations from each log's initial window, as logs (initial log, then
+    replicate), each as long as its initial log and with its time stamps and metadata (all logs must
+    have one length: cut them first)."""
+    hist, ns = ckpt.config.history, ckpt.config.n_state
+    if len({len(lg) for lg in init_logs}) != 1:
+        raise ValueError("simulate_layered: the initial logs must have one length (cut them first)")
+    rows = layered_rollout(
+        ckpt, controller, initial_windows(init_logs, hist), len(init_logs[0]) - hist, layer, runs, seed
+    )
+    out = []
+    for i, tr in enumerate(rows):
+        src = init_logs[i // runs]
+        out.append(Log(None, src.time.copy(), tr[:, :ns].copy(), tr[:, ns:].copy(), src.meta))
+    return out
+
+
+def _simulate_table(ckpt: Checkpoint, scoring: Scoring, v: _Version, layer: Layer, runs: int, seed: int) -> np.ndarray:
+    """(R*runs, G): the goal table of ``runs`` layered simulations from each log's initial window."""
+    return scoring.table(scoring.runs(simulate_layered(ckpt, v.spec, v.logs, layer, runs, seed)))
+
+
+def layered_commands(layer: Layer, actions: np.ndarray) -> np.ndarray:
+    """What the model sees of a log's commands (T, |a|) through an action layer."""
+    state = _ActionState(layer, actions[None, :1], len(actions), np.random.default_rng(0))
+    return np.concatenate([actions[:1], *[state(a[None])[:1] for a in actions[1:]]])
+
+
+def _one_step_sse(ckpt: Checkpoint, logs: Sequence[Log], layer: Layer) -> np.ndarray:
+    """Per log: the sum of squared one-step errors (each state over its normalising half range) of
+    the model fed the real windows with the commands through ``layer``."""
+    seen = [Log(None, lg.time, lg.states, layered_commands(layer, lg.actions), lg.meta) for lg in logs]
+    hist, ns = ckpt.config.history, ckpt.config.n_state
+    half = ckpt.norm.half[:ns]
+    out = []
+    with torch.no_grad():
+        for lg, x in zip(logs, ckpt.dataset(seen).X):
+            mean = ckpt.model.heads(torch.from_numpy(np.ascontiguousarray(x)))[0]
+            pred = ckpt.decode_states(mean.numpy().astype(np.float64))
+            out.append(float(np.sum(((lg.states[hist:] - pred) / half) ** 2)))
+    return np.array(out)
+
+
+def _gap(real: np.ndarray, sim: np.ndarray, scale: np.ndarray) -> float:
+    """Mean over goals of W1(real runs, simulated runs) / scale."""
+    return float(np.mean([stats.wasserstein_distance(real[:, j], sim[:, j]) / scale[j] for j in range(real.shape[1])]))
+
+
+def _rows_of(idx: np.ndarray, runs: int) -> np.ndarray:
+    return (idx[:, None] * runs + np.arange(runs)[None, :]).ravel()
+
+
+def grid_of(kind: str, versions: Sequence[_Version], ckpt: Checkpoint) -> list[Layer]:
+    """The candidate values of a layer, always including the identity (no effect)."""
+    states = np.concatenate([lg.states for v in versions for lg in v.logs])
+    actions = np.concatenate([lg.actions for v in versions for lg in v.logs])
+    s_range = float(np.ptp(states)) or 1.0
+    a_range = float(np.ptp(actions)) or 1.0
+    if kind == "delay":
+        return [Layer(kind, k) for k in range(0, 11)]
+    if kind == "lag":
+        return [Layer(kind, t) for t in (0, 0.5, 1, 1.5, 2, 2.5, 3, 3.5, 4, 5, 6, 8, 10, 13)]
+    if kind == "play":
+        return [Layer(kind, round(f * a_range, 4)) for f in (0, 0.05, 0.1, 0.15, 0.2, 0.3, 0.4, 0.5, 0.6, 0.8, 1.0)]
+    if kind == "gain_drift":
+        return [Layer(kind, g) for g in (-0.5, -0.4, -0.3, -0.2, -0.1, 0.0, 0.1, 0.2, 0.3)]
+    if kind == "run_gain":
+        return [Layer(kind, g) for g in (0, 0.05, 0.1, 0.15, 0.2, 0.3, 0.4)]
+    if kind == "noise":
+        return [Layer(kind, round(f * s_range, 4)) for f in np.arange(17) * 0.005]
+    if kind == "quantise":
+        return [Layer(kind, q) for q in (0, 1, 2, 3, 4, 5, 6, 8)]
+    lows = sorted(set(np.percentile(states, [0, 1, 2, 5]).round(2)))
+    highs = sorted(set(np.percentile(states, [100, 99, 98, 95]).round(2)))
+    return [Layer(kind)] + [Layer(kind, 0.0, float(lo), float(hi)) for lo in lows for hi in highs]
+
+
+@dataclass
+class Fit:
+    """A layer fitted on logs: the chosen value, its bootstrap interval and the objective curve."""
+
+    layer: Layer
+    interval: list[float]  # 95% percentile interval of the chosen value over bootstrap resamplings of logs
+    objective: list[dict[str, Any]]  # per grid point: the layer and its objective
+    fit_logs: list[str] = field(default_factory=list)
+    boot: int = 0
+    criterion: str = ""
+
+    def text(self) -> str:
+        lo, hi = self.interval
+        if self.layer.kind == "saturation":
+            return f"{self.layer.text()} (bootstrap over logs: upper limit [{lo:g}, {hi:g}])"
+        return f"{self.layer.text()} [{lo:g}, {hi:g}]"
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "layer": self.layer.to_json(),
+            "text": self.text(),
+            "interval": self.interval,
+            "objective": self.objective,
+            "fit_logs": self.fit_logs,
+            "boot": self.boot,
+            "criterion": self.criterion,
+        }
+
+
+def _key_value(layer: Layer) -> float:
+    """The number an interval is given for (the upper limit of a saturation)."""
+    return layer.high if layer.kind == "saturation" else layer.value
+
+
+def fit_layer(ckpt: Checkpoint, kind: str, logs: Sequence[Log], runs: int = 2, seed: int = 0, boot: int = 200) -> Fit:
+    """Fit one layer kind on ``logs`` (see the module's docstring); ``runs`` simulations per log."""
+    if kind not in LAYERS:
+        raise ValueError(f"unknown effect layer {kind!r}; known: {', '.join(LAYERS)}")
+    scoring = scoring_of(ckpt)
+    versions = _versions(scoring, logs)
+    grid = grid_of(kind, versions, ckpt)
+    rng = np.random.default_rng(seed)
+    if kind in RESIDUAL_FIT:
+        sse = np.stack([_one_step_sse(ckpt, logs, layer) for layer in grid])  # (grid, logs)
+        full = sse.mean(1)
+        picks = rng.integers(0, len(logs), (boot, len(logs)))
+        chosen = [_key_value(grid[int(np.argmin(sse[:, p].sum(1)))]) for p in picks]
+        criterion = "mean squared one-step error per log (states over their half range)"
+    else:
+        tables = [[_simulate_table(ckpt, scoring, v, layer, runs, seed) for v in versions] for layer in grid]
+
+        def objective(picks: Sequence[np.ndarray]) -> np.ndarray:
+            return np.array(
+                [
+                    np.mean([_gap(v.real[i], t[_rows_of(i, runs)], v.scale) for v, t, i in zip(versions, tab, picks)])
+                    for tab in tables
+                ]
+            )
+
+        full = objective([np.arange(len(v.logs)) for v in versions])
+        chosen = [
+            _key_value(grid[int(np.argmin(objective([rng.integers(0, len(v.logs), len(v.logs)) for v in versions])))])
+            for _ in range(boot)
+        ]
+        criterion = "mean normalised W1 over the goals, simulated against real runs"
+    best = int(np.argmin(full))
+    interval = (
+        [float(np.percentile(chosen, 2.5)), float(np.percentile(chosen, 97.5))]
+        if chosen
+        else [_key_value(grid[best])] * 2
+    )
+    return Fit(
+        grid[best],
+        interval,
+        [{"layer": layer.to_json(), "objective": float(w)} for layer, w in zip(grid, full)],
+        [lg.name for lg in logs],
+        boot,
+        criterion,
+    )
+
+
+def confirm(
+    ckpt: Checkpoint, layer: Layer, logs: Sequence[Log], runs: int = 2, seed: int = 0, boot: int = 500
+) -> dict[str, Any]:
+    """The gap on confirmation ``logs`` without and with ``layer``: the matched W1 and the fair floor
+    (:func:`~envi_py.verify.fair_reference`, averaged over versions), the shrink ``1 - after/before``
+    with a bootstrap 95% interval over confirmation logs (W1 of all real against all simulated runs
+    of the resampled logs), and whether the layered model is within 1.5x the fair floor."""
+    scoring = scoring_of(ckpt)
+    versions = _versions(scoring, logs)
+    base = [_simulate_table(ckpt, scoring, v, Layer(layer.kind), runs, seed) for v in versions]
+    fitted = [_simulate_table(ckpt, scoring, v, layer, runs, seed) for v in versions]
+    before, after, floor = [], [], []
+    for v, b, a in zip(versions, base, fitted):
+        fl, matched_b, _ = fair_reference(v.real, b, v.scale, None, None, seed, 10, 19)
+        _, matched_a, _ = fair_reference(v.real, a, v.scale, None, None, seed, 10, 19)
+        before.append(float(np.mean(matched_b.w1)))
+        after.append(float(np.mean(matched_a.w1)))
+        floor.append(float(np.mean(fl.w1)))
+    offsets = np.cumsum([0] + [len(v.logs) for v in versions])
+    owner = np.concatenate([np.full(len(v.logs), k) for k, v in enumerate(versions)])
+
+    def shrink_of(idx: np.ndarray) -> float:
+        gb, ga = [], []
+        for k, v in enumerate(versions):
+            i = idx[owner[idx] == k] - offsets[k]
+            if len(i) < 2:
+                continue
+            gb.append(_gap(v.real[i], base[k][_rows_of(i, runs)], v.scale))
+            ga.append(_gap(v.real[i], fitted[k][_rows_of(i, runs)], v.scale))
+        return 1 - float(np.mean(ga)) / max(float(np.mean(gb)), 1e-12) if gb else 0.0
+
+    idx = np.arange(len(owner))
+    res = stats.bootstrap(
+        (idx,),
+        lambda i: shrink_of(np.asarray(i, dtype=int)),
+        n_resamples=boot,
+        vectorized=False,
+        method="percentile",
+        random_state=seed,
+    )
+    b, a, f = float(np.mean(before)), float(np.mean(after)), float(np.mean(floor))
+    return {
+        "layer": layer.to_json(),
+        "before": b,
+        "after": a,
+        "floor": f,
+        "shrink": 1 - a / max(b, 1e-12),
+        "shrink_all_runs": shrink_of(idx),
+        "shrink_ci": [float(res.confidence_interval.low), float(res.confidence_interval.high)],
+        "within_1.5_floor": a <= 1.5 * f,
+        "confirm_logs": [lg.name for lg in logs],
+        "runs": runs,
+        "boot": boot,
+    }
+
+
+def goal_gap(ckpt: Checkpoint, layer: Layer, logs: Sequence[Log], runs: int = 2, seed: int = 0) -> float:
+    """Mean normalised W1 over the goals of ``logs`` against their layered simulations (averaged over
+    versions): how two fitted layers of one candidate are compared on the fitting logs."""
+    scoring = scoring_of(ckpt)
+    versions = _versions(scoring, logs)
+    return float(
+        np.mean([_gap(v.real, _simulate_table(ckpt, scoring, v, layer, runs, seed), v.scale) for v in versions])
+    )
+
+
+def fit_and_confirm(
+    ckpt: Checkpoint,
+    candidate: str,
+    fit_logs: Sequence[Log],
+    confirm_logs: Sequence[Log],
+    runs: int = 2,
+    seed: int = 0,
+    boot: int = 200,
+) -> dict[str, Any] | None:
+    """The layers standing for a diagnosed candidate, each fitted on ``fit_logs``; the one of smallest
+    goal gap on the fitting logs is confirmed on ``confirm_logs``. None when the candidate has no layer."""
+    kinds = FOR_CANDIDATE.get(candidate, ())
+    if not kinds:
+        return None
+    fits = [fit_layer(ckpt, k, fit_logs, runs, seed, boot) for k in kinds]
+    best = fits[0] if len(fits) == 1 else min(fits, key=lambda f: goal_gap(ckpt, f.layer, fit_logs, runs, seed))
+    return {
+        "candidate": candidate,
+        "fit": best.to_json(),
+        "confirm": confirm(ckpt, best.layer, confirm_logs, runs, seed),
+    }
+
+
+def layers_path(model_path: str | Path) -> Path:
+    """Where a model's fitted layers are saved: ``<model>.layers.json``."""
+    p = Path(model_path)
+    return p.with_name(p.name + ".layers.json")
+
+
+def save_layers(model_path: str | Path, fits: Sequence[Fit | dict[str, Any]]) -> Path:
+    """Write the fitted layers (fits, or their JSON as :func:`fit_and_confirm` returns it) beside the model."""
+    path = layers_path(model_path)
+    entries = [f.to_json() if isinstance(f, Fit) else f for f in fits]
+    path.write_text(json.dumps({"layers": entries}, indent=1) + "\n")
+    return path
+
+
+def load_layers(model_path: str | Path) -> list[Layer]:
+    """The layers saved beside a model (none when there is no file); a malformed file is one ValueError."""
+    path = layers_path(model_path)
+    if not path.exists():
+        return []
+    try:
+        data = json.loads(path.read_text())
+        return [Layer.from_json(entry["layer"]) for entry in data["layers"]]
+    except (ValueError, KeyError, TypeError) as exc:
+        raise ValueError(f"{path}: not a layers file ({exc})") from None

@@ -1,0 +1,112 @@
+"""Effect layers around a learnt model: their semantics, their rollout, their fit on logs that show a
+gap and the shrink they give on confirmation logs."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from envi_py.diagnose.layers import (
+    Layer,
+    confirm,
+    fit_layer,
+    layered_commands,
+    layered_rollout,
+    layers_path,
+    load_layers,
+    save_layers,
+    simulate_layered,
+)
+from envi_py.diagnose.gap import cut_logs
+from envi_py.diagnose.validate import LANE, world_logs
+from envi_py.simulate import initial_windows, rollout
+from envi_py.train import train
+
+
+@pytest.fixture(scope="module")
+def clean_model():
+    """A small BC model of the clean steered twin (the validation's tiny size)."""
+    torch.set_num_threads(1)
+    fit = world_logs("steered", LANE, 15, 100, {}, 0)
+    return train("bc", fit[:12], fit[12:], seed=0, epochs=80, lr=1e-3, history=4, head="deterministic")
+
+
+def test_action_layers_do_what_they_say():
+    a = np.array([0.0, 10, 10, 10, -10, -10, 10])[:, None]
+    assert layered_commands(Layer("delay", 2), a)[:, 0].tolist() == [0, 0, 0, 10, 10, 10, -10]
+    play = layered_commands(Layer("play", 8), a)[:, 0]
+    assert play.tolist() == [0, 6, 6, 6, -6, -6, 6]  # the output lags the command by half the play
+    lag = layered_commands(Layer("lag", 1), a)[:, 0]
+    assert lag[1] == pytest.approx(10 * (1 - np.exp(-1))) and np.all(np.diff(lag[1:4]) > 0)
+    assert layered_commands(Layer("gain_drift", 0.5), a)[-1, 0] == pytest.approx(10 * (1 + 0.5 * 6 / 7))
+    assert np.array_equal(layered_commands(Layer("delay", 0), a), a)
+
+
+def test_bad_layers_are_refused():
+    with pytest.raises(ValueError, match="unknown effect layer 'wind'"):
+        Layer("wind", 1)
+    with pytest.raises(ValueError, match="must be finite and not negative"):
+        Layer("delay", -1)
+    with pytest.raises(ValueError, match="must be finite"):
+        Layer("noise", float("nan"))
+
+
+def test_the_identity_layer_rolls_out_as_the_model_alone(clean_model):
+    logs = cut_logs(world_logs("steered", LANE, 3, 40, {}, 5), 34)
+    init = initial_windows(logs, clean_model.config.history)
+    plain = rollout(clean_model, LANE, init, 30, runs=2, seed=3)
+    for kind in ("delay", "noise", "play"):
+        assert np.array_equal(layered_rollout(clean_model, LANE, init, 30, Layer(kind), runs=2, seed=3), plain)
+    delayed = layered_rollout(clean_model, LANE, init, 30, Layer("delay", 1), runs=2, seed=3)
+    assert not np.array_equal(delayed, plain)
+    sims = simulate_layered(clean_model, LANE, logs, Layer("delay", 1), runs=2, seed=3)
+    assert len(sims) == 6 and np.array_equal(sims[1].states, delayed[1, :, :1])
+    assert np.array_equal(sims[1].actions, delayed[1, :, 1:]) and np.array_equal(sims[1].time, logs[0].time)
+
+
+def test_a_fitted_noise_layer_recovers_the_injected_noise_and_shrinks_the_gap_on_confirmation_logs(clean_model):
+    """Sensor noise of sd 3 in the logs that show the gap; a model of the clean robot. The noise
+    layer's fitted sd covers 3, and on other logs (neither fitted on nor chosen on) the gap shrinks
+    with a bootstrap interval above zero."""
+    fit = fit_layer(clean_model, "noise", world_logs("steered", LANE, 12, 100, {"noise": 3.0}, 1), boot=100)
+    low, high = fit.interval
+    assert low <= 3.0 <= high and high - low < 3.0, fit.text()
+    c = confirm(clean_model, fit.layer, world_logs("steered", LANE, 12, 100, {"noise": 3.0}, 2), boot=200)
+    assert c["shrink"] > 0.3 and c["shrink_ci"][0] > 0, c
+    assert c["after"] < c["before"]
+
+
+def test_a_layer_fitted_on_a_world_without_the_effect_changes_nothing(clean_model):
+    fit = fit_layer(clean_model, "delay", world_logs("steered", LANE, 12, 100, {}, 1), boot=100)
+    assert fit.layer.identity and fit.interval == [0.0, 0.0], fit.text()
+    c = confirm(clean_model, fit.layer, world_logs("steered", LANE, 12, 100, {}, 2), boot=100)
+    assert c["shrink"] == 0 and c["shrink_ci"] == [0.0, 0.0] and c["within_1.5_floor"]
+
+
+def test_fitted_layers_are_saved_beside_the_model_and_read_back(tmp_path):
+    from envi_py.diagnose.layers import Fit
+
+    model = tmp_path / "m.pt"
+    fits = [Fit(Layer("delay", 2), [2.0, 2.0], []), Fit(Layer("saturation", 0, 29.0, 51.0), [50.0, 51.0], [])]
+    path = save_layers(model, fits)
+    assert path == layers_path(model) == tmp_path / "m.pt.layers.json"
+    assert load_layers(model) == [Layer("delay", 2), Layer("saturation", 0, 29.0, 51.0)]
+    assert fits[0].text() == "delay 2 ticks [2, 2]"
+    path.write_text("{not json")
+    with pytest.raises(ValueError, match="m.pt.layers.json: not a layers file"):
+        load_layers(model)
+    assert load_layers(tmp_path / "other.pt") == []
+
+
+def test_a_fix_the_model_already_has_is_not_a_change(clean_model):
+    from envi_py.diagnose.effects import Finding
+    from envi_py.diagnose.shrink import changes_model
+
+    def finding(fix):
+        return Finding("noise", 1.0, 0.0, 0.5, "", fix)
+
+    assert not changes_model(clean_model, finding({"head": "deterministic"}))
+    assert changes_model(clean_model, finding({"head": "gaussian"}))
+    assert changes_model(clean_model, finding({"history": 8}))
+    assert not changes_model(clean_model, finding({"history": clean_model.config.history}))
