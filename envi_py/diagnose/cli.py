@@ -13,6 +13,7 @@ from typing import Any
 def _cmd_diagnose(args: argparse.Namespace) -> int:
     from ..cli import read_logs
     from ..model import Checkpoint
+    from .layers import save_layers
     from .report import write_diagnosis
     from .run import diagnose
 
@@ -38,6 +39,8 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
         progress=None if args.quiet else lambda text: print(f"[diagnose] {text}", file=sys.stderr, flush=True),
     )
     md = write_diagnosis(d, Path(args.out), model=Path(args.model))
+    if d.layer:
+        print(f"fitted layer: {save_layers(Path(args.out) / Path(args.model).name, [d.layer['fit']])}")
     print(d.verdict())
     print(f"report: {md.with_suffix('.html')} {md}")
     return 0

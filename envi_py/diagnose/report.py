@@ -256,6 +256,49 @@ def _candidates_section(d: Diagnosis) -> Section:
     )
 
 
+def _shrink_cell(a: dict[str, Any]) -> str:
+    """A retrained fix's shrink with its bootstrap interval; a fix that leaves the model as it is says so."""
+    if a.get("unchanged"):
+        return "unchanged: the model already has it"
+    ci = a.get("shrink_ci")
+    return f"{a['shrink']:+.0%}" + (f" ({ci[0]:+.0%} to {ci[1]:+.0%})" if ci else "")
+
+
+def _layer_section(d: Diagnosis) -> list[Section]:
+    """The leading candidate fitted as a small layer around the learnt model, confirmed elsewhere."""
+    if not d.layer:
+        return []
+    f, c = d.layer["fit"], d.layer["confirm"]
+    lo, hi = c["shrink_ci"]
+    return [
+        Section(
+            "The effect fitted where the gap is (a layer around the model)",
+            [
+                Text(
+                    f"The leading candidate ({d.layer['candidate']}) as a parametric layer around the learnt model, "
+                    f"fitted on the logs that show the gap ({f['criterion']}; the interval is a bootstrap over those "
+                    "logs), then the gap measured on the confirmation logs without and with it. Saved beside the "
+                    "report as <model>.layers.json."
+                ),
+                Table(
+                    ["fitted layer", "gap before", "gap after", "floor", "shrink (95%)", "within 1.5x the floor"],
+                    [
+                        [
+                            f["text"],
+                            f"{c['before']:.4f}",
+                            f"{c['after']:.4f}",
+                            f"{c['floor']:.4f}",
+                            f"{c['shrink']:+.0%} ({lo:+.0%} to {hi:+.0%})",
+                            "yes" if c["within_1.5_floor"] else "no",
+                        ]
+                    ],
+                    numeric=frozenset({1, 2, 3, 4}),
+                ),
+            ],
+        )
+    ]
+
+
 def _shrink_section(d: Diagnosis) -> list[Section]:
     if not d.shrink:
         return []
@@ -267,7 +310,7 @@ def _shrink_section(d: Diagnosis) -> list[Section]:
             f"+ {a['effect']} {a['fix']}",
             f"{a['mean_w1']:.4f}",
             f"{a['inside_floor']}/{a['n_goals']}",
-            f"{a['shrink']:+.0%}",
+            _shrink_cell(a),
         ]
         for a in s["after"]
     ]
@@ -475,6 +518,7 @@ def write_diagnosis(d: Diagnosis, out: Path, model: Path | None = None) -> Path:
         ),
         _candidates_section(d),
         *_shrink_section(d),
+        *_layer_section(d),
         _gaps_section(d),
         _residuals_section(d),
         Section(

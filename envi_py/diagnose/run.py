@@ -30,6 +30,7 @@ from .gap import (
 )
 from .residuals import ResidualSet, one_step_residuals
 from .data_quality import data_quality
+from .layers import fit_and_confirm
 from .shrink import scoring_of, shrink, simulate_groups, version_label
 from .stages import refit_gaussian, spread_check, stage_text
 
@@ -59,6 +60,7 @@ class Diagnosis:
     quality: list[dict[str, Any]] = field(default_factory=list)  # :mod:`.data_quality`, shown first
     stage: dict[str, Any] | None = None  # :mod:`.stages`: the model class was wrong, and the refit
     correlation: list[dict[str, Any]] = field(default_factory=list)  # :func:`residual_correlation`
+    layer: dict[str, Any] | None = None  # :func:`~.layers.fit_and_confirm` for the leading candidate
 
     @property
     def significant(self) -> list[Finding]:
@@ -168,13 +170,23 @@ class Diagnosis:
             for f in sig
         )
         text += f"Significant candidate effects, most important first: {names}. "
-        if self.shrink and self.shrink["after"]:
-            best = max(self.shrink["after"], key=lambda a: a["shrink"])
+        retrained = [a for a in (self.shrink or {}).get("after", []) if not a.get("unchanged")]
+        if retrained:
+            best = max(retrained, key=lambda a: a["shrink"])
             b = self.shrink["before"]
             text += (
                 f"Adding {best['effect']} changes the mean normalised W1 over the goals on the confirmation logs "
                 f"from {b['mean_w1']:.4f} to {best['mean_w1']:.4f} ({best['shrink']:+.0%} shrink; floor "
                 f"{b['mean_floor']:.4f}); {best['inside_floor']}/{best['n_goals']} goals within the floor."
+            )
+        if self.layer:
+            c = self.layer["confirm"]
+            lo, hi = c["shrink_ci"]
+            text += (
+                f" Fitted as a layer around the model on the diagnosed logs: {self.layer['fit']['text']}; on the "
+                f"confirmation logs it takes the gap from {c['before']:.4f} to {c['after']:.4f} ({c['shrink']:+.0%} "
+                f"shrink, 95% interval {lo:+.0%} to {hi:+.0%}; floor {c['floor']:.4f}"
+                f"{', within 1.5x the floor' if c['within_1.5_floor'] else ''})."
             )
         return text
 
@@ -199,6 +211,7 @@ class Diagnosis:
             "choose_logs": self.choose_logs,
             "confirm_logs": self.confirm_logs,
             "residual_correlation": self.correlation,
+            "layer": self.layer,
         }
 
 
@@ -411,6 +424,10 @@ def diagnose(
     if retrain and sig:
         say(f"6/6 retraining with {', '.join(f.effect for f in sig)} and measuring the gap on {len(confirm_l)} logs")
     shrunk = shrink(ckpt, sig, train_logs, val_logs, confirm_l, runs, seed) if retrain and sig else None
+    layer = None
+    if retrain and sig:
+        say(f"6/6 fitting a {sig[0].effect} layer around the model and confirming it on {len(confirm_l)} logs")
+        layer = fit_and_confirm(ckpt, sig[0].candidate, choose, confirm_l, runs=2, seed=seed)
     misfit, misfit_each = misfit_by_signal(res)
     held = held_out_fit(ckpt, res, len(choose), val_logs)
     return Diagnosis(
@@ -432,4 +449,5 @@ def diagnose(
         quality,
         stage,
         residual_correlation(res),
+        layer,
     )
