@@ -36,7 +36,7 @@ from tqdm import tqdm
 from ..logs import Log
 from ..system import SystemDescription
 from ..model import Checkpoint
-from .bc import bc_loss
+from .bc import bc_loss, one_step_loss
 from .common import Selector, model_config, new_checkpoint
 from .discriminator import Discriminator, bce_loss
 from .gail_env import Rollout, WindowEnv
@@ -261,7 +261,7 @@ def _train(
     }
     ckpt = new_checkpoint(algorithm, train_logs, val_logs, cfg, seed, record, system=system)
     trainer = _Trainer(ckpt, train_logs, hp, seed)
-    selector = Selector(val_logs)
+    selector = Selector(val_logs, one_step=one_step_loss(ckpt, val_logs))
     rows: list[dict[str, float]] = []
     saver = TrainingState(Path(state_path), ckpt) if state_path is not None else None
     start = 1
