@@ -252,12 +252,12 @@ def cmd_simulate(args: argparse.Namespace) -> int:
             f"initial logs from different folders share the name {dup[0]!r}: their simulated runs would "
             "overwrite each other; simulate them into separate --out folders"
         )
-    engines = {choose_engine(ckpt, spec, args.engine) for spec in specs}
+    engines = {choose_engine(ckpt, spec, args.engine, args.mean) for spec in specs}
     if args.engine == "auto" and "torch" in engines:
         from .native import unsupported
 
         for spec in specs:
-            why = unsupported(ckpt, spec)
+            why = unsupported(ckpt, spec, args.mean)
             if why:
                 print(
                     f"envi simulate: the native engine cannot run {spec.label()} ({why}); using PyTorch",
@@ -266,7 +266,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     n = 0
     for spec, group in versions_to_simulate(init, given):
-        for _, _, lg in iter_simulate(ckpt, spec, group, args.steps, args.runs, args.seed, args.engine):
+        for _, _, lg in iter_simulate(ckpt, spec, group, args.steps, args.runs, args.seed, args.engine, args.mean):
             write_log(lg, out / f"{lg.meta.run_id}.csv")  # run ids are checked plain names: no path escapes
             n += 1
     print(f"simulated {n} runs in {time.perf_counter() - t0:.2f} s ({'+'.join(sorted(engines))} engine) -> {out}")
@@ -486,6 +486,11 @@ def build_parser() -> argparse.ArgumentParser:
         choices=("auto", "native", "torch"),
         default="auto",
         help="auto (default): the C++ engine when it can run the model, else PyTorch",
+    )
+    p.add_argument(
+        "--mean",
+        action="store_true",
+        help="simulate a stochastic model by its mean (no sampling): one deterministic run per window",
     )
     p.add_argument("--out", required=True, help="folder for simulated logs")
     p.set_defaults(func=cmd_simulate)
