@@ -180,8 +180,9 @@ def _at_most(args: argparse.Namespace, **limits: int) -> None:
 
 def cmd_train(args: argparse.Namespace) -> int:
     from .train import train
+    from .train.common import SelectionSettings
 
-    _positive(args, "epochs", "history", "eval_every")
+    _positive(args, "epochs", "history", "eval_every", "select_runs")
     _at_most(args, epochs=1_000_000, history=10_000, eval_every=1_000_000)
     try:
         hidden = [int(h) for h in args.hidden.split(",")]
@@ -202,6 +203,7 @@ def cmd_train(args: argparse.Namespace) -> int:
             extras=tuple(args.extras),
             play_width=args.play_width,
             context=args.context,
+            selection=SelectionSettings(runs=args.select_runs, patience=args.patience),
         )
         if args.algorithm == "bc":
             kwargs["head"] = args.head
@@ -429,7 +431,9 @@ def build_parser() -> argparse.ArgumentParser:
         default="bc",
         help="bc: behaviour cloning; gail, bcxgail: adversarial (PPO); random: the paper's baseline",
     )
-    p.add_argument("--epochs", type=int, default=300, help="training epochs")
+    p.add_argument(
+        "--epochs", type=int, default=300, help="most training epochs (it stops earlier on a plateau, see --patience)"
+    )
     p.add_argument(
         "--lr", type=float, default=None, help="learning rate (default: the algorithm's: BC 1e-3, GAIL/BCxGAIL 5e-5)"
     )
@@ -454,6 +458,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--context", action="store_true", help="append the per-run context of the initial window")
     p.add_argument("--eval-every", type=int, default=10, help="epochs between closed-loop validations")
+    p.add_argument("--select-runs", type=int, default=5, help="simulated runs per validation log at each validation")
+    p.add_argument(
+        "--patience",
+        type=int,
+        default=10,
+        help="validations without a better (smoothed) score before training stops; 0 runs every epoch",
+    )
     p.add_argument("--seed", type=seed_type, default=0, help="seed of initialisation and sampling")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument(
