@@ -61,10 +61,6 @@ ALGORITHMS: dict[str, tuple[str, dict[str, Any]]] = {
     # model selection as it was before issue 19's step 1: one run per window, raw minimum, 300 fixed epochs
     "bc-select-1run": ("bc", {"selection": SelectionSettings(runs=1, smooth=1, patience=0), "epochs": 300}),
     "bc-select-tie": ("bc", {"selection": SelectionSettings(tie=0.05)}),
-    "bc-h64": ("bc", {"hidden": (64, 64)}),  # 16x fewer multiply-adds in the wide layer: the time lever
-    "bc-h64-600": ("bc", {"hidden": (64, 64), "epochs": 600}),
-    "bc-noise02": ("bc", {"input_noise": 0.02}),
-    "bc-h64-noise02": ("bc", {"hidden": (64, 64), "epochs": 600, "input_noise": 0.02}),
     "gail": ("gail", {}),
     "bcxgail": ("bcxgail", {}),
 }

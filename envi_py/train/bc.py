@@ -24,7 +24,7 @@ from tqdm import tqdm
 
 from ..logs import Log
 from ..system import SystemDescription
-from ..model import Checkpoint, EnvModel, ModelConfig
+from ..model import EnvModel, Checkpoint
 from .common import SelectionSettings, Selector, model_config, new_checkpoint
 from .state import TrainingState
 
@@ -59,7 +59,6 @@ def train_bc(
     head: str = "gaussian",
     eval_every: int = 10,
     selection: SelectionSettings | None = None,
-    input_noise: float = 0.0,
     system: SystemDescription | None = None,
     progress: bool = False,
     state_path: str | Path | None = None,
@@ -70,11 +69,6 @@ def train_bc(
 
     ``epochs`` is a cap: with validation logs, training stops once the smoothed validation score has
     not improved for ``selection.patience`` evaluations (:class:`.common.SelectionSettings`).
-
-    ``input_noise`` > 0 adds Gaussian noise of that standard deviation (normalised units, where the
-    observed range is -1..1) to the states of every training window, not to the targets: the model
-    learns to steer back from states a little off the real ones, which is where its own errors put
-    it in closed loop (DART-like; Laskey et al. 2017 perturb the demonstrator for the same reason).
 
     With ``state_path`` the whole training state is written there (atomically) after every
     validation, and ``resume`` continues from it: a run killed at any moment and resumed gives
@@ -90,7 +84,6 @@ def train_bc(
         "eval_every": eval_every,
         "batch": "one log per step",
         "selection": selection.to_json(),
-        **({"input_noise": input_noise} if input_noise else {}),
     }
     ckpt = new_checkpoint("bc", train_logs, val_logs, cfg, seed, hyper, system=system)
     data = ckpt.dataset(train_logs)
@@ -99,7 +92,6 @@ def train_bc(
     evs = [None if e is None else torch.from_numpy(e) for e in map(ckpt.limit_event_targets, data.Y)]
     opt = torch.optim.Adam(ckpt.model.parameters(), lr=lr)
     rng = np.random.default_rng(seed)
-    noisy = torch.from_numpy(state_columns(ckpt.config)).float() * input_noise
     selector = Selector(val_logs, selection, one_step_loss(ckpt, val_logs))
     saver = TrainingState(Path(state_path), ckpt) if state_path is not None else None
     start = saver.restore(ckpt, opt, rng, selector) + 1 if saver is not None and resume else 1
@@ -108,8 +100,7 @@ def train_bc(
     for epoch in bar:
         total = 0.0
         for i in rng.permutation(len(xs)):
-            x = xs[i] + noisy * torch.from_numpy(rng.standard_normal(xs[i].shape)).float() if input_noise else xs[i]
-            loss = bc_loss(ckpt.model, x, ys[i], evs[i])
+            loss = bc_loss(ckpt.model, xs[i], ys[i], evs[i])
             opt.zero_grad()
             loss.backward()
             opt.step()
@@ -122,14 +113,6 @@ def train_bc(
             if selector.should_stop():
                 return selector.finish(ckpt, epoch)
     return selector.finish(ckpt, epochs)
-
-
-def state_columns(cfg: ModelConfig) -> np.ndarray:
-    """1 on the input features that are a window row's states, 0 elsewhere (actions, extras, context)."""
-    mask = np.zeros(cfg.in_features)
-    for r in range(cfg.history):
-        mask[r * cfg.row_width : r * cfg.row_width + cfg.n_state] = 1.0
-    return mask
 
 
 def one_step_loss(ckpt: Checkpoint, logs: Sequence[Log]) -> Callable[[Checkpoint], float] | None:
