@@ -61,6 +61,8 @@ ALGORITHMS: dict[str, tuple[str, dict[str, Any]]] = {
     # model selection as it was before issue 19's step 1: one run per window, raw minimum, 300 fixed epochs
     "bc-select-1run": ("bc", {"selection": SelectionSettings(runs=1, smooth=1, patience=0), "epochs": 300}),
     "bc-select-tie": ("bc", {"selection": SelectionSettings(tie=0.05)}),
+    "bc-h64-600": ("bc", {"hidden": (64, 64), "epochs": 600}),  # 16x fewer multiply-adds in the wide layer
+    "bcxgail-bcw4": ("bcxgail", {"bc_weight": 4.0}),
     "gail": ("gail", {}),
     "bcxgail": ("bcxgail", {}),
 }
