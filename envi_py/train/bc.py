@@ -9,7 +9,8 @@ exchangeability test passes on more versions and goals at 1e-3.
 
 The loss is MSE for a deterministic model and the Gaussian negative log-likelihood for a
 stochastic one. Every ``eval_every`` epochs the model is simulated in closed loop on the
-validation logs and the best one is kept (see :mod:`.common`).
+validation logs; the epoch kept and when training stops (``epochs`` is a cap) are decided by
+:class:`.common.Selector` with :class:`.common.SelectionSettings`.
 """
 
 from __future__ import annotations

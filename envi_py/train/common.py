@@ -3,7 +3,9 @@
 Model selection is by closed-loop error on held-out validation logs: each validation log's
 controller is simulated against the candidate model from the log's own sigma_0 and the goal-metric
 distributions are compared (:func:`closed_loop_score`). One-step loss alone picks
-models that drift in closed loop (the compounding error the paper warns about).
+models that drift in closed loop (the compounding error the paper warns about). With a few
+validation logs one evaluation is noisy, so several runs are simulated per log, the choice is made
+on a moving average of the curve, and training stops on a plateau (:class:`Selector`).
 """
 
 from __future__ import annotations
