@@ -431,9 +431,7 @@ def build_parser() -> argparse.ArgumentParser:
         default="bc",
         help="bc: behaviour cloning; gail, bcxgail: adversarial (PPO); random: the paper's baseline",
     )
-    p.add_argument(
-        "--epochs", type=int, default=300, help="most training epochs (it stops earlier on a plateau, see --patience)"
-    )
+    p.add_argument("--epochs", type=int, default=300, help="training epochs")
     p.add_argument(
         "--lr", type=float, default=None, help="learning rate (default: the algorithm's: BC 1e-3, GAIL/BCxGAIL 5e-5)"
     )
@@ -463,7 +461,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--patience",
         type=int,
         default=10,
-        help="validations without a better (smoothed) score before training stops; 0 runs every epoch",
+        help="validations without a better (smoothed) score before training stops before --epochs; 0: never",
     )
     p.add_argument("--seed", type=seed_type, default=0, help="seed of initialisation and sampling")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
