@@ -150,11 +150,18 @@ def compare(real: list[Log], other: list[Log], cfg: MetricConfig) -> dict[str, A
     """Authors' KLD and per-metric W1 (over the metric's possible range) of two samples of runs."""
     r, o = colour(real), colour(other)
     dist = distances(r, o, cfg)
-    mean_part, spread_part = kld_parts(safety_comfort(r, cfg), safety_comfort(o, cfg))
+    sc_real, sc_other = safety_comfort(r, cfg), safety_comfort(o, cfg)
+    mean_part, spread_part = kld_parts(sc_real, sc_other)
     return {
         "kld": mean_part + spread_part,
         "kld_mean_part": mean_part,
         "kld_spread_part": spread_part,
+        "safety_comfort": {  # which way the fits differ: means and standard deviations of both samples
+            "real_mean": sc_real.mean(axis=0).tolist(),
+            "other_mean": sc_other.mean(axis=0).tolist(),
+            "real_std": sc_real.std(axis=0, ddof=1).tolist(),
+            "other_std": sc_other.std(axis=0, ddof=1).tolist(),
+        },
         "w1": dict(zip(METRIC_NAMES, map(float, dist.w1))),
         "acc": dist.acc,
         "runs": [len(real), len(other)],

@@ -63,7 +63,7 @@ def test_training_stops_after_patience_evaluations_without_improvement(monkeypat
     sel, ckpt = _run(monkeypatch, curve, SelectionSettings(smooth=1, patience=3))
     assert sel.best_epoch == 30
     assert sel.evaluations[-1].epoch == 60  # three evaluations after the best: stop, never seeing the late 0.2
-    assert "after epoch 30" in ckpt.record.selection["stopped"]
+    assert "than epoch 30's" in ckpt.record.selection["stopped"]
     assert ckpt.record.selection["last_epoch"] == 60
 
 

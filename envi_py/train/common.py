@@ -208,8 +208,8 @@ class Selector:
         if settled - self.best_index < patience:
             return False
         self.stopped = (
-            f"no better smoothed score in {patience} evaluations after epoch {self.best_epoch} "
-            f"(stopped at epoch {self.evaluations[-1].epoch})"
+            f"stopped at epoch {self.evaluations[-1].epoch}: {patience} evaluations without a better smoothed "
+            f"score than epoch {self.best_epoch}'s (the last ones, smoothed over fewer, were weighed at the end)"
         )
         return True
 
