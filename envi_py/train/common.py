@@ -47,7 +47,14 @@ def model_config(
     head: str = "deterministic",
     **extra: Any,
 ) -> ModelConfig:
+    """The model's configuration for ``logs``; unless given, simulated states are clamped to the range
+    the training logs show and rounded to the resolution the schema declares (the real readings are
+    on that grid). Measured on the real lane-keeping logs (n = 20, one model, 10 vs 10 runs per
+    version): the same model's mean KLD over x = 10..50 went from 1.40 unrounded to 1.07 rounded and
+    0.97 rounded and clamped to the observed range (``benchmarks/fidelity_real.py``)."""
     extra.setdefault("limit_events", limit_events(logs))
+    extra.setdefault("round_to", declared_resolution(logs))
+    extra.setdefault("limits", observed_limits(logs))
     return ModelConfig(
         n_state=logs[0].states.shape[1],
         n_action=logs[0].actions.shape[1],
@@ -56,6 +63,18 @@ def model_config(
         head=head,
         **extra,
     )
+
+
+def declared_resolution(logs: Sequence[Log]) -> tuple[float, ...] | None:
+    """Each state's declared resolution, or None unless every state declares one."""
+    steps = tuple(ch.resolution for ch in logs[0].meta.schema.states)
+    return steps if all(r is not None and r > 0 for r in steps) else None
+
+
+def observed_limits(logs: Sequence[Log]) -> tuple[tuple[float, float], ...]:
+    """Each state's smallest and largest reading over ``logs``."""
+    states = np.concatenate([lg.states for lg in logs])
+    return tuple((float(lo), float(hi)) for lo, hi in zip(states.min(axis=0), states.max(axis=0)))
 
 
 def limit_events(logs: Sequence[Log]) -> tuple[tuple[int, float], ...]:
