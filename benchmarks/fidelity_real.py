@@ -277,7 +277,7 @@ def print_table(rows: list[dict], real: dict[int, dict], args: argparse.Namespac
         f"\nAuthors' KLD (real || sim), geometric mean over {args.folds} folds x {args.seeds} seeds; "
         f"each comparison: {args.test} real runs vs {args.test * args.sim_runs} simulated runs per version"
     )
-    head = "algorithm          n  models " + " ".join(f"x={x:<6}" for x in ALL_X) + "  mean   published  train s"
+    head = "algorithm          n  models " + " ".join(f"x={x:<6}" for x in ALL_X) + "  mean   earlier    train s"
     print(head)
     print("-" * len(head))
     for r in rows:
@@ -299,6 +299,12 @@ def print_table(rows: list[dict], real: dict[int, dict], args: argparse.Namespac
         f"{'  every shift':<17} {'':>2} {real[ALL_X[0]]['shifts']:>6}  "
         + " ".join(f"{fmt(real[x]['kld_every_shift']):<8}" for x in ALL_X)
         + f" {fmt(np.mean([real[x]['kld_every_shift'] for x in ALL_X])):<6}"
+    )
+    authors = PUBLISHED["authors-bcxgail"]
+    print(
+        f"{'authors BCxGAIL':<17} {20:>2} {'pub.':>6}  "
+        + " ".join(f"{v:<8}" for v in authors["per_x_n20"])
+        + f" {authors['n20']:<6} (their 5-fold protocol; at n=3 {authors['n3']}, the median over seen x)"
     )
     print(
         f"real vs real: {args.test} real runs vs {args.test} other real runs of the same version (half the file "
