@@ -47,6 +47,7 @@ from envi_py.metrics import METRIC_NAMES, MetricConfig, distances, safety_comfor
 from envi_py.simulate import simulate_versions
 from envi_py.system import lane_keeping
 from envi_py.train import train
+from envi_py.train.common import SelectionSettings
 
 DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "lane-keeping-fot"
 TRAIN_X = (10, 30, 50)
@@ -57,6 +58,11 @@ ALGORITHMS: dict[str, tuple[str, dict[str, Any]]] = {
     "bc-gaussian": ("bc", {"head": "gaussian"}),
     "bc-deterministic": ("bc", {"head": "deterministic"}),
     "bc-gaussian-lr5e-5": ("bc", {"head": "gaussian", "lr": 5e-5}),  # the paper's lr, envi's default before
+    # model selection as it was before issue 19's step 1: one run per window, raw minimum, 300 fixed epochs
+    "bc-select-1run": ("bc", {"selection": SelectionSettings(runs=1, smooth=1, patience=0), "epochs": 300}),
+    "bc-select-tie": ("bc", {"selection": SelectionSettings(tie=0.05)}),
+    "bc-h64-600": ("bc", {"hidden": (64, 64), "epochs": 600}),  # 16x fewer multiply-adds in the wide layer
+    "bcxgail-bcw4": ("bcxgail", {"bc_weight": 4.0}),
     "gail": ("gail", {}),
     "bcxgail": ("bcxgail", {}),
 }
@@ -83,6 +89,12 @@ def authors_kld(real: np.ndarray, sim: np.ndarray, ridge: float = 1e-3) -> float
 
     ``ridge`` (squared units, negligible beside the real variances of tens) keeps the fit of a
     sample with no spread in one coordinate invertible, as ``metrics.gaussian_kld`` does."""
+    return sum(kld_parts(real, sim, ridge))
+
+
+def kld_parts(real: np.ndarray, sim: np.ndarray, ridge: float = 1e-3) -> tuple[float, float]:
+    """:func:`authors_kld` split into the part due to the means, 0.5 d' S_sim^-1 d, and the rest, due
+    to the spreads (covariances): where a model's remaining divergence comes from."""
     k = real.shape[1]
     covs = []
     for sample in (real, sim):
@@ -95,7 +107,8 @@ def authors_kld(real: np.ndarray, sim: np.ndarray, ridge: float = 1e-3) -> float
     d = sim.mean(axis=0) - real.mean(axis=0)
     _, logdet_p = np.linalg.slogdet(sp)
     _, logdet_q = np.linalg.slogdet(sq)
-    return float(0.5 * (np.trace(sq_inv @ sp) + d @ sq_inv @ d - k + logdet_q - logdet_p))
+    mean_part = float(0.5 * d @ sq_inv @ d)
+    return mean_part, float(0.5 * (np.trace(sq_inv @ sp) - k + logdet_q - logdet_p))
 
 
 @dataclass(frozen=True)
@@ -137,8 +150,18 @@ def compare(real: list[Log], other: list[Log], cfg: MetricConfig) -> dict[str, A
     """Authors' KLD and per-metric W1 (over the metric's possible range) of two samples of runs."""
     r, o = colour(real), colour(other)
     dist = distances(r, o, cfg)
+    sc_real, sc_other = safety_comfort(r, cfg), safety_comfort(o, cfg)
+    mean_part, spread_part = kld_parts(sc_real, sc_other)
     return {
-        "kld": authors_kld(safety_comfort(r, cfg), safety_comfort(o, cfg)),
+        "kld": mean_part + spread_part,
+        "kld_mean_part": mean_part,
+        "kld_spread_part": spread_part,
+        "safety_comfort": {  # which way the fits differ: means and standard deviations of both samples
+            "real_mean": sc_real.mean(axis=0).tolist(),
+            "other_mean": sc_other.mean(axis=0).tolist(),
+            "real_std": sc_real.std(axis=0, ddof=1).tolist(),
+            "other_std": sc_other.std(axis=0, ddof=1).tolist(),
+        },
         "w1": dict(zip(METRIC_NAMES, map(float, dist.w1))),
         "acc": dist.acc,
         "runs": [len(real), len(other)],
@@ -160,7 +183,7 @@ def run_cell(
     parts = {x: blocks(by_x[x], fold, args.folds, n, args.val, args.test, x in TRAIN_X) for x in ALL_X}
     train_logs = [lg for x in TRAIN_X for lg in parts[x].train]
     val_logs = [lg for x in TRAIN_X for lg in parts[x].val]
-    kwargs = dict(extra) if algo == "random" else {**extra, "epochs": args.epochs}
+    kwargs = dict(extra) if algo == "random" or args.epochs is None else {**extra, "epochs": args.epochs}
     start = time.perf_counter()
     ckpt = train(algo, train_logs, val_logs, seed=seed, history=args.history, **kwargs)
     train_s = time.perf_counter() - start
@@ -174,6 +197,8 @@ def run_cell(
         "fold": fold,
         "seed": seed,
         "train_seconds": train_s,
+        "selected_epoch": ckpt.record.selection.get("best_epoch"),
+        "stopped": ckpt.record.selection.get("stopped"),
         "train_logs": len(train_logs),
         "val_logs": len(val_logs),
         "per_x": per_x,
@@ -230,7 +255,14 @@ def summarise(cells: list[dict], real: dict[int, dict]) -> list[dict[str, Any]]:
                 "w1_mean_over_x": {
                     m: float(np.mean([c["per_x"][x]["w1"][m] for c in group for x in ALL_X])) for m in METRIC_NAMES
                 },
+                "kld_mean_part_per_x": {
+                    x: float(np.mean([c["per_x"][x]["kld_mean_part"] for c in group])) for x in ALL_X
+                },
+                "kld_spread_part_per_x": {
+                    x: float(np.mean([c["per_x"][x]["kld_spread_part"] for c in group])) for x in ALL_X
+                },
                 "train_seconds": [round(c["train_seconds"], 1) for c in group],
+                "selected_epochs": [c.get("selected_epoch") for c in group],
             }
         )
     return rows
@@ -245,7 +277,7 @@ def print_table(rows: list[dict], real: dict[int, dict], args: argparse.Namespac
         f"\nAuthors' KLD (real || sim), geometric mean over {args.folds} folds x {args.seeds} seeds; "
         f"each comparison: {args.test} real runs vs {args.test * args.sim_runs} simulated runs per version"
     )
-    head = "algorithm          n  models " + " ".join(f"x={x:<6}" for x in ALL_X) + "  mean   published  train s"
+    head = "algorithm          n  models " + " ".join(f"x={x:<6}" for x in ALL_X) + "  mean   earlier    train s"
     print(head)
     print("-" * len(head))
     for r in rows:
@@ -268,6 +300,12 @@ def print_table(rows: list[dict], real: dict[int, dict], args: argparse.Namespac
         + " ".join(f"{fmt(real[x]['kld_every_shift']):<8}" for x in ALL_X)
         + f" {fmt(np.mean([real[x]['kld_every_shift'] for x in ALL_X])):<6}"
     )
+    authors = PUBLISHED["authors-bcxgail"]
+    print(
+        f"{'authors BCxGAIL':<17} {20:>2} {'pub.':>6}  "
+        + " ".join(f"{v:<8}" for v in authors["per_x_n20"])
+        + f" {authors['n20']:<6} (their 5-fold protocol; at n=3 {authors['n3']}, the median over seen x)"
+    )
     print(
         f"real vs real: {args.test} real runs vs {args.test} other real runs of the same version (half the file "
         "away), per fold; 'every shift': geometric mean over every rotation of the file (models column: shifts of x=10)"
@@ -282,6 +320,13 @@ def print_table(rows: list[dict], real: dict[int, dict], args: argparse.Namespac
         print(
             f"  {r['algorithm']:<17} n={r['n']:<2} mean {fmt(r['kld_mean'])}, worst x / real-vs-real "
             f"{fmt(worst)} (same folds), {fmt(steady)} (every shift)"
+        )
+    print("\nKLD split (arithmetic mean over folds and seeds): part due to the means / part due to the spreads")
+    for r in rows:
+        print(
+            f"  {r['algorithm']:<17} n={r['n']:<2} "
+            + " ".join(f"x={x}: {r['kld_mean_part_per_x'][x]:.2f}/{r['kld_spread_part_per_x'][x]:.2f}" for x in ALL_X)
+            + f"; selected epochs {r['selected_epochs']}"
         )
     print("\nW1 per goal metric (over its possible range), mean over versions, folds and seeds:")
     print(f"{'algorithm':<17} {'n':>2} " + " ".join(f"{m[:10]:>10}" for m in METRIC_NAMES))
@@ -321,7 +366,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--n", default="1,3,5,10,20", help="training logs per seen version, comma list")
     p.add_argument("--folds", type=int, default=3, help="block rotations")
     p.add_argument("--seeds", type=int, default=1, help="training seeds per fold")
-    p.add_argument("--epochs", type=int, default=300)
+    p.add_argument("--epochs", type=int, default=None, help="epoch cap (default: each algorithm's)")
     p.add_argument("--history", type=int, default=10, help="window l (rows of sigma_0, not scored)")
     p.add_argument("--val", type=int, default=3, help="validation logs per seen version (model selection)")
     p.add_argument("--test", type=int, default=10, help="test logs per version (real runs per comparison)")

@@ -183,8 +183,9 @@ def cmd_train(args: argparse.Namespace) -> int:
     import tempfile
 
     from .train import train
+    from .train.common import SelectionSettings
 
-    _positive(args, "epochs", "history", "eval_every")
+    _positive(args, "epochs", "history", "eval_every", "select_runs")
     _at_most(args, epochs=1_000_000, history=10_000, eval_every=1_000_000)
     try:
         hidden = [int(h) for h in args.hidden.split(",")]
@@ -205,6 +206,7 @@ def cmd_train(args: argparse.Namespace) -> int:
             extras=tuple(args.extras),
             play_width=args.play_width,
             context=args.context,
+            selection=SelectionSettings(runs=args.select_runs, patience=args.patience),
         )
         if args.algorithm == "bc":
             kwargs["head"] = args.head
@@ -271,12 +273,12 @@ def cmd_simulate(args: argparse.Namespace) -> int:
             f"initial logs from different folders share the name {dup[0]!r}: their simulated runs would "
             "overwrite each other; simulate them into separate --out folders"
         )
-    engines = {choose_engine(ckpt, spec, args.engine) for spec in specs}
+    engines = {choose_engine(ckpt, spec, args.engine, args.mean) for spec in specs}
     if args.engine == "auto" and "torch" in engines:
         from .native import unsupported
 
         for spec in specs:
-            why = unsupported(ckpt, spec)
+            why = unsupported(ckpt, spec, args.mean)
             if why:
                 print(
                     f"envi simulate: the native engine cannot run {spec.label()} ({why}); using PyTorch",
@@ -285,7 +287,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     n = 0
     for spec, group in versions_to_simulate(init, given):
-        for _, _, lg in iter_simulate(ckpt, spec, group, args.steps, args.runs, args.seed, args.engine):
+        for _, _, lg in iter_simulate(ckpt, spec, group, args.steps, args.runs, args.seed, args.engine, args.mean):
             write_log(lg, out / f"{lg.meta.run_id}.csv")  # run ids are checked plain names: no path escapes
             n += 1
     print(f"simulated {n} runs in {time.perf_counter() - t0:.2f} s ({'+'.join(sorted(engines))} engine) -> {out}")
@@ -475,6 +477,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--context", action="store_true", help="append the per-run context of the initial window")
     p.add_argument("--eval-every", type=int, default=10, help="epochs between closed-loop validations")
+    p.add_argument("--select-runs", type=int, default=5, help="simulated runs per validation log at each validation")
+    p.add_argument(
+        "--patience",
+        type=int,
+        default=10,
+        help="validations without a better (smoothed) score before training stops before --epochs; 0: never",
+    )
     p.add_argument("--seed", type=seed_type, default=0, help="seed of initialisation and sampling")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument(
@@ -518,6 +527,11 @@ def build_parser() -> argparse.ArgumentParser:
         choices=("auto", "native", "torch"),
         default="auto",
         help="auto (default): the C++ engine when it can run the model, else PyTorch",
+    )
+    p.add_argument(
+        "--mean",
+        action="store_true",
+        help="simulate a stochastic model by its mean (no sampling): one deterministic run per window",
     )
     p.add_argument("--out", required=True, help="folder for simulated logs")
     p.set_defaults(func=cmd_simulate)

@@ -8,6 +8,7 @@ instruction sets never meets in one link.
 
 from __future__ import annotations
 
+import copy
 import importlib
 import json
 import os
@@ -74,8 +75,9 @@ def _native() -> ModuleType:
     return mod
 
 
-def unsupported(ckpt: Checkpoint, controller: ControllerSpec) -> str | None:
-    """Why the native engine cannot run this model with this controller, or None when it can.
+def unsupported(ckpt: Checkpoint, controller: ControllerSpec, mean: bool = False) -> str | None:
+    """Why the native engine cannot run this model with this controller (by its ``mean`` when asked),
+    or None when it can.
 
     It runs exported MLPs fed by the window alone, with every registered controller (bang-bang,
     lane-keeping, pid and combine; its C++ twins are tested against them, warm-up included);
@@ -92,7 +94,21 @@ def unsupported(ckpt: Checkpoint, controller: ControllerSpec) -> str | None:
         return "the model has derived channels or a run context"
     if controller.name not in REGISTRY:
         return f"controller {controller.name!r} is not a registered one"
+    if mean and ckpt.config.stochastic and ckpt.config.limit_events:
+        return "mean mode of a model with limit events (the engine samples whenever the head is Gaussian)"
     return None
+
+
+def mean_model(ckpt: Checkpoint) -> Checkpoint:
+    """The model without its spread: a copy whose head is the mean alone, which the engine runs
+    deterministically (limit events would need the Gaussian head, so such models stay with PyTorch,
+    see :func:`unsupported`). The original is not touched."""
+    if not ckpt.config.stochastic:
+        return ckpt
+    copy_ = copy.deepcopy(ckpt)
+    copy_.config.head = "deterministic"
+    copy_.model.log_std = None
+    return copy_
 
 
 def onnx_bytes(model: str | os.PathLike | Checkpoint | bytes) -> bytes:

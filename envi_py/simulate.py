@@ -28,14 +28,22 @@ def initial_rows(init: np.ndarray, ckpt: Checkpoint) -> tuple[np.ndarray, np.nda
 
 @torch.no_grad()
 def rollout(
-    ckpt: Checkpoint, controller: ControllerSpec, init: np.ndarray, steps: int, runs: int = 1, seed: int = 0
+    ckpt: Checkpoint,
+    controller: ControllerSpec,
+    init: np.ndarray,
+    steps: int,
+    runs: int = 1,
+    seed: int = 0,
+    mean: bool = False,
 ) -> np.ndarray:
     """Simulate ``runs`` runs from each initial window.
 
     ``init`` is (K, l, |s|+|a|) in physical units; the result is (K*runs, l+steps, |s|+|a|),
     run ``k*runs + r`` starting from window k. The controller is reset and warmed up on sigma_0
     (so a PID's memory matches the real one's at row l), then answers every simulated state.
-    Stochastic models draw from a generator seeded with ``seed``, so a call repeats exactly.
+    Stochastic models draw from a generator seeded with ``seed``, so a call repeats exactly;
+    ``mean`` simulates a stochastic model by its mean instead (no draws, limit events where likelier
+    than not): one deterministic trajectory per window, what the model expects rather than what it samples.
     """
     cfg = ckpt.config
     k, hist, chans = init.shape
@@ -43,6 +51,8 @@ def rollout(
         raise ValueError(f"initial windows are {hist}x{chans}, the model needs {cfg.history}x{cfg.channels}")
     if steps < 0:
         raise ValueError(f"steps must not be negative, got {steps}")
+    if mean and cfg.kind == "random":
+        raise ValueError("the random baseline has no mean to simulate; simulate it without --mean")
     ns = cfg.n_state
     ctrl = controller.build(ns, cfg.n_action, ckpt.period_ms)
     batch = k * runs
@@ -50,7 +60,7 @@ def rollout(
     out[:, :hist] = np.repeat(init, runs, axis=0)
     ctrl.reset(batch)
     ctrl.warmup(*initial_rows(out[:, :hist], ckpt))
-    gen = torch.Generator().manual_seed(int(seed)) if cfg.stochastic else None
+    gen = torch.Generator().manual_seed(int(seed)) if cfg.stochastic and not mean else None
     intervals = np.random.default_rng([int(seed), 1])  # the draws of the 'dt' channel, if the model has one
     window_np = ckpt.encode_rows(out[:, :hist], 0, intervals)
     ctx = ckpt.context(window_np)
@@ -75,16 +85,16 @@ def initial_windows(logs: Sequence[Log], history: int) -> np.ndarray:
 ENGINES = ("auto", "native", "torch")
 
 
-def choose_engine(ckpt: Checkpoint, controller: ControllerSpec, engine: str = "auto") -> str:
-    """``native`` (the C++ engine) or ``torch``. ``auto`` takes native whenever it can run the model;
-    asking for ``native`` when it cannot is an error that says why."""
+def choose_engine(ckpt: Checkpoint, controller: ControllerSpec, engine: str = "auto", mean: bool = False) -> str:
+    """``native`` (the C++ engine) or ``torch``. ``auto`` takes native whenever it can run the model
+    (in ``mean`` mode too); asking for ``native`` when it cannot is an error that says why."""
     if engine not in ENGINES:
         raise ValueError(f"unknown engine {engine!r}; choose from {', '.join(ENGINES)}")
     if engine == "torch":
         return engine
     from . import native
 
-    why = native.unsupported(ckpt, controller)
+    why = native.unsupported(ckpt, controller, mean)
     if why is None:
         return "native"
     if engine == "native":
@@ -105,6 +115,7 @@ def iter_simulate(
     runs: int = 1,
     seed: int = 0,
     engine: str = "torch",
+    mean: bool = False,
 ) -> Iterator[tuple[int, int, Log]]:
     """Simulate from each log's sigma_0, yielding ``(initial log index, replicate, log)`` chunk by
     chunk (source ``sim``).
@@ -116,17 +127,17 @@ def iter_simulate(
     of about :data:`CHUNK_RUNS` runs, each chunk with its own seed, so a million runs stream
     through flat memory and the same call always gives the same runs. Run ids are ``<initial log's
     file stem>-sim<r>`` (its run id for a log in memory), so versions whose logs share run numbers
-    do not collide.
+    do not collide. ``mean``: see :func:`rollout` (recorded in the provenance).
     """
     hist = ckpt.config.history
-    engine = choose_engine(ckpt, controller, engine)
+    engine = choose_engine(ckpt, controller, engine, mean)
     if engine == "native":
         from . import native
 
-        compiled = native.load(ckpt)
+        compiled = native.load(native.mean_model(ckpt) if mean else ckpt)
         roll = lambda init, n, r, s: native.rollout(compiled, controller, init, n, r, s)  # noqa: E731
     else:
-        roll = lambda init, n, r, s: rollout(ckpt, controller, init, n, r, s)  # noqa: E731
+        roll = lambda init, n, r, s: rollout(ckpt, controller, init, n, r, s, mean)  # noqa: E731
     by_len: dict[int, list[int]] = {}
     for i, lg in enumerate(init_logs):
         n = steps if steps is not None else len(lg) - hist
@@ -161,6 +172,7 @@ def iter_simulate(
                             "seed": seed,
                             "replicate": r,
                             "engine": engine,
+                            **({"mean": True} if mean else {}),
                         },
                     )
                     yield i, r, Log(None, time.copy(), tr[:, :ns].copy(), tr[:, ns:].copy(), meta)
@@ -175,12 +187,13 @@ def simulate_logs(
     runs: int = 1,
     seed: int = 0,
     engine: str = "torch",
+    mean: bool = False,
 ) -> list[Log]:
     """:func:`iter_simulate` collected in order (initial log, then replicate). The default engine
     stays PyTorch because training calls this on a few logs many times, where compiling the model
     for the native engine each time would cost more than it saves."""
     result: list[Log | None] = [None] * (len(init_logs) * runs)
-    for i, r, lg in iter_simulate(ckpt, controller, init_logs, steps, runs, seed, engine):
+    for i, r, lg in iter_simulate(ckpt, controller, init_logs, steps, runs, seed, engine, mean):
         result[i * runs + r] = lg
     return [lg for lg in result if lg is not None]
 
@@ -193,13 +206,14 @@ def simulate_versions(
     engine: str = "torch",
     steps: int | None = None,
     controller: ControllerSpec | None = None,
+    mean: bool = False,
 ) -> list[Log]:
     """Each log's own controller version simulated from its sigma_0 (or every log under
     ``controller`` when given): the one loop over versions every command uses."""
     return [
         lg
         for group in versions_to_simulate(init_logs, controller)
-        for lg in simulate_logs(ckpt, group[0], group[1], steps, runs, seed, engine)
+        for lg in simulate_logs(ckpt, group[0], group[1], steps, runs, seed, engine, mean)
     ]
 
 

@@ -81,3 +81,61 @@ def test_a_model_told_the_interval_is_simulated_with_intervals_like_the_real_one
     b = rollout(ck, LANE, np.stack([lg.values[:10] for lg in logs]), 30, runs=2, seed=5)
     np.testing.assert_array_equal(a, b)
     assert torch.cat(seen).std() > 0.1  # the interval input varies in simulation, it is not the nominal 0
+
+
+def test_mean_mode_is_the_gaussian_models_mean_and_draws_nothing():
+    """--mean: a Gaussian model simulated by its mean equals the same weights with a deterministic
+    head, whatever the seed, and differs from its sampled runs."""
+    gauss, logs = paper_ckpt("gaussian"), init_logs()
+    det = paper_ckpt("deterministic")  # same seed: the same trunk and mean head
+    det.model.load_state_dict({k: v for k, v in gauss.model.state_dict().items() if not k.startswith("log_std")})
+    a = simulate_logs(gauss, LANE, logs, runs=2, seed=1, mean=True)
+    b = simulate_logs(gauss, LANE, logs, runs=2, seed=2, mean=True)
+    plain = simulate_logs(det, LANE, logs, runs=2)
+    sampled = simulate_logs(gauss, LANE, logs, runs=2, seed=1)
+    for x, y, z, s in zip(a, b, plain, sampled):
+        np.testing.assert_array_equal(x.values, y.values)
+        np.testing.assert_array_equal(x.values, z.values)
+        assert not np.array_equal(x.values, s.values)
+    assert all(lg.meta.provenance["mean"] is True for lg in a)
+    assert "mean" not in sampled[0].meta.provenance
+
+
+@pytest.mark.skipif(not native.available(), reason="native engine not built")
+def test_native_mean_mode_agrees_with_torch_and_leaves_the_model_stochastic():
+    gauss, logs = paper_ckpt("gaussian"), init_logs()
+    assert choose_engine(gauss, LANE, "auto", mean=True) == "native"
+    a = simulate_logs(gauss, LANE, logs, engine="native", mean=True)
+    b = simulate_logs(gauss, LANE, logs, engine="torch", mean=True)
+    for x, y in zip(a, b):
+        np.testing.assert_allclose(x.values, y.values, atol=1e-4, rtol=0)
+    assert gauss.config.head == "gaussian" and gauss.model.log_std is not None
+
+
+def test_mean_mode_of_the_random_baseline_is_refused():
+    from envi_py.simulate import rollout
+
+    rand = paper_ckpt()
+    rand.config.kind = "random"
+    init = np.stack([lg.values[:10] for lg in init_logs(1)])
+    with pytest.raises(ValueError, match="random baseline has no mean"):
+        rollout(rand, LANE, init, 5, mean=True)
+
+
+def test_envi_simulate_mean_writes_identical_runs_and_says_so(tmp_path, capsys):
+    from envi_py.cli import main
+    from envi_py.logs import read_log, write_log
+
+    model = tmp_path / "m.pt"
+    paper_ckpt("gaussian").save(model)
+    for lg in init_logs(2):
+        write_log(lg, tmp_path / "init" / f"{lg.meta.run_id}.csv")
+    out = tmp_path / "sim"
+    args = ["simulate", "--model", str(model), "--init-logs", str(tmp_path / "init"), "--runs", "2", "--mean"]
+    assert main([*args, "--out", str(out)]) == 0
+    assert "engine" in capsys.readouterr().out
+    runs = sorted(out.glob("*.csv"))
+    assert len(runs) == 4
+    first, second = read_log(runs[0]), read_log(runs[1])  # r0-sim0, r0-sim1: the same mean trajectory
+    np.testing.assert_array_equal(first.values, second.values)
+    assert first.meta.provenance["mean"] is True

@@ -9,13 +9,14 @@ exchangeability test passes on more versions and goals at 1e-3.
 
 The loss is MSE for a deterministic model and the Gaussian negative log-likelihood for a
 stochastic one. Every ``eval_every`` epochs the model is simulated in closed loop on the
-validation logs and the best one is kept (see :mod:`.common`).
+validation logs; the epoch kept and when training stops (``epochs`` is a cap) are decided by
+:class:`.common.Selector` with :class:`.common.SelectionSettings`.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 import torch
@@ -25,7 +26,7 @@ from tqdm import tqdm
 from ..logs import Log
 from ..system import SystemDescription
 from ..model import EnvModel, Checkpoint
-from .common import Selector, model_config, new_checkpoint
+from .common import SelectionSettings, Selector, model_config, new_checkpoint
 from .state import TrainingState
 
 
@@ -58,6 +59,7 @@ def train_bc(
     hidden: Sequence[int] = (256, 256),
     head: str = "gaussian",
     eval_every: int = 10,
+    selection: SelectionSettings | None = None,
     system: SystemDescription | None = None,
     progress: bool = False,
     state_path: str | Path | None = None,
@@ -66,10 +68,14 @@ def train_bc(
 ) -> Checkpoint:
     """Train a model by behaviour cloning on ``train_logs``; select on ``val_logs`` by closed-loop error.
 
+    ``epochs`` is a cap: with validation logs, training stops once the smoothed validation score has
+    not improved for ``selection.patience`` evaluations (:class:`.common.SelectionSettings`).
+
     With ``state_path`` the whole training state is written there (atomically) after every
     validation, and ``resume`` continues from it: a run killed at any moment and resumed gives
     the same checkpoint as an uninterrupted one (see :class:`.state.TrainingState`)."""
     cfg = model_config(train_logs, history, hidden, head, **model_extra)
+    selection = selection or SelectionSettings()
     hyper = {
         "epochs": epochs,
         "lr": lr,
@@ -78,6 +84,7 @@ def train_bc(
         "head": head,
         "eval_every": eval_every,
         "batch": "one log per step",
+        "selection": selection.to_json(),
     }
     ckpt = new_checkpoint("bc", train_logs, val_logs, cfg, seed, hyper, system=system)
     data = ckpt.dataset(train_logs)
@@ -86,7 +93,7 @@ def train_bc(
     evs = [None if e is None else torch.from_numpy(e) for e in map(ckpt.limit_event_targets, data.Y)]
     opt = torch.optim.Adam(ckpt.model.parameters(), lr=lr)
     rng = np.random.default_rng(seed)
-    selector = Selector(val_logs)
+    selector = Selector(val_logs, selection, one_step_loss(ckpt, val_logs))
     saver = TrainingState(Path(state_path), ckpt) if state_path is not None else None
     start = saver.restore(ckpt, opt, rng, selector) + 1 if saver is not None and resume else 1
     ckpt.model.train()
@@ -104,4 +111,19 @@ def train_bc(
             bar.set_postfix(loss=f"{total / len(xs):.2e}", val=f"{score:.4f}")
             if saver is not None:
                 saver.save(epoch, ckpt, opt, rng, selector)
+            if selector.should_stop():
+                return selector.finish(ckpt, epoch)
     return selector.finish(ckpt, epochs)
+
+
+def one_step_loss(ckpt: Checkpoint, logs: Sequence[Log]) -> Callable[[Checkpoint], float] | None:
+    """The mean :func:`bc_loss` over ``logs``' windows (each log weighs alike, as in training): the
+    selector's tie-break. None without logs."""
+    if not logs:
+        return None
+    data = ckpt.dataset(logs)
+    batches = [
+        (torch.tensor(x), torch.tensor(y), None if e is None else torch.from_numpy(e))
+        for x, y, e in zip(data.X, data.Y, map(ckpt.limit_event_targets, data.Y))
+    ]
+    return lambda c: float(np.mean([bc_loss(c.model, x, y, e).item() for x, y, e in batches]))

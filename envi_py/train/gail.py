@@ -36,8 +36,8 @@ from tqdm import tqdm
 from ..logs import Log
 from ..system import SystemDescription
 from ..model import Checkpoint
-from .bc import bc_loss
-from .common import Selector, model_config, new_checkpoint
+from .bc import bc_loss, one_step_loss
+from .common import SelectionSettings, Selector, model_config, new_checkpoint
 from .discriminator import Discriminator, bce_loss
 from .gail_env import Rollout, WindowEnv
 from .ppo import ValueNet, clipped_surrogate, gae, normalise, value_loss
@@ -247,6 +247,7 @@ def _train(
     hyper: dict[str, Any],
 ) -> Checkpoint:
     known = {f.name for f in fields(GailConfig)}
+    selection = hyper.pop("selection", None) or SelectionSettings()
     model_extra = {k: v for k, v in hyper.items() if k not in known and k != "head"}
     hp = GailConfig(**{k: v for k, v in hyper.items() if k in known})
     # limit events are not trained adversarially yet: a GAIL model keeps the plain Gaussian head
@@ -257,11 +258,12 @@ def _train(
         "hidden": list(hidden),
         "head": "gaussian",
         "reward": "log D - log(1 - D)",
+        "selection": selection.to_json(),
         **{k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(hp).items()},
     }
     ckpt = new_checkpoint(algorithm, train_logs, val_logs, cfg, seed, record, system=system)
     trainer = _Trainer(ckpt, train_logs, hp, seed)
-    selector = Selector(val_logs)
+    selector = Selector(val_logs, selection, one_step_loss(ckpt, val_logs))
     rows: list[dict[str, float]] = []
     saver = TrainingState(Path(state_path), ckpt) if state_path is not None else None
     start = 1
@@ -279,9 +281,11 @@ def _train(
         rows.append(row)
         if validated and saver is not None:
             saver.save(epoch, ckpt, trainer.opt, trainer.rng, selector, {**trainer.state(), "curves": rows})
+        if validated and selector.should_stop():
+            break
     if curves_dir is not None:
         write_curves(rows, Path(curves_dir), f"{algorithm}: {len(train_logs)} training logs, seed {seed}")
-    return selector.finish(ckpt, epochs)
+    return selector.finish(ckpt, rows[-1]["epoch"] if rows else epochs)
 
 
 def train_gail(

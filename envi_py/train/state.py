@@ -68,13 +68,7 @@ class TrainingState:
             "model": ckpt.model.state_dict(),
             "optimizer": opt.state_dict(),
             "rng": json.dumps(rng.bit_generator.state),
-            "selector": {
-                "best_score": selector.best_score,
-                "best_epoch": selector.best_epoch,
-                "best_state": selector.best_state,
-                "history": [list(h) for h in selector.history],
-                "diverged": list(selector.diverged),
-            },
+            "selector": selector.to_state(),
             "extra": extra or {},
         }
         self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -111,10 +105,6 @@ class TrainingState:
         ckpt.model.load_state_dict(blob["model"])
         opt.load_state_dict(blob["optimizer"])
         rng.bit_generator.state = json.loads(blob["rng"])
-        sel = blob["selector"]
-        selector.best_score, selector.best_epoch = float(sel["best_score"]), int(sel["best_epoch"])
-        selector.best_state = sel["best_state"]
-        selector.history = [(int(e), float(v)) for e, v in sel["history"]]
-        selector.diverged = [int(e) for e in sel["diverged"]]
+        selector.load_state(blob["selector"])
         self.extra = blob.get("extra", {})
         return int(blob["epoch"])
