@@ -1,4 +1,4 @@
-"""``envi-export MODEL -o model.onnx``: a checkpoint as one self-describing ONNX file.
+"""A checkpoint as one self-describing ONNX file (the ``envi-export`` command: :mod:`envi_py.export_cli`).
 
 The graph is built directly with ``onnx.helper`` from the checkpoint's weights rather than traced:
 the model is a plain chain of ``Gemm`` and ``Tanh`` (the Gaussian head adds a second ``Gemm`` and
@@ -15,7 +15,6 @@ from __future__ import annotations
 import hashlib
 import json
 import struct
-import sys
 from collections.abc import Iterator, Sequence
 from dataclasses import asdict
 from pathlib import Path
@@ -26,7 +25,6 @@ import onnx
 from onnx import TensorProto, helper, numpy_helper
 
 from . import __version__
-from .cli_parser import EnviParser
 from .model import LOG_STD_MAX, LOG_STD_MIN, Checkpoint
 
 OPSET = 17
@@ -239,28 +237,3 @@ def read_metadata(path: str | Path) -> dict[str, Any]:
     """The ``envi.*`` metadata of an exported file, JSON-decoded."""
     model = onnx.load(str(path), load_external_data=False)
     return {p.key: json.loads(p.value) for p in model.metadata_props if p.key.startswith("envi.")}
-
-
-def main(argv: list[str] | None = None) -> int:
-    ap = EnviParser(prog="envi-export", description=__doc__.splitlines()[0])
-    ap.add_argument("model", help="envi checkpoint (.pt)")
-    ap.add_argument("-o", "--output", required=True, help="ONNX file to write")
-    ap.add_argument("--no-check", action="store_true", help="skip the onnxruntime parity check")
-    args = ap.parse_args(argv)
-    try:
-        ckpt = Checkpoint.load(args.model)
-        path = export(ckpt, args.output, check=not args.no_check)
-    except ValueError as exc:
-        print(f"envi-export: error: {str(exc).splitlines()[0]}", file=sys.stderr)
-        return 2
-    size = path.stat().st_size
-    print(
-        f"wrote {path} ({size / 1024:.1f} KiB, opset {OPSET}, {ckpt.config.head} head"
-        + ("" if args.no_check else f", onnxruntime parity <= {PARITY_TOL:g}")
-        + ")"
-    )
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -16,7 +16,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 ENVI = ["-m", "envi_py.cli"]
-EXPORT = ["-m", "envi_py.export"]
+EXPORT = ["-m", "envi_py.export_cli"]
 COLLECT = ["-m", "firmware_bridge.host.collect"]
 
 #: (entry point, arguments, program named in the error, words the reason must contain)
