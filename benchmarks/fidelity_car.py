@@ -51,6 +51,8 @@ CONFIGS: dict[str, tuple[str, dict[str, Any]]] = {
     "bc-lr5e-5": ("bc", {"lr": 5e-5}),  # the paper's lr, envi's default before
     "bc-e600": ("bc", {"epochs": 600}),
     "bcxgail": ("bcxgail", {}),
+    "bc-ms10": ("bc", {"multistep": 10}),  # plus the loss of 10-step unrolls on its own predictions
+    "bc-e600-ms10": ("bc", {"epochs": 600, "multistep": 10}),
 }
 TARGET = 1.5
 
@@ -79,6 +81,8 @@ def run_config(name: str, args: argparse.Namespace) -> dict[str, Any]:
     t0 = time.perf_counter()
     ckpt = train(algorithm, train_logs, val_logs, system=system, seed=args.seed, **kwargs)
     train_s = time.perf_counter() - t0
+    if args.save_dir is not None:
+        ckpt.save(args.save_dir / f"{name}.pt")
     rows: dict[str, dict[str, Any]] = {}
     for k in range(args.test_sets):
         real = versions_logs(args.test, 300 + 17 * k, tuple(CAR_TRAINED) + tuple(CAR_UNSEEN))
@@ -156,6 +160,7 @@ def main() -> None:
     ap.add_argument("--epochs", type=int, default=300)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--quick", action="store_true", help="a smoke run: 30 epochs, 10 logs, 1 test set")
+    ap.add_argument("--save-dir", type=Path, default=None, help="keep each config's model there as <config>.pt")
     ap.add_argument("--out", type=Path, default=Path("bench_out/fidelity_car.json"))
     args = ap.parse_args()
     if args.quick:
