@@ -53,6 +53,8 @@ CONFIGS: dict[str, tuple[str, dict[str, Any]]] = {
     "bcxgail": ("bcxgail", {}),
     "bc-ms10": ("bc", {"multistep": 10}),  # plus the loss of 10-step unrolls on its own predictions
     "bc-e600-ms10": ("bc", {"epochs": 600, "multistep": 10}),
+    "bc-noise1": ("bc", {"input_noise": 1.0}),  # window states perturbed by about one logged step
+    "bc-ms10-noise1": ("bc", {"multistep": 10, "input_noise": 1.0}),
 }
 TARGET = 1.5
 

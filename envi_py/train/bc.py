@@ -26,6 +26,7 @@ from ..logs import Log
 from ..system import SystemDescription
 from ..model import EnvModel, Checkpoint
 from .common import Selector, model_config, new_checkpoint
+from .input_noise import InputNoise
 from .multistep import MultiStepLoss
 from .state import TrainingState
 
@@ -75,12 +76,14 @@ def train_bc(
     state_path: str | Path | None = None,
     resume: bool = False,
     multistep: int = 0,
+    input_noise: float = 0.0,
     **model_extra: Any,
 ) -> Checkpoint:
     """Train a model by behaviour cloning on ``train_logs``; select on ``val_logs`` by closed-loop error.
 
     ``multistep`` > 0 adds the loss of the model unrolled that many steps on its own predictions
-    (:class:`.multistep.MultiStepLoss`) to each log's one-step loss.
+    (:class:`.multistep.MultiStepLoss`) to each log's one-step loss; ``input_noise`` > 0 perturbs
+    the states of the training windows by that many times their typical step (:class:`.input_noise.InputNoise`).
 
     With ``state_path`` the whole training state is written there (atomically) after every
     validation, and ``resume`` continues from it: a run killed at any moment and resumed gives
@@ -95,6 +98,7 @@ def train_bc(
         "eval_every": eval_every,
         "batch": "one log per step",
         "multistep": multistep,
+        "input_noise": input_noise,
     }
     ckpt = new_checkpoint("bc", train_logs, val_logs, cfg, seed, hyper, system=system)
     data = ckpt.dataset(train_logs)
@@ -104,6 +108,7 @@ def train_bc(
     unrolled = (
         MultiStepLoss(data, cfg.context, list(map(ckpt.limit_event_targets, data.Y)), multistep) if multistep else None
     )
+    noisy = InputNoise(data, cfg.row_width, input_noise, seed) if input_noise else None
     opt = torch.optim.Adam(ckpt.model.parameters(), lr=lr)
     rng = np.random.default_rng(seed)
     selector = Selector(val_logs)
@@ -114,7 +119,7 @@ def train_bc(
     for epoch in bar:
         total = 0.0
         for i in rng.permutation(len(xs)):
-            loss = bc_loss(ckpt.model, xs[i], ys[i], evs[i])
+            loss = bc_loss(ckpt.model, xs[i] if noisy is None else noisy(xs[i]), ys[i], evs[i])
             if unrolled is not None:
                 loss = loss + unrolled(ckpt.model, i, head_loss)
             opt.zero_grad()
