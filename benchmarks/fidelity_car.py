@@ -55,6 +55,8 @@ CONFIGS: dict[str, tuple[str, dict[str, Any]]] = {
     "bc-e600-ms10": ("bc", {"epochs": 600, "multistep": 10}),
     "bc-noise1": ("bc", {"input_noise": 1.0}),  # window states perturbed by about one logged step
     "bc-ms10-noise1": ("bc", {"multistep": 10, "input_noise": 1.0}),
+    "bc-res": ("bc", {"residual": True}),  # the mean head predicts the change from the last state
+    "bc-res-ms10": ("bc", {"residual": True, "multistep": 10}),
 }
 TARGET = 1.5
 
@@ -88,7 +90,8 @@ def run_config(name: str, args: argparse.Namespace) -> dict[str, Any]:
     rows: dict[str, dict[str, Any]] = {}
     for k in range(args.test_sets):
         real = versions_logs(args.test, 300 + 17 * k, tuple(CAR_TRAINED) + tuple(CAR_UNSEEN))
-        sim = simulate_versions(ckpt, real, runs=args.sims, seed=k, engine="native")
+        engine = "native" if ckpt.config.plain else "torch"  # the native engine runs plain MLPs only
+        sim = simulate_versions(ckpt, real, runs=args.sims, seed=k, engine=engine)
         for g in verify(real, sim, system, skip=ckpt.config.history, seed=k):
             row = rows.setdefault(
                 g.version, {"goals": g.goals, "ratio": [], "p": [], "sim_div": [], "real_div": [], "n_real": g.n_real}

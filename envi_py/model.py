@@ -60,6 +60,11 @@ class ModelConfig:
     # ultrasonic sensor reading 255 when its echo is lost): the jump is predicted as an event with
     # its own probability, not as Gaussian noise (see :class:`EnvModel`)
     limit_events: tuple[tuple[int, float], ...] = ()
+    # the mean head predicts the change from the window's last state rather than the state itself:
+    # "the state stays put" is then a zero output, not a value the network must hit to within a
+    # sensor step of its normalised range (on the car twin 1 cm is 0.008 of it; the plain head's bias
+    # of that size made a stopped car creep toward the lead in closed loop)
+    residual: bool = False
 
     def __post_init__(self) -> None:
         self.hidden = tuple(int(h) for h in self.hidden)
@@ -102,8 +107,9 @@ class ModelConfig:
 
     @property
     def plain(self) -> bool:
-        """True for the paper's structure (no derived channels, no context): what the exporters support."""
-        return not self.extras and not self.context
+        """True for the paper's structure (no derived channels, no context, no residual head): what the
+        exporters support."""
+        return not self.extras and not self.context and not self.residual
 
     @property
     def stochastic(self) -> bool:
@@ -149,6 +155,9 @@ class EnvModel(nn.Module):
         """Mean, log-std (None when deterministic) and limit-event logits (None without events)."""
         h = self.body(x)
         mean = torch.tanh(self.mean(h))
+        if self.config.residual:
+            last = (self.config.history - 1) * self.config.row_width
+            mean = mean + x[:, last : last + self.config.n_state]
         log_std = None if self.log_std is None else self.log_std(h).clamp(LOG_STD_MIN, LOG_STD_MAX)
         return mean, log_std, None if self.event is None else self.event(h)
 
