@@ -108,7 +108,7 @@ def train_bc(
     unrolled = (
         MultiStepLoss(data, cfg.context, list(map(ckpt.limit_event_targets, data.Y)), multistep) if multistep else None
     )
-    noisy = InputNoise(data, cfg.row_width, input_noise, seed) if input_noise else None
+    noisy = InputNoise(data, cfg.row_width, input_noise) if input_noise else None
     opt = torch.optim.Adam(ckpt.model.parameters(), lr=lr)
     rng = np.random.default_rng(seed)
     selector = Selector(val_logs)
@@ -119,7 +119,7 @@ def train_bc(
     for epoch in bar:
         total = 0.0
         for i in rng.permutation(len(xs)):
-            loss = bc_loss(ckpt.model, xs[i] if noisy is None else noisy(xs[i]), ys[i], evs[i])
+            loss = bc_loss(ckpt.model, xs[i] if noisy is None else noisy(xs[i], rng), ys[i], evs[i])
             if unrolled is not None:
                 loss = loss + unrolled(ckpt.model, i, head_loss)
             opt.zero_grad()

@@ -31,7 +31,7 @@ def step_spread(data: Dataset) -> np.ndarray:
 class InputNoise:
     """Adds Gaussian noise to the state entries of flattened windows (N, l*W [+ context])."""
 
-    def __init__(self, data: Dataset, row_width: int, scale: float, seed: int = 0) -> None:
+    def __init__(self, data: Dataset, row_width: int, scale: float) -> None:
         if not (np.isfinite(scale) and scale >= 0):
             raise ValueError(f"input noise: scale must be a non-negative number, not {scale!r}")
         sd = np.zeros(data.history * row_width, dtype=np.float32)
@@ -39,10 +39,12 @@ class InputNoise:
         for k in range(data.history):
             sd[k * row_width : k * row_width + data.n_state] = spread
         self.sd = torch.from_numpy(sd)
-        self.generator = torch.Generator().manual_seed(seed)
 
-    def __call__(self, x: torch.Tensor) -> torch.Tensor:
-        noise = torch.randn((x.shape[0], self.sd.shape[0]), generator=self.generator) * self.sd
+    def __call__(self, x: torch.Tensor, rng: np.random.Generator) -> torch.Tensor:
+        """``x`` perturbed with noise seeded from ``rng`` (the training loop's generator, which a
+        resumed training restores: the noise repeats exactly after a resume)."""
+        generator = torch.Generator().manual_seed(int(rng.integers(2**63 - 1)))
+        noise = torch.randn((x.shape[0], self.sd.shape[0]), generator=generator) * self.sd
         if x.shape[1] > self.sd.shape[0]:  # the run context rides along unperturbed
             noise = torch.cat([noise, torch.zeros(x.shape[0], x.shape[1] - self.sd.shape[0])], dim=1)
         return x + noise
