@@ -150,16 +150,38 @@ class EnvModel(nn.Module):
         self.mean = nn.Linear(width, config.n_state)
         self.log_std = nn.Linear(width, config.n_state) if config.head == "gaussian" else None
         self.event = nn.Linear(width, len(config.limit_events)) if config.limit_events else None
+        if config.residual and config.limit_events:
+            # each limit reading, normalised (set with the normaliser: see :meth:`Checkpoint.fit_limit_levels`)
+            self.register_buffer("limit_levels", torch.ones(len(config.limit_events)))
 
     def heads(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
         """Mean, log-std (None when deterministic) and limit-event logits (None without events)."""
         h = self.body(x)
         mean = torch.tanh(self.mean(h))
         if self.config.residual:
-            last = (self.config.history - 1) * self.config.row_width
-            mean = mean + x[:, last : last + self.config.n_state]
+            mean = 2 * mean + self.residual_base(x)  # a change of up to the whole range, from anywhere
         log_std = None if self.log_std is None else self.log_std(h).clamp(LOG_STD_MIN, LOG_STD_MAX)
         return mean, log_std, None if self.event is None else self.event(h)
+
+    def residual_base(self, x: torch.Tensor) -> torch.Tensor:
+        """What a residual head adds its change to (B, |s|): each state's last reading in the window;
+        for a saturating sensor its last reading *not* at the limit (a lost echo's 255 says nothing of
+        where the lead is; from there the sensor comes back near where it left), the limit only when
+        the whole window is at it."""
+        cfg = self.config
+        rows = x[:, : cfg.history * cfg.row_width].reshape(x.shape[0], cfg.history, cfg.row_width)
+        base = rows[:, -1, : cfg.n_state]
+        if not cfg.limit_events:
+            return base
+        base = base.clone()
+        order = torch.arange(cfg.history)
+        for k, (i, _) in enumerate(cfg.limit_events):
+            col = rows[..., i]
+            in_range = (col - self.limit_levels[k]).abs() > 1e-5
+            last = torch.where(in_range, order, -1).max(dim=1).values
+            picked = col.gather(1, last.clamp(min=0).unsqueeze(1)).squeeze(1)
+            base[:, i] = torch.where(last >= 0, picked, col[:, -1])
+        return base
 
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
         mean, log_std, _ = self.heads(x)
@@ -337,6 +359,14 @@ class Checkpoint:
             for k, (i, value) in enumerate(cfg.limit_events):
                 s[:, i] = torch.where(events[:, k], torch.tensor(value, dtype=torch.float64), s[:, i])
         return s
+
+    def fit_limit_levels(self) -> None:
+        """Tell a residual model where its limit readings sit in normalised units (its normaliser's
+        encoding of each limit event's reading)."""
+        if self.config.residual and self.config.limit_events:
+            levels = [(v - self.norm.centre[i]) / self.norm.half[i] for i, v in self.config.limit_events]
+            with torch.no_grad():
+                self.model.limit_levels.copy_(torch.tensor(levels, dtype=torch.float32))
 
     def limit_event_targets(self, y: np.ndarray) -> np.ndarray | None:
         """Which normalised next states (N, |s|) are at a limit event's reading (N, e): the targets
