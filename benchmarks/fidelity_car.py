@@ -23,7 +23,9 @@ channels) are simulated with the PyTorch engine, plain ones with the native engi
 Measured (2 test sets x 20 logs per version, 2 simulated runs per test log, seed 0, 2026-11-24):
 ``bc`` worst ratio 10.3 (closest approach of kp_speed 50: its simulated distance crept 1 cm a step
 toward the lead and collapsed to 11 cm against 23 real); ``bc-res`` worst 2.14, 12 of 15 cells
-within 1.5, no exchangeability test below p 0.3. Details and the other levers: issue 14's notes.
+within 1.5, no exchangeability test below p 0.3 (the rest: lane deviation 1.54 and 1.58, closest
+approach of kp_speed 50 2.14, from a few simulated runs in the tails). Tried and not better than
+``bc``: 600 epochs (worst 6.0), the 10-step unrolled loss (11.1), input noise of one step (9.5).
 """
 
 from __future__ import annotations
