@@ -4,7 +4,9 @@ The paper's structure is an MLP l*(|s|+|a|) -> 256 -> tanh -> 256 -> tanh -> |s|
 normalised to [-1, 1]. Everything an unmodelled effect may need later is a field of
 :class:`ModelConfig` rather than a new class: a longer ``history``, a ``gaussian`` head (mean and
 log-std) for stochastic simulation, ``extras`` for derived input channels (``dt``, ``phase``, ``play``),
-``context`` for a per-run context vector appended to the input, and output post-processing (``round_to``
+``context`` for a per-run context vector appended to the input, a ``residual`` mean head (the change
+from the window's last state: a stopped car's constant distance is then a zero output), and output
+post-processing (``round_to``
 sensor resolution, clamping to the valid range)
 applied by the simulator. The diagnosis retrains by changing the config, not the code.
 
