@@ -24,7 +24,8 @@ Measured (2 test sets x 20 logs per version, 2 simulated runs per test log, seed
 ``bc`` worst ratio 10.3 (closest approach of kp_speed 50: its simulated distance crept 1 cm a step
 toward the lead and collapsed to 11 cm against 23 real); ``bc-res`` worst 2.14, 12 of 15 cells
 within 1.5, no exchangeability test below p 0.3 (the rest: lane deviation 1.54 and 1.58, closest
-approach of kp_speed 50 2.14, from a few simulated runs in the tails). Tried and not better than
+approach of kp_speed 50 2.14, from a few simulated runs in the tails); with ``--seed 1`` worst 3.89,
+9 of 15 within 1.5, no p below 0.16 (``bc`` was not re-run at seed 1). Tried and not better than
 ``bc``: 600 epochs (worst 6.0), the 10-step unrolled loss (11.1; with the residual head 14.4),
 input noise of one step (9.5).
 """
