@@ -195,6 +195,10 @@ def cmd_train(args: argparse.Namespace) -> int:
         raise ValueError(f"--hidden widths must lie in 1..100000, got {args.hidden!r}")
     if not 0 <= args.play_width <= 1:
         raise ValueError(f"--play-width is a fraction of the action range (0..1), got {args.play_width}")
+    if not 0 <= args.multistep <= 1000:
+        raise ValueError(f"--multistep is a number of steps (0..1000), got {args.multistep}")
+    if not 0 <= args.input_noise <= 100:  # NaN fails the comparison too
+        raise ValueError(f"--input-noise is a multiple of the typical step (0..100), got {args.input_noise}")
     logs = read_logs(args, min_length=args.history + 1)
     val = read_logs(args, "val_logs", min_length=args.history + 1) if args.val_logs else []
     kwargs: dict[str, Any] = {"seed": args.seed, "history": args.history, "progress": not args.quiet}
@@ -209,7 +213,11 @@ def cmd_train(args: argparse.Namespace) -> int:
             selection=SelectionSettings(runs=args.select_runs, patience=args.patience),
         )
         if args.algorithm == "bc":
-            kwargs["head"] = args.head
+            kwargs.update(head=args.head, multistep=args.multistep, input_noise=args.input_noise)
+        elif args.multistep or args.input_noise:
+            raise ValueError(f"--multistep and --input-noise are behaviour-cloning losses, not {args.algorithm}'s")
+        if args.residual:
+            kwargs["residual"] = True
         elif args.head == "deterministic":
             raise ValueError(f"--head deterministic: {args.algorithm} trains a Gaussian policy (PPO needs one)")
         if args.lr is not None:
@@ -476,6 +484,23 @@ def build_parser() -> argparse.ArgumentParser:
         "--play-width", type=float, default=0.0, help="the play channel's full width, a fraction of the action range"
     )
     p.add_argument("--context", action="store_true", help="append the per-run context of the initial window")
+    p.add_argument(
+        "--residual",
+        action="store_true",
+        help="the model predicts the change from the window's last state (PyTorch engine only)",
+    )
+    p.add_argument(
+        "--multistep",
+        type=int,
+        default=0,
+        help="bc: add the loss of the model unrolled this many steps on its own predictions (0: none)",
+    )
+    p.add_argument(
+        "--input-noise",
+        type=float,
+        default=0.0,
+        help="bc: perturb the training windows' states by this many times their typical logged step (0: none)",
+    )
     p.add_argument("--eval-every", type=int, default=10, help="epochs between closed-loop validations")
     p.add_argument("--select-runs", type=int, default=5, help="simulated runs per validation log at each validation")
     p.add_argument(

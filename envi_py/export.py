@@ -150,7 +150,8 @@ def to_onnx(ckpt: Checkpoint) -> onnx.ModelProto:
         raise ValueError(f"only MLP models can be exported, this one is {cfg.kind!r}")
     if not cfg.plain:
         raise ValueError(
-            "models with derived channels or a run context cannot be exported yet (the runtimes only feed the window)"
+            "models with derived channels, a run context or a residual head cannot be exported yet "
+            "(the runtimes only feed the window through a chain of layers)"
         )
     sd = {k: v.detach().cpu().numpy() for k, v in ckpt.model.state_dict().items()}
     nodes: list = []

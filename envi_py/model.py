@@ -4,7 +4,9 @@ The paper's structure is an MLP l*(|s|+|a|) -> 256 -> tanh -> 256 -> tanh -> |s|
 normalised to [-1, 1]. Everything an unmodelled effect may need later is a field of
 :class:`ModelConfig` rather than a new class: a longer ``history``, a ``gaussian`` head (mean and
 log-std) for stochastic simulation, ``extras`` for derived input channels (``dt``, ``phase``, ``play``),
-``context`` for a per-run context vector appended to the input, and output post-processing (``round_to``
+``context`` for a per-run context vector appended to the input, a ``residual`` mean head (the change
+from the window's last state: a stopped car's constant distance is then a zero output), and output
+post-processing (``round_to``
 sensor resolution, clamping to the valid range)
 applied by the simulator. The diagnosis retrains by changing the config, not the code.
 
@@ -60,6 +62,11 @@ class ModelConfig:
     # ultrasonic sensor reading 255 when its echo is lost): the jump is predicted as an event with
     # its own probability, not as Gaussian noise (see :class:`EnvModel`)
     limit_events: tuple[tuple[int, float], ...] = ()
+    # the mean head predicts the change from the window's last state rather than the state itself:
+    # "the state stays put" is then a zero output, not a value the network must hit to within a
+    # sensor step of its normalised range (on the car twin 1 cm is 0.008 of it; the plain head's bias
+    # of that size made a stopped car creep toward the lead in closed loop)
+    residual: bool = False
 
     def __post_init__(self) -> None:
         self.hidden = tuple(int(h) for h in self.hidden)
@@ -102,8 +109,9 @@ class ModelConfig:
 
     @property
     def plain(self) -> bool:
-        """True for the paper's structure (no derived channels, no context): what the exporters support."""
-        return not self.extras and not self.context
+        """True for the paper's structure (no derived channels, no context, no residual head): what the
+        exporters support."""
+        return not self.extras and not self.context and not self.residual
 
     @property
     def stochastic(self) -> bool:
@@ -144,13 +152,38 @@ class EnvModel(nn.Module):
         self.mean = nn.Linear(width, config.n_state)
         self.log_std = nn.Linear(width, config.n_state) if config.head == "gaussian" else None
         self.event = nn.Linear(width, len(config.limit_events)) if config.limit_events else None
+        if config.residual and config.limit_events:
+            # each limit reading, normalised (set with the normaliser: see :meth:`Checkpoint.fit_limit_levels`)
+            self.register_buffer("limit_levels", torch.ones(len(config.limit_events)))
 
     def heads(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
         """Mean, log-std (None when deterministic) and limit-event logits (None without events)."""
         h = self.body(x)
         mean = torch.tanh(self.mean(h))
+        if self.config.residual:
+            mean = 2 * mean + self.residual_base(x)  # a change of up to the whole range, from anywhere
         log_std = None if self.log_std is None else self.log_std(h).clamp(LOG_STD_MIN, LOG_STD_MAX)
         return mean, log_std, None if self.event is None else self.event(h)
+
+    def residual_base(self, x: torch.Tensor) -> torch.Tensor:
+        """What a residual head adds its change to (B, |s|): each state's last reading in the window;
+        for a saturating sensor its last reading *not* at the limit (a lost echo's 255 says nothing of
+        where the lead is; from there the sensor comes back near where it left), the limit only when
+        the whole window is at it."""
+        cfg = self.config
+        rows = x[:, : cfg.history * cfg.row_width].reshape(x.shape[0], cfg.history, cfg.row_width)
+        base = rows[:, -1, : cfg.n_state]
+        if not cfg.limit_events:
+            return base
+        base = base.clone()
+        order = torch.arange(cfg.history)
+        for k, (i, _) in enumerate(cfg.limit_events):
+            col = rows[..., i]
+            in_range = (col - self.limit_levels[k]).abs() > 1e-5
+            last = torch.where(in_range, order, -1).max(dim=1).values
+            picked = col.gather(1, last.clamp(min=0).unsqueeze(1)).squeeze(1)
+            base[:, i] = torch.where(last >= 0, picked, col[:, -1])
+        return base
 
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
         mean, log_std, _ = self.heads(x)
@@ -328,6 +361,14 @@ class Checkpoint:
             for k, (i, value) in enumerate(cfg.limit_events):
                 s[:, i] = torch.where(events[:, k], torch.tensor(value, dtype=torch.float64), s[:, i])
         return s
+
+    def fit_limit_levels(self) -> None:
+        """Tell a residual model where its limit readings sit in normalised units (its normaliser's
+        encoding of each limit event's reading)."""
+        if self.config.residual and self.config.limit_events:
+            levels = [(v - self.norm.centre[i]) / self.norm.half[i] for i, v in self.config.limit_events]
+            with torch.no_grad():
+                self.model.limit_levels.copy_(torch.tensor(levels, dtype=torch.float32))
 
     def limit_event_targets(self, y: np.ndarray) -> np.ndarray | None:
         """Which normalised next states (N, |s|) are at a limit event's reading (N, e): the targets

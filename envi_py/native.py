@@ -91,7 +91,11 @@ def unsupported(ckpt: Checkpoint, controller: ControllerSpec, mean: bool = False
     if ckpt.config.kind != "mlp":
         return f"the model is {ckpt.config.kind!r}, not an MLP"
     if not ckpt.config.plain:
-        return "the model has derived channels or a run context"
+        return (
+            "the model has a residual head (the C++ loader has no skip connection)"
+            if ckpt.config.residual
+            else "the model has derived channels or a run context"
+        )
     if controller.name not in REGISTRY:
         return f"controller {controller.name!r} is not a registered one"
     if mean and ckpt.config.stochastic and ckpt.config.limit_events:

@@ -8,6 +8,7 @@ import torch
 
 from envi_py.controllers import ControllerSpec
 from envi_py.dataset import Normaliser
+from envi_py.export import to_onnx
 from envi_py.logs import LANE_KEEPING_SCHEMA
 from envi_py.model import Checkpoint, EnvModel, ModelConfig, TrainingRecord
 from envi_py.simulate import rollout, simulate_logs
@@ -139,3 +140,54 @@ def test_the_torch_decoding_is_the_numpy_decoding():
     rows = np.stack([lg.values[:4] for lg in logs])
     enc = ck.encode_rows(rows)
     np.testing.assert_allclose(enc, ck.norm.encode(rows), rtol=0, atol=1e-6)
+
+
+def test_residual_head_predicts_the_change_from_the_last_state(tmp_path):
+    ck = small_ckpt("gaussian", residual=True, history=4)
+    cfg = ck.config
+    x = torch.randn(6, cfg.in_features)
+    plain = EnvModel(ModelConfig(n_state=1, n_action=1, hidden=(16, 16), head="gaussian", history=4))
+    plain.load_state_dict(ck.model.state_dict())  # same weights, plain head
+    (mean, log_std), (mean0, log_std0) = ck.model(x), plain(x)
+    last = (cfg.history - 1) * cfg.row_width
+    torch.testing.assert_close(mean, 2 * mean0 + x[:, last : last + cfg.n_state])  # any change in range
+    torch.testing.assert_close(log_std, log_std0)
+    # a zero output of the head keeps the state where the window's last row left it
+    with torch.no_grad():
+        ck.model.mean.weight.zero_(), ck.model.mean.bias.zero_()
+    torch.testing.assert_close(ck.model(x)[0], x[:, last : last + 1])
+    assert not cfg.plain  # the runtimes' chain of layers has no skip connection: it stays with PyTorch
+    with pytest.raises(ValueError, match="residual head cannot be exported"):
+        to_onnx(ck)
+    back = Checkpoint.load(ck.save(tmp_path / "r.pt"))
+    assert back.config.residual
+    torch.testing.assert_close(back.model(x)[0], ck.model(x)[0])
+
+
+def test_a_residual_saturating_state_changes_from_its_last_reading_in_range():
+    cfg = ModelConfig(
+        n_state=2, n_action=1, history=4, hidden=(8,), head="gaussian", residual=True, limit_events=((1, 255.0),)
+    )
+    model = EnvModel(cfg)
+    model.limit_levels.fill_(1.0)  # 255 encodes to +1
+    w = cfg.row_width
+    x = torch.zeros(3, cfg.in_features)
+    x[:, 1::w] = torch.tensor([[0.1, 0.2, 0.3, 0.4], [0.1, 0.2, 1.0, 1.0], [1.0, 1.0, 1.0, 1.0]])
+    x[:, 0::w] = torch.tensor([0.5, -0.5, 0.25])[:, None]
+    base = model.residual_base(x)
+    # the colour-like state: its last reading; the distance: the last one not at 255, else 255
+    torch.testing.assert_close(base[:, 0], torch.tensor([0.5, -0.5, 0.25]))
+    torch.testing.assert_close(base[:, 1], torch.tensor([0.4, 0.2, 1.0]))
+
+
+def test_training_sets_the_normalised_limit_levels(tmp_path):
+    from envi_py.train.bc import train_bc
+    from envi_py.twin.car import generate_car_versions
+
+    logs = generate_car_versions(2, seed=5, versions=[0, 2], far_start_prob=0.7)
+    ck = train_bc(logs, epochs=1, hidden=(8,), history=3, residual=True)
+    assert ck.config.limit_events == ((1, 255.0),)
+    want = ck.norm.encode(np.array([[0.0, 255.0, 0.0, 0.0]]))[0, 1]
+    assert ck.model.limit_levels.tolist() == pytest.approx([want])
+    back = Checkpoint.load(ck.save(tmp_path / "m.pt"))
+    assert back.model.limit_levels.tolist() == pytest.approx([want])

@@ -27,6 +27,8 @@ from ..logs import Log
 from ..system import SystemDescription
 from ..model import EnvModel, Checkpoint
 from .common import SelectionSettings, Selector, model_config, new_checkpoint
+from .input_noise import InputNoise
+from .multistep import MultiStepLoss
 from .state import TrainingState
 
 
@@ -34,7 +36,18 @@ def bc_loss(model: EnvModel, x: torch.Tensor, y: torch.Tensor, events: torch.Ten
     """MSE for a deterministic head, Gaussian NLL for a stochastic one; with limit events
     (``events`` (N, e): which targets are a saturating sensor's limit reading), binary
     cross-entropy for the event head, and the value head is not trained on those targets."""
-    mean, log_std, logit = model.heads(x)
+    return head_loss(model, model.heads(x), y, events)
+
+
+def head_loss(
+    model: EnvModel,
+    heads: tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None],
+    y: torch.Tensor,
+    events: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """:func:`bc_loss` of the model's already computed heads (the multi-step loss scores each
+    unrolled step with it)."""
+    mean, log_std, logit = heads
     if log_std is None:
         per = (mean - y) ** 2
     else:
@@ -64,12 +77,18 @@ def train_bc(
     progress: bool = False,
     state_path: str | Path | None = None,
     resume: bool = False,
+    multistep: int = 0,
+    input_noise: float = 0.0,
     **model_extra: Any,
 ) -> Checkpoint:
     """Train a model by behaviour cloning on ``train_logs``; select on ``val_logs`` by closed-loop error.
 
     ``epochs`` is a cap: with validation logs, training stops once the smoothed validation score has
     not improved for ``selection.patience`` evaluations (:class:`.common.SelectionSettings`).
+
+    ``multistep`` > 0 adds the loss of the model unrolled that many steps on its own predictions
+    (:class:`.multistep.MultiStepLoss`) to each log's one-step loss; ``input_noise`` > 0 perturbs
+    the states of the training windows by that many times their typical step (:class:`.input_noise.InputNoise`).
 
     With ``state_path`` the whole training state is written there (atomically) after every
     validation, and ``resume`` continues from it: a run killed at any moment and resumed gives
@@ -85,12 +104,18 @@ def train_bc(
         "eval_every": eval_every,
         "batch": "one log per step",
         "selection": selection.to_json(),
+        "multistep": multistep,
+        "input_noise": input_noise,
     }
     ckpt = new_checkpoint("bc", train_logs, val_logs, cfg, seed, hyper, system=system)
     data = ckpt.dataset(train_logs)
     xs = [torch.tensor(x) for x in data.X]
     ys = [torch.tensor(y) for y in data.Y]
     evs = [None if e is None else torch.from_numpy(e) for e in map(ckpt.limit_event_targets, data.Y)]
+    unrolled = (
+        MultiStepLoss(data, cfg.context, list(map(ckpt.limit_event_targets, data.Y)), multistep) if multistep else None
+    )
+    noisy = InputNoise(data, cfg.row_width, input_noise) if input_noise else None
     opt = torch.optim.Adam(ckpt.model.parameters(), lr=lr)
     rng = np.random.default_rng(seed)
     selector = Selector(val_logs, selection, one_step_loss(ckpt, val_logs))
@@ -101,7 +126,9 @@ def train_bc(
     for epoch in bar:
         total = 0.0
         for i in rng.permutation(len(xs)):
-            loss = bc_loss(ckpt.model, xs[i], ys[i], evs[i])
+            loss = bc_loss(ckpt.model, xs[i] if noisy is None else noisy(xs[i], rng), ys[i], evs[i])
+            if unrolled is not None:
+                loss = loss + unrolled(ckpt.model, i, head_loss)
             opt.zero_grad()
             loss.backward()
             opt.step()

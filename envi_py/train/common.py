@@ -122,7 +122,9 @@ def new_checkpoint(
     if "dt" in config.extras and config.intervals is None:
         config.intervals = interval_quantiles(train_logs, period or 40.0)
     schema = train_logs[0].meta.schema
-    return Checkpoint(EnvModel(config), norm, schema, record, system or describe_schema(schema))
+    ckpt = Checkpoint(EnvModel(config), norm, schema, record, system or describe_schema(schema))
+    ckpt.fit_limit_levels()
+    return ckpt
 
 
 def closed_loop_score(ckpt: Checkpoint, logs: Sequence[Log], seed: int = 0, runs: int = 1) -> SelectionScore:
