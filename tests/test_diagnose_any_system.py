@@ -73,7 +73,8 @@ def test_car_diagnosis_scores_every_goal_against_the_fair_floor_and_every_state(
         assert f"| {goal} |" in md
     # The verdict leads with the goal ranked first: beyond the floor by its test, then by ratio.
     version, lead = min(((g, r) for g in d["gaps"] for r in g["gaps"]), key=lambda x: gap_rank(x[1]))
-    assert "### distance [cm]" in md and f"is in {lead['goal']} of {version['controller']} (" in verdict
+    assert "distance [cm]: cells with significant bias" in md
+    assert f"is in {lead['goal']} of {version['controller']} (" in verdict
 
 
 def test_diagnose_takes_no_lane_only_centre_or_band(tmp_path, capsys):

@@ -51,7 +51,7 @@ def test_multi_version_model_is_diagnosed_against_all_five_versions(real_dir, tm
     verdict = captured.out
     assert verdict.startswith("Data quality first: In the diagnosed logs: 4 of 20 logs pause inside the log")
     md = (out / "diagnosis.md").read_text()
-    assert "- diagnosed: log_10_1.csv at " in md
+    assert "| diagnosed | log_10_1.csv | " in md  # the pause table: file, time into the log, row, length
     # the misfit is compared with the model's own held-out (validation) logs, re-read with their versions
     assert d["held_out"]["n_held_out"] == 6
     # one number per concept: the coverage of the verdict is the coverage line's

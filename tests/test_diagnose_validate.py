@@ -4,6 +4,7 @@ verification mode, the retraining step, the scoring and the command line."""
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import pytest
 
@@ -13,11 +14,15 @@ from envi_py.diagnose.validate import CASES, Case, Size, score, to_markdown, tri
 #: Small enough for a unit test, large enough that every case below is named on seed 0.
 TINY = Size(train=12, val=3, diagnose=24, steps=100, epochs=80, lr=1e-3, history=4, runs=2)
 BY_NAME = {c.name: c for c in CASES}
+#: A PID robot with play sits near its set-point: its closed-loop gap is small, and since the gap must
+#: now be significant by the per-version permutation test before any candidate is named, 24 diagnosed
+#: logs are too few to show it (p = 0.42 on seed 0); 48 are enough.
+SIZE_OF = {"backlash": replace(TINY, diagnose=48)}
 
 
 @pytest.mark.parametrize("case", CASES, ids=[c.name for c in CASES])
 def test_blind_diagnosis_names_the_withheld_effect(case: Case):
-    r = trial(case, seed=0, size=TINY, shrink=False)
+    r = trial(case, seed=0, size=SIZE_OF.get(case.name, TINY), shrink=False)
     if case.expected is None:
         assert r["significant"] == [], r["findings"]
     else:

@@ -226,6 +226,7 @@ def trial(
     import torch
 
     from ..train import train
+    from ..train.common import SelectionSettings
     from .run import diagnose
 
     torch.set_num_threads(1)
@@ -242,6 +243,12 @@ def trial(
         lr=size.lr,
         head=case.head,
         history=case.history or size.history,
+        # the diagnosis' rules were chosen on models trained as before stop 21 (a fixed number of epochs,
+        # the raw validation curve of one run per window, output neither rounded nor clamped to the
+        # observed range); the validation keeps measuring those rules on such models
+        round_to=None,
+        limits=None,
+        selection=SelectionSettings(runs=1, smooth=1, tie=0.0, patience=0),
     )
     d = diagnose(
         ckpt,
@@ -251,6 +258,7 @@ def trial(
         runs=size.runs,
         top=1,
         retrain=shrink and mode == "withheld" and case.expected is not None,
+        refit=False,  # the staged refit is scored by its own tests (tests/test_diagnose_stages.py)
         seed=seed,
     )
     sig = [f.candidate for f in d.significant]
