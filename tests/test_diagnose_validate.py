@@ -247,3 +247,13 @@ def test_the_layer_table_counts_coverage_and_the_floor():
     line = next(x for x in lines if x.startswith("| diffdrive | delay |"))
     assert "| 3 | delay 2 ticks [2, 2]; delay 3 ticks [3, 3]; delay 1 ticks [1, 1] | delay 2 |" in line
     assert "| 1/3 (33%, 1%-91%) | 2/3 (67%, 9%-99%) | +60% [+50%, +70%] |" in line
+
+
+def test_a_fix_is_said_as_the_train_options_that_make_it():
+    from envi_py.diagnose.shrink import train_options
+
+    assert train_options({"history": 16}) == "--history 16"
+    assert train_options({"head": "gaussian"}) == "--head gaussian"
+    assert train_options({"extras": ["play"], "play_width": 0.05}) == "--extras play --play-width 0.05"
+    assert train_options({"context": True}) == "--context"
+    assert train_options({"round_to": (1.0,)}) == "(API: round_to=[1.0])"

@@ -25,6 +25,7 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
     confirm = read_logs(args, "confirm", min_length=hist + 1) if args.confirm else None
     train_logs = read_logs(args, "train_logs", min_length=hist + 1) if args.train_logs else None
     val_logs = read_logs(args, "val_logs", min_length=hist + 1) if args.val_logs else None
+    kept: dict[str, Checkpoint] = {}
     d = diagnose(
         ckpt,
         real,
@@ -36,9 +37,14 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
         retrain=not args.no_retrain,
         seed=args.seed,
         refit=not args.no_refit,
+        keep_models=kept,
         progress=None if args.quiet else lambda text: print(f"[diagnose] {text}", file=sys.stderr, flush=True),
     )
     md = write_diagnosis(d, Path(args.out), model=Path(args.model))
+    for effect, fixed in kept.items():
+        path = Path(args.out) / f"{Path(args.model).stem}+{effect.replace(' ', '_')}.pt"
+        fixed.save(path)
+        print(f"model with {effect}: {path}")
     if d.layer:
         print(f"fitted layer: {save_layers(Path(args.out) / Path(args.model).name, [d.layer['fit']])}")
     print(d.verdict())

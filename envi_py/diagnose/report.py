@@ -307,7 +307,7 @@ def _shrink_section(d: Diagnosis) -> list[Section]:
     rows = [["as trained", f"{b['mean_w1']:.4f}", f"{b['inside_floor']}/{b['n_goals']}", "-"]]
     rows += [
         [
-            f"+ {a['effect']} {a['fix']}",
+            f"+ {a['effect']}: {a.get('train_options') or a['fix']}",
             f"{a['mean_w1']:.4f}",
             f"{a['inside_floor']}/{a['n_goals']}",
             _shrink_cell(a),

@@ -370,10 +370,12 @@ def diagnose(
     seed: int = 0,
     progress: Callable[[str], None] | None = None,
     refit: bool = True,
+    keep_models: dict[str, Checkpoint] | None = None,
 ) -> Diagnosis:
     """Diagnose ``ckpt`` on ``real`` logs; effects are confirmed on ``confirm`` (default: half of ``real``).
     Gaps are scored on the goals of the model's system (:func:`~.shrink.scoring_of`). ``progress``
     is told each step as it starts (the retraining of the last one takes most of the time).
+    ``keep_models`` receives the retrained models by effect (and the Gaussian refit as "refit").
 
     In stages: the logs' data quality first; then whether the model's class is wrong (a deterministic
     model against runs that vary, :mod:`.stages`), in which case it is refitted with the Gaussian
@@ -398,6 +400,8 @@ def diagnose(
         if refit:
             say("3/6 the model is deterministic and the real runs vary: refitting with a Gaussian head")
             ckpt = refit_gaussian(ckpt, train_logs, val_logs)
+            if keep_models is not None:
+                keep_models["refit"] = ckpt
             res = one_step_residuals(ckpt, choose)
             groups, gaps = _gaps(ckpt, choose, runs, seed)
             after = float(np.mean([g["mean_w1"] for g in gaps]))
@@ -423,7 +427,7 @@ def diagnose(
     sig = _distinct_fixes(findings, top)
     if retrain and sig:
         say(f"6/6 retraining with {', '.join(f.effect for f in sig)} and measuring the gap on {len(confirm_l)} logs")
-    shrunk = shrink(ckpt, sig, train_logs, val_logs, confirm_l, runs, seed) if retrain and sig else None
+    shrunk = shrink(ckpt, sig, train_logs, val_logs, confirm_l, runs, seed, keep_models) if retrain and sig else None
     layer = None
     if retrain and sig:
         say(f"6/6 fitting a {sig[0].effect} layer around the model and confirming it on {len(confirm_l)} logs")

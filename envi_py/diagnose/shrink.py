@@ -48,6 +48,26 @@ def changes_model(ckpt: Checkpoint, finding: Finding) -> bool:
     )
 
 
+def train_options(fix: dict[str, Any]) -> str:
+    """A fix as the ``envi train`` options that make the same model change; a change the command line
+    cannot express is given as the Python API's keyword (``envi_py.api.train(..., key=value)``)."""
+    parts = []
+    for key, value in fix.items():
+        if key == "history":
+            parts.append(f"--history {value}")
+        elif key == "head":
+            parts.append(f"--head {value}")
+        elif key == "extras":
+            parts.append("--extras " + " ".join(value))
+        elif key == "play_width":
+            parts.append(f"--play-width {value:g}")
+        elif key == "context":
+            parts.append("--context" if value else "")
+        else:
+            parts.append(f"(API: {key}={list(value) if isinstance(value, tuple) else value})")
+    return " ".join(p for p in parts if p)
+
+
 def retrain_with(ckpt: Checkpoint, finding: Finding, train_logs: Sequence[Log], val_logs: Sequence[Log]) -> Checkpoint:
     """The same training as ``ckpt`` with the finding's model change applied."""
     rec = ckpt.record
@@ -153,11 +173,14 @@ def shrink(
     confirm_logs: Sequence[Log],
     runs: int = 10,
     seed: int = 0,
+    keep: dict[str, Checkpoint] | None = None,
 ) -> dict[str, Any]:
     """Before/after gaps on the confirmation logs for each finding, plus the untouched model. Every
     model is scored on the same rows: after the longest initial window any of them copies. Each
     retrained fix has ``shrink_ci`` (:func:`shrink_interval`); a fix that changes nothing is
-    ``unchanged`` with the untouched model's figures and no interval."""
+    ``unchanged`` with the untouched model's figures and no interval. Each entry says how to train
+    the fixed model (``train_options``); ``keep`` receives the retrained checkpoints by effect, so a
+    caller can save the model that closed the gap instead of throwing it away."""
     scoring = scoring_of(ckpt, max([ckpt.config.history] + [int(f.fix.get("history", 0)) for f in findings]))
     base_groups = simulate_groups(ckpt, confirm_logs, runs, seed)
     before = gap_summary(base_groups, scoring, seed)
@@ -176,6 +199,8 @@ def shrink(
             )
             continue
         fixed = retrain_with(ckpt, f, train_logs, val_logs)
+        if keep is not None:
+            keep[f.effect] = fixed
         groups = simulate_groups(fixed, confirm_logs, runs, seed)
         summary = gap_summary(groups, scoring, seed)
         after.append(
@@ -186,6 +211,7 @@ def shrink(
                 "shrink": 1 - summary["mean_w1"] / max(before["mean_w1"], 1e-12),
                 "shrink_ci": shrink_interval(base_groups, groups, scoring, seed),
                 "unchanged": False,
+                "train_options": train_options(f.fix),
             }
         )
     return {"before": before, "after": after, "confirm_logs": [lg.name for lg in confirm_logs]}
