@@ -20,12 +20,12 @@ from envi_py.export import (
     PARITY_TOL,
     content_sha256,
     export,
-    main,
     parity,
     parity_inputs,
     read_metadata,
     to_onnx,
 )
+from envi_py.export_cli import main
 from envi_py.logs import LANE_KEEPING_SCHEMA
 from envi_py.model import Checkpoint, EnvModel, ModelConfig, TrainingRecord
 
