@@ -19,17 +19,19 @@ from envi_py.diagnose.layers import (
     simulate_layered,
 )
 from envi_py.diagnose.gap import cut_logs
-from envi_py.diagnose.validate import LANE, world_logs
+from envi_py.diagnose.validate import LANE, validation_training, world_logs
 from envi_py.simulate import initial_windows, rollout
 from envi_py.train import train
 
 
 @pytest.fixture(scope="module")
 def clean_model():
-    """A small BC model of the clean steered twin (the validation's tiny size)."""
+    """A small BC model of the clean steered twin, trained as the validation trains (its tiny size)."""
     torch.set_num_threads(1)
     fit = world_logs("steered", LANE, 15, 100, {}, 0)
-    return train("bc", fit[:12], fit[12:], seed=0, epochs=80, lr=1e-3, history=4, head="deterministic")
+    return train(
+        "bc", fit[:12], fit[12:], seed=0, epochs=80, lr=1e-3, history=4, head="deterministic", **validation_training()
+    )
 
 
 def test_action_layers_do_what_they_say():

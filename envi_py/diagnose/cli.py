@@ -41,14 +41,14 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
         progress=None if args.quiet else lambda text: print(f"[diagnose] {text}", file=sys.stderr, flush=True),
     )
     md = write_diagnosis(d, Path(args.out), model=Path(args.model))
+    print(d.verdict())
+    print(f"report: {md.with_suffix('.html')} {md}")
     for effect, fixed in kept.items():
         path = Path(args.out) / f"{Path(args.model).stem}+{effect.replace(' ', '_')}.pt"
         fixed.save(path)
         print(f"model with {effect}: {path}")
     if d.layer:
         print(f"fitted layer: {save_layers(Path(args.out) / Path(args.model).name, [d.layer['fit']])}")
-    print(d.verdict())
-    print(f"report: {md.with_suffix('.html')} {md}")
     return 0
 
 

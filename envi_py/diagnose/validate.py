@@ -209,6 +209,17 @@ def _layer_trial(ckpt: Any, case: Case, diag: Sequence[Log], d: Any, size: Size,
     return out
 
 
+def validation_training() -> dict[str, Any]:
+    """How the validation trains its models: as the diagnosis' rules were chosen (before stop 21's
+    training defaults): a fixed number of epochs, the raw validation curve of one run per window,
+    output neither rounded to the resolution nor clamped to the observed range. The validation keeps
+    measuring those rules on such models; a model trained with today's defaults changes which
+    candidates a trial names (e.g. a fitted noise layer then comes out about 10 % high)."""
+    from ..train.common import SelectionSettings
+
+    return {"round_to": None, "limits": None, "selection": SelectionSettings(runs=1, smooth=1, tie=0.0, patience=0)}
+
+
 def trial(
     case: Case,
     seed: int,
@@ -226,7 +237,6 @@ def trial(
     import torch
 
     from ..train import train
-    from ..train.common import SelectionSettings
     from .run import diagnose
 
     torch.set_num_threads(1)
@@ -243,12 +253,7 @@ def trial(
         lr=size.lr,
         head=case.head,
         history=case.history or size.history,
-        # the diagnosis' rules were chosen on models trained as before stop 21 (a fixed number of epochs,
-        # the raw validation curve of one run per window, output neither rounded nor clamped to the
-        # observed range); the validation keeps measuring those rules on such models
-        round_to=None,
-        limits=None,
-        selection=SelectionSettings(runs=1, smooth=1, tie=0.0, patience=0),
+        **validation_training(),
     )
     d = diagnose(
         ckpt,
