@@ -36,7 +36,7 @@ import numpy as np
 from envi_py.controllers import ControllerSpec
 from envi_py.logs import LANE_KEEPING_SCHEMA, Log, LogMeta
 
-from .effects import EFFECTS, Effect, Param, effect_params
+from .effects import EFFECTS, Effect, Param, effect_params, steering_command
 from .generate import sample_periods
 
 SUBSTEPS = 4  # Euler sub-steps per control period: the motors' time constant is a few periods
@@ -170,20 +170,7 @@ class DiffDriveBatch:
 
     def _turn(self, command: np.ndarray) -> np.ndarray:
         """Turn command after delay, dead zone, play and limits."""
-        fx = self.fx
-        if self.queue:
-            self.queue.append(command)
-            command = self.queue.pop(0)
-        if "deadzone" in fx:
-            w = fx["deadzone"]["width_deg"]
-            command = np.sign(command) * np.maximum(np.abs(command) - w, 0.0)
-        if "backlash" in fx:
-            half = fx["backlash"]["width_deg"] / 2
-            self.play = np.clip(self.play, command - half, command + half)
-            command = self.play
-        if "steer_limit" in fx:
-            command = np.clip(command, -fx["steer_limit"]["neg_deg"], fx["steer_limit"]["pos_deg"])
-        return command
+        return steering_command(self, command)
 
     def _curvature(self) -> np.ndarray:
         """Curvature of the edge under the robot (1/mm)."""

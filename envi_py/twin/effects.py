@@ -10,6 +10,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, Mapping
 
+import numpy as np
+
 
 @dataclass(frozen=True)
 class Param:
@@ -221,3 +223,23 @@ def describe() -> str:
             star = " (primary)" if k == e.primary else ""
             lines.append(f"    {k} [{p.unit}] default {p.default:g}{star}: {p.doc}")
     return "\n".join(lines)
+
+
+def steering_command(batch: Any, command: np.ndarray) -> np.ndarray:
+    """The steering command after the actuator-side effects, in order: delay (``batch.queue``, a list
+    of pending commands), dead zone, backlash (``batch.play``, updated) and end stops. Shared by both
+    twin world families, whose steering paths differ only after this point."""
+    fx = batch.fx
+    if batch.queue:
+        batch.queue.append(command)
+        command = batch.queue.pop(0)
+    if "deadzone" in fx:
+        w = fx["deadzone"]["width_deg"]
+        command = np.sign(command) * np.maximum(np.abs(command) - w, 0.0)
+    if "backlash" in fx:
+        half = fx["backlash"]["width_deg"] / 2
+        batch.play = np.clip(batch.play, command - half, command + half)
+        command = batch.play
+    if "steer_limit" in fx:
+        command = np.clip(command, -fx["steer_limit"]["neg_deg"], fx["steer_limit"]["pos_deg"])
+    return command

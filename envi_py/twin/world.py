@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from .effects import resolve
+from .effects import resolve, steering_command
 from .profile import TwinProfile, default_profile
 
 SUBSTEPS = 2  # Euler sub-steps per control period; 2 keeps the 6 mm/period motion accurate enough
@@ -91,20 +91,7 @@ class Batch:
 
     def _target(self, command: np.ndarray) -> np.ndarray:
         """Command after delay, dead zone, backlash and end stops: where the steering is asked to go."""
-        fx = self.fx
-        if self.queue:
-            self.queue.append(command)
-            command = self.queue.pop(0)
-        if "deadzone" in fx:
-            w = fx["deadzone"]["width_deg"]
-            command = np.sign(command) * np.maximum(np.abs(command) - w, 0.0)
-        if "backlash" in fx:
-            half = fx["backlash"]["width_deg"] / 2
-            self.play = np.clip(self.play, command - half, command + half)
-            command = self.play
-        if "steer_limit" in fx:
-            command = np.clip(command, -fx["steer_limit"]["neg_deg"], fx["steer_limit"]["pos_deg"])
-        return command
+        return steering_command(self, command)
 
     def apply(self, angle_deg: np.ndarray, dt_s: np.ndarray | float) -> None:
         """Steer with the controller's angle (N,) for ``dt_s`` seconds, then update the sensor."""
