@@ -40,6 +40,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scipy import stats
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -131,6 +132,14 @@ def repetition(spec: ControllerSpec, model: CarProfile, args: argparse.Namespace
     return out
 
 
+def share_interval(hits: list[bool]) -> list[float] | None:
+    """The exact (Clopper-Pearson) 95 % interval of a share: a coverage from 24 kept claims says little."""
+    if not hits:
+        return None
+    ci = stats.binomtest(int(sum(hits)), len(hits)).proportion_ci(0.95, method="exact")
+    return [float(ci.low), float(ci.high)]
+
+
 def summarise(reps: list[dict[str, Any]], p_true: float) -> dict[str, Any]:
     kept = [r for r in reps if r["kept"]]
     cover = [r["low"] <= p_true <= r["high"] for r in reps]
@@ -142,8 +151,10 @@ def summarise(reps: list[dict[str, Any]], p_true: float) -> dict[str, Any]:
         "kept": len(kept),
         "withdrawn_share": 1 - len(kept) / len(reps),
         "coverage_when_kept": float(np.mean(cover_kept)) if kept else None,
+        "coverage_when_kept_ci95": share_interval(cover_kept),
         "coverage_reported": float(np.mean(cover)),
         "width_vs_real_only_median": float(np.median(width)) if width else None,
+        "width_vs_real_only_quartiles": [float(q) for q in np.quantile(width, [0.25, 0.75])] if width else None,
         "model_only_coverage": float(np.mean([r["model_low"] <= p_true <= r["model_high"] for r in reps])),
     }
 
@@ -162,19 +173,29 @@ def main() -> None:
         action="store_false",
         help="validity check on the 0/1 outcomes only (without the margins' PIT test), as before",
     )
+    ap.add_argument(
+        "--models", default=",".join(MODELS), help=f"comma-separated models to run (of {', '.join(MODELS)})"
+    )
+    ap.add_argument("--versions", default=",".join(map(str, VERSIONS)), help="comma-separated car versions")
     ap.add_argument("--out", type=Path, default=Path("bench_out/coverage_twin.json"))
     args = ap.parse_args()
+    models = [m.strip() for m in args.models.split(",")]
+    unknown = [m for m in models if m not in MODELS]
+    if unknown:
+        ap.error(f"unknown model(s) {', '.join(unknown)}; known: {', '.join(MODELS)}")
+    versions = [int(v) for v in args.versions.split(",")]
     if args.quick:
         args.reps, args.truth = 20, 2000
     specs = car_versions()
     rows, t0 = [], time.perf_counter()
-    for v in VERSIONS:
+    for v in versions:
         spec = specs[v]
         label = (
             f"kp_steer={spec.params['loops'][0]['params']['kp']:g},kp_speed={spec.params['loops'][1]['params']['kp']:g}"
         )
         p_true = truth(spec, args.truth, 10_000 + v)
-        for model_name, model in MODELS.items():
+        for model_name in models:
+            model = MODELS[model_name]
             reps = [repetition(spec, model, args, 1000 * v + k) for k in range(args.reps)]
             for name in MARGINS:
                 s = summarise([r[name] for r in reps], p_true[name])
@@ -185,13 +206,16 @@ def main() -> None:
     )
     print(
         f"{'version':<24} {'model':<15} {'requirement':<40} {'truth':>6} {'kept':>5} {'cov|kept':>9} "
-        f"{'withdrawn':>9} {'cov rep.':>8} {'width':>6}"
+        f"{'[95 %]':>13} {'withdrawn':>9} {'cov rep.':>8} {'width':>6}"
     )
     for r in rows:
         ck = "-" if r["coverage_when_kept"] is None else f"{r['coverage_when_kept']:.1%}"
+        ci = r["coverage_when_kept_ci95"]
+        ci_text = "-" if ci is None else f"[{ci[0]:.0%}, {ci[1]:.0%}]"
         w = "-" if r["width_vs_real_only_median"] is None else f"{r['width_vs_real_only_median']:.2f}"
         print(
             f"{r['version']:<24} {r['model']:<15} {r['requirement']:<40} {r['truth']:>6.3f} {r['kept']:>5} {ck:>9} "
+            f"{ci_text:>13} "
             f"{r['withdrawn_share']:>9.1%} {r['coverage_reported']:>8.1%} {w:>6}"
         )
     args.out.parent.mkdir(parents=True, exist_ok=True)

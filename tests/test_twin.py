@@ -295,3 +295,22 @@ def test_profile_save_load_and_search_space_round_trip(tmp_path):
             assert getattr(back, name) == pytest.approx(getattr(prof, name), rel=1e-4)
     with pytest.raises(ValueError, match="unknown field"):
         TwinProfile.from_json({"speed": 1.0, "sped": 2.0})
+
+
+def test_cli_generates_the_second_world_family(tmp_path, capsys):
+    """``--family diffdrive`` writes the differential-drive world's logs (the diagnosis's cross-world check)
+    with the same schema and pattern, its injected effect in the sidecar; a steered-only option is refused."""
+    out = tmp_path / "dd"
+    args = _parser().parse_args(
+        ["twin", "generate", "--family", "diffdrive", "--param", "x=40", "--runs", "2", "--steps", "30"]
+        + ["--effects", "delay=2", "--out", str(out)]
+    )
+    assert args.func(args) == 0
+    logs = load_logs(out, lane_keeping())
+    assert len(logs) == 2 and logs[0].param == {"x": 40.0} and logs[0].states.shape == (30, 1)
+    assert logs[0].meta.provenance["world"] == "diffdrive" and logs[0].meta.provenance["injected"] == ["delay"]
+    assert "diffdrive twin logs" in capsys.readouterr().out
+    for extra in (["--profile", "p.json"], ["--system", "car"]):
+        bad = _parser().parse_args(["twin", "generate", "--family", "diffdrive", *extra, "--out", str(tmp_path / "x")])
+        assert bad.func(bad) == 2
+        assert "envi twin generate:" in capsys.readouterr().err

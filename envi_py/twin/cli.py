@@ -11,6 +11,7 @@ from envi_py.logs import LogError, load_logs
 from envi_py.system import lane_keeping, load_system
 
 from .car import generate_car, generate_car_versions, write_car_logs
+from .diffdrive import generate_diffdrive
 from .effects import describe, parse_effects
 from .generate import generate, write_logs
 from .profile import TwinProfile, default_profile
@@ -22,6 +23,9 @@ def _profile(args: argparse.Namespace) -> TwinProfile:
 
 def cmd_generate(args: argparse.Namespace) -> int:
     if args.system == "car":
+        if args.family != "steered":
+            print("envi twin generate: --family applies to the lane-keeping twin only", file=sys.stderr)
+            return 2
         return _generate_car(args)
     if args.version is not None or args.world is not None:
         print("envi twin generate: --version and --world apply to --system car only", file=sys.stderr)
@@ -29,12 +33,19 @@ def cmd_generate(args: argparse.Namespace) -> int:
     try:
         spec = ControllerSpec(args.controller or "lane-keeping", parse_params(args.param))
         spec.build()  # fail on a bad controller before any work
-        logs = generate(spec, args.runs, args.steps, parse_effects(args.effects), args.seed, _profile(args))
+        effects = parse_effects(args.effects)
+        if args.family == "diffdrive":
+            if args.profile is not None:
+                raise ValueError("--profile is the steered world's calibrated profile; the diffdrive world has its own")
+            logs = generate_diffdrive(spec, args.runs, args.steps, effects, args.seed)
+        else:
+            logs = generate(spec, args.runs, args.steps, effects, args.seed, _profile(args))
+        paths = write_logs(logs, args.out)
     except (ValueError, OSError) as exc:
         print(f"envi twin generate: {exc}", file=sys.stderr)
         return 2
-    paths = write_logs(logs, args.out)
-    print(f"wrote {len(paths)} twin logs to {args.out} (effects: {', '.join(logs[0].meta.provenance['effects'])})")
+    active = ", ".join(logs[0].meta.provenance["effects"]) or "none"
+    print(f"wrote {len(paths)} {args.family} twin logs to {args.out} (effects: {active})")
     return 0
 
 
@@ -118,6 +129,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         choices=("lane-keeping", "car"),
         default="lane-keeping",
         help="which twin: the lane-keeping robot (default) or the car following a lead vehicle",
+    )
+    p.add_argument(
+        "--family",
+        choices=("steered", "diffdrive"),
+        default="steered",
+        help="lane-keeping world family: steered (the calibrated steered vehicle on a straight edge, default) "
+        "or diffdrive (a differential-drive robot on a curved track: the diagnosis's cross-world check)",
     )
     p.add_argument(
         "--controller",
