@@ -62,6 +62,7 @@ ALGORITHMS: dict[str, tuple[str, dict[str, Any]]] = {
     "bc-select-1run": ("bc", {"selection": SelectionSettings(runs=1, smooth=1, patience=0), "epochs": 300}),
     "bc-select-tie": ("bc", {"selection": SelectionSettings(tie=0.05)}),
     "bc-h64-600": ("bc", {"hidden": (64, 64), "epochs": 600}),  # 16x fewer multiply-adds in the wide layer
+    "bc-res": ("bc", {"residual": True}),  # the mean head predicts the change from the last reading (the car's best)
     "bcxgail-bcw4": ("bcxgail", {"bc_weight": 4.0}),
     "gail": ("gail", {}),
     "bcxgail": ("bcxgail", {}),
