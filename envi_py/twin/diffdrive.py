@@ -36,7 +36,7 @@ import numpy as np
 from envi_py.controllers import ControllerSpec
 from envi_py.logs import LANE_KEEPING_SCHEMA, Log, LogMeta
 
-from .effects import EFFECTS, Effect, Param, effect_params, steering_command
+from .effects import EFFECTS, Effect, Param, colour_reading, effect_params, steering_command
 from .generate import sample_periods
 
 SUBSTEPS = 4  # Euler sub-steps per control period: the motors' time constant is a few periods
@@ -156,17 +156,8 @@ class DiffDriveBatch:
         return self.p.black + (self.white_run - self.p.black) * blend
 
     def read(self) -> np.ndarray:
-        """The colour readings now (N,), after the sensor effects."""
-        fx, c = self.fx, self.sensed.copy()
-        if "noise" in fx:
-            c = c + fx["noise"]["sigma"] * self.rng.standard_normal(self.n)
-        if "glitch" in fx:
-            hit = self.rng.random(self.n) < fx["glitch"]["prob"]
-            c = np.where(hit, self.rng.uniform(0, 100, self.n), c)
-        low, high = (fx["saturation"]["low"], fx["saturation"]["high"]) if "saturation" in fx else (0.0, 100.0)
-        c = np.clip(c, max(low, 0.0), min(high, 100.0))
-        step = fx["quantise"]["step"] if "quantise" in fx else 1.0  # the brick reports whole percent
-        return np.round(c / step) * step
+        """The colour readings now (N,), after the sensor effects, in whole percent as the brick reports."""
+        return colour_reading(self, self.sensed, 1.0)
 
     def _turn(self, command: np.ndarray) -> np.ndarray:
         """Turn command after delay, dead zone, play and limits."""

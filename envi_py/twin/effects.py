@@ -243,3 +243,19 @@ def steering_command(batch: Any, command: np.ndarray) -> np.ndarray:
     if "steer_limit" in fx:
         command = np.clip(command, -fx["steer_limit"]["neg_deg"], fx["steer_limit"]["pos_deg"])
     return command
+
+
+def colour_reading(batch: Any, sensed: np.ndarray, resolution: float | None) -> np.ndarray:
+    """The colour readings (N,) from the surface the sensor saw, after the sensor-side effects, in order:
+    noise, glitches (a uniform 0..100 reading), saturation within the 0..100 scale, quantisation to its
+    step (else to ``resolution``; None leaves the value unrounded). Shared by both twin world families."""
+    fx, c = batch.fx, sensed.copy()
+    if "noise" in fx:
+        c = c + fx["noise"]["sigma"] * batch.rng.standard_normal(batch.n)
+    if "glitch" in fx:
+        hit = batch.rng.random(batch.n) < fx["glitch"]["prob"]
+        c = np.where(hit, batch.rng.uniform(0, 100, batch.n), c)
+    low, high = (fx["saturation"]["low"], fx["saturation"]["high"]) if "saturation" in fx else (0.0, 100.0)
+    c = np.clip(c, max(low, 0.0), min(high, 100.0))
+    step = fx["quantise"]["step"] if "quantise" in fx else resolution
+    return c if step is None else np.round(c / step) * step

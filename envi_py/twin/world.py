@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from .effects import resolve, steering_command
+from .effects import colour_reading, resolve, steering_command
 from .profile import TwinProfile, default_profile
 
 SUBSTEPS = 2  # Euler sub-steps per control period; 2 keeps the 6 mm/period motion accurate enough
@@ -75,19 +75,8 @@ class Batch:
         return self.p.black + (self.white_run - self.p.black) * blend
 
     def read(self) -> np.ndarray:
-        """The colour readings now, shape (N,), after the sensor effects."""
-        fx, c = self.fx, self.sensed.copy()
-        if "noise" in fx:
-            c = c + fx["noise"]["sigma"] * self.rng.standard_normal(self.n)
-        if "glitch" in fx:
-            hit = self.rng.random(self.n) < fx["glitch"]["prob"]
-            c = np.where(hit, self.rng.uniform(0, 100, self.n), c)
-        low, high = (fx["saturation"]["low"], fx["saturation"]["high"]) if "saturation" in fx else (0.0, 100.0)
-        c = np.clip(c, max(low, 0.0), min(high, 100.0))
-        if "quantise" in fx:
-            step = fx["quantise"]["step"]
-            c = np.round(c / step) * step
-        return c
+        """The colour readings now, shape (N,), after the sensor effects (unrounded unless quantised)."""
+        return colour_reading(self, self.sensed, None)
 
     def _target(self, command: np.ndarray) -> np.ndarray:
         """Command after delay, dead zone, backlash and end stops: where the steering is asked to go."""
