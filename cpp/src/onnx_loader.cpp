@@ -536,6 +536,8 @@ void Compiler::check_residual(const Model& m) const {
   std::set<std::string> seen;
   for (const Node* n : residual_) {
     if (!seen.insert(n->name).second) throw ModelError("graph node '" + n->name + "' appears twice" + why);
+    for (const auto& out : n->outputs)
+      if (values_.count(out) || inits_.count(out)) throw ModelError("value '" + out + "' is defined twice");
     auto it = std::find_if(want.begin(), want.end(), [&](const ResidualNode& w) { return w.name == n->name; });
     if (it == want.end()) throw ModelError("graph node '" + n->name + "' is not part of the residual mean head" + why);
     std::map<std::string, int64_t> attrs;
