@@ -168,6 +168,7 @@ def _dense(nodes: list, inits: list, x: str, weight: np.ndarray, bias: np.ndarra
 
 
 def _int64(inits: list, name: str, values: Sequence[int] | np.ndarray) -> str:
+    """An int64 constant (the indices and axes ``Slice``, ``Gather`` and ``Squeeze`` take); its name."""
     inits.append(numpy_helper.from_array(np.asarray(values, dtype=np.int64), name))
     return name
 
