@@ -90,6 +90,8 @@ struct Runner {
   Sink& sink;
   std::vector<double> centre, half;
   long trunk_out;  // width of the trunk's output (the window itself without a trunk)
+  // A residual head's limit level per state; +inf for a state without one, whose every reading is in range.
+  std::vector<float> level;
 
   Runner(const Model& model, const Controller& c, const Job& j, Sink& s)
       : m(model), ctrl(c), job(j), sink(s) {
@@ -99,6 +101,26 @@ struct Runner {
     for (int i = 0; i < m.channels(); ++i) {
       centre.push_back((m.norm_high[size_t(i)] + m.norm_low[size_t(i)]) / 2);  // as Normaliser.centre/half
       half.push_back((m.norm_high[size_t(i)] - m.norm_low[size_t(i)]) / 2);
+    }
+    level.assign(size_t(m.n_state()), INFINITY);
+    for (const auto& lim : m.residual.limits) level[size_t(lim.state)] = lim.level;
+  }
+
+  // A residual head's mean (n_state x count, in place): scale * head + base, the base each state's
+  // last reading in the window `x` (column b at x + b * stride) that is not at its limit, its last
+  // reading when every one is (EnvModel.residual_base).
+  void add_base(float* mean, const float* x, long stride, int count) const {
+    const int ns = m.n_state();
+    const long c = m.channels(), last = m.history - 1;
+    const float scale = m.residual.scale, tol = m.residual.tolerance;
+    for (int b = 0; b < count; ++b) {
+      const float* win = x + b * stride;
+      float* mu = mean + long(b) * ns;
+      for (int i = 0; i < ns; ++i) {
+        long t = last;
+        while (t >= 0 && !(std::abs(win[t * c + i] - level[size_t(i)]) > tol)) --t;
+        mu[i] = scale * mu[i] + win[(t < 0 ? last : t) * c + i];
+      }
     }
   }
 
@@ -139,10 +161,11 @@ struct Runner {
           m.trunk.empty() ? x : forward(m.trunk, x, in, stride, count, w.buf[0].data(), w.buf[1].data(), w.scratch.data());
       const long hstride = m.trunk.empty() ? stride : trunk_out;
       const float* mu = forward(m.mean, h, trunk_out, hstride, count, w.buf[2].data(), w.buf[3].data(), w.scratch.data());
-      if (m.gaussian() || !m.event.empty()) {
+      if (m.gaussian() || !m.event.empty() || m.residual.on) {
         OutMap(w.mean.data(), ns, count) = Eigen::Map<const MatF>(mu, ns, count);
         mu = w.mean.data();
       }
+      if (m.residual.on) add_base(w.mean.data(), x, stride, count);
       if (m.gaussian()) {
         const float* ls = forward(m.log_std, h, trunk_out, hstride, count, w.buf[2].data(), w.buf[3].data(),
                                  w.scratch.data());

@@ -83,11 +83,14 @@ void expect(uint32_t wire, uint32_t want, const char* what) {
 
 // ---------------------------------------------------------------- the ONNX messages we read
 
+constexpr int32_t kFloat = 1, kInt64 = 7;  // TensorProto.DataType
+
 struct Tensor {
   std::string name;
   std::vector<int64_t> dims;
   int32_t data_type = 0;
-  std::vector<float> data;
+  std::vector<float> data;     // float32 tensors: the weights
+  std::vector<int64_t> ints;   // int64 tensors: the residual head's indices and axes
   bool external = false;
 };
 
@@ -111,9 +114,9 @@ struct Graph {
   bool sparse = false;
 };
 
-void read_packed_or_single_int64(Reader& r, uint32_t wire, std::vector<int64_t>& out) {
+void read_packed_or_single_int64(Reader& r, uint32_t wire, std::vector<int64_t>& out, const char* what) {
   if (wire == 0) { out.push_back(int64_t(r.varint())); return; }
-  expect(wire, 2, "dims");
+  expect(wire, 2, what);
   Reader pr = r.bytes();
   while (!pr.done()) out.push_back(int64_t(pr.varint()));
 }
@@ -125,7 +128,7 @@ Tensor read_tensor(Reader r) {
   uint32_t f, w;
   while (r.next(f, w)) {
     switch (f) {
-      case 1: read_packed_or_single_int64(r, w, t.dims); break;
+      case 1: read_packed_or_single_int64(r, w, t.dims, "dims"); break;
       case 2: expect(w, 0, "data_type"); t.data_type = int32_t(r.varint()); break;
       case 4:  // float_data, packed or not
         if (w == 5) { uint32_t u = r.fixed32(); float v; std::memcpy(&v, &u, 4); t.data.push_back(v); }
@@ -136,6 +139,7 @@ Tensor read_tensor(Reader r) {
           while (!pr.done()) { uint32_t u = pr.fixed32(); float v; std::memcpy(&v, &u, 4); t.data.push_back(v); }
         }
         break;
+      case 7: read_packed_or_single_int64(r, w, t.ints, "int64_data"); break;
       case 8: expect(w, 2, "tensor name"); t.name = r.str(); break;
       case 9: { expect(w, 2, "raw_data"); Reader b = r.bytes(); raw.assign(b.p, b.end); has_raw = true; break; }
       case 13: t.external = true; r.skip(w); break;
@@ -144,20 +148,28 @@ Tensor read_tensor(Reader r) {
     }
   }
   if (t.external) throw ModelError("initializer '" + t.name + "' uses external data; export with all weights inline");
-  if (t.data_type != 1) throw ModelError("initializer '" + t.name + "' is not float32 (data_type " + std::to_string(t.data_type) + ")");
+  if (t.data_type != kFloat && t.data_type != kInt64)
+    throw ModelError("initializer '" + t.name + "' is neither float32 nor int64 (data_type " + std::to_string(t.data_type) + ")");
+  if (t.data_type == kFloat ? !t.ints.empty() : !t.data.empty())
+    Reader::fail("initializer '" + t.name + "' holds values of another type than its data_type");
   uint64_t count = 1;
   for (int64_t d : t.dims) {
     if (d < 0 || d > (int64_t(1) << 31)) Reader::fail("initializer '" + t.name + "' has an invalid dimension");
     count *= uint64_t(d);
     if (count > (uint64_t(1) << 31)) Reader::fail("initializer '" + t.name + "' is too large");
   }
+  const size_t width = t.data_type == kFloat ? 4 : 8;
   if (has_raw) {
-    if (!t.data.empty()) Reader::fail("initializer '" + t.name + "' has both raw and float data");
-    if (raw.size() != count * 4) Reader::fail("initializer '" + t.name + "' raw_data size does not match its shape");
-    t.data.resize(count);
-    if (count) std::memcpy(t.data.data(), raw.data(), raw.size());  // little-endian, as ONNX specifies
-  } else if (t.data.size() != count) {
-    Reader::fail("initializer '" + t.name + "' has " + std::to_string(t.data.size()) + " values, shape needs " + std::to_string(count));
+    if (!t.data.empty() || !t.ints.empty()) Reader::fail("initializer '" + t.name + "' has both raw and typed data");
+    if (raw.size() != count * width) Reader::fail("initializer '" + t.name + "' raw_data size does not match its shape");
+    // little-endian, as ONNX specifies
+    if (t.data_type == kFloat) t.data.resize(count);
+    else t.ints.resize(count);
+    if (count) std::memcpy(t.data_type == kFloat ? static_cast<void*>(t.data.data()) : static_cast<void*>(t.ints.data()),
+                           raw.data(), raw.size());
+  } else if ((t.data_type == kFloat ? t.data.size() : t.ints.size()) != count) {
+    Reader::fail("initializer '" + t.name + "' has " + std::to_string(t.data_type == kFloat ? t.data.size() : t.ints.size()) +
+                 " values, shape needs " + std::to_string(count));
   }
   return t;
 }
@@ -251,12 +263,15 @@ class Compiler {
     if (real_inputs.size() != 1) throw ModelError("the model must have exactly one input, it has " + std::to_string(real_inputs.size()));
     values_[real_inputs[0]] = Value{};
     input_ = real_inputs[0];
-    for (const auto& n : g_.nodes) node(n);
+    for (const auto& n : g_.nodes) {
+      if (n.name.rfind(kResidualPrefix, 0) == 0) residual_.push_back(&n);  // checked against the metadata later
+      else node(n);
+    }
     if (g_.outputs.empty() || g_.outputs.size() > 3)
       throw ModelError("the model must have one output (mean), two (mean, log_std) or three (mean, log_std, event_logit), it has " +
                        std::to_string(g_.outputs.size()));
     Model m;
-    auto mean = chain(g_.outputs[0]);
+    auto mean = chain(mean_head());
     if (g_.outputs.size() == 1) {
       m.mean = std::move(mean);
     } else {
@@ -277,12 +292,28 @@ class Compiler {
     return m;
   }
 
+  // Checks the residual.* nodes and initializers against what metadata 'envi.residual' implies
+  // (the model `m` read from it): a residual head the metadata does not declare, or one that
+  // differs from it in a single op, input, attribute or constant, is refused.
+  void check_residual(const Model& m) const;
+
  private:
+  static constexpr const char* kResidualPrefix = "residual.";
   const Graph& g_;
   std::map<std::string, const Tensor*> inits_;
   std::map<std::string, Value> values_;
   std::string input_;
   std::vector<std::vector<const Dense*>> prefix_;
+  std::vector<const Node*> residual_;  // the residual head's nodes, in file order
+
+  // The value the mean head's layers end in: the first output, or for a residual head what its
+  // 'residual.change' node scales.
+  std::string mean_head() const {
+    if (residual_.empty()) return g_.outputs[0];
+    for (const Node* n : residual_)
+      if (n->name == "residual.change" && !n->inputs.empty()) return n->inputs[0];
+    throw ModelError("the graph has residual nodes but no 'residual.change' scaling the mean head");
+  }
 
   const Value& value(const std::string& name, const Node& n) {
     auto it = values_.find(name);
@@ -292,6 +323,7 @@ class Compiler {
   const Tensor& init(const std::string& name, const Node& n) {
     auto it = inits_.find(name);
     if (it == inits_.end()) throw ModelError(n.op + " node '" + n.name + "': '" + name + "' must be a constant initializer");
+    if (it->second->data_type != kFloat) throw ModelError(n.op + " node '" + n.name + "': '" + name + "' must be float32");
     return *it->second;
   }
   static void check_attrs(const Node& n, std::set<std::string> allowed) {
@@ -436,6 +468,107 @@ class Compiler {
   }
 };
 
+// ---------------------------------------------------------------- residual head
+
+// One node envi-export writes for a residual mean head (envi_py/export.py: _residual_base,
+// _mean_output). An empty input stands for the mean head's output, whatever its name.
+struct ResidualNode {
+  std::string op, name, output;
+  std::vector<std::string> inputs;
+  std::map<std::string, int64_t> attrs;
+};
+
+// The constants those nodes read: float32 or int64, shape and values.
+struct ResidualConst {
+  std::string name;
+  int32_t type;
+  std::vector<int64_t> dims;
+  std::vector<double> values;
+};
+
+std::string describe(const std::string& op, const std::vector<std::string>& inputs, const std::map<std::string, int64_t>& attrs) {
+  std::string s = op + "(";
+  for (size_t i = 0; i < inputs.size(); ++i) s += (i ? ", " : "") + (inputs[i].empty() ? std::string("<mean head>") : inputs[i]);
+  for (const auto& [k, v] : attrs) s += ", " + k + "=" + std::to_string(v);
+  return s + ")";
+}
+
+void Compiler::check_residual(const Model& m) const {
+  const Model::Residual& r = m.residual;
+  if (!r.on) {
+    if (!residual_.empty())
+      throw ModelError("graph node '" + residual_[0]->name +
+                       "' belongs to a residual mean head, but metadata 'envi.residual' declares none");
+    return;
+  }
+  const long l = m.history, c = m.channels(), ns = m.n_state();
+  const std::string base = "residual.base";
+  std::vector<ResidualNode> want;
+  std::vector<ResidualConst> consts = {{"residual.scale", kFloat, {}, {r.scale}}, {"residual.axis", kInt64, {1}, {1}}};
+  if (r.limits.empty()) {  // the last row's state columns
+    want.push_back({"Slice", base, base, {input_, "residual.starts", "residual.ends", "residual.axis"}, {}});
+    consts.push_back({"residual.starts", kInt64, {1}, {double((l - 1) * c)}});
+    consts.push_back({"residual.ends", kInt64, {1}, {double((l - 1) * c + ns)}});
+  } else {  // each state's last row in range: every row's state columns against per-state levels
+    std::vector<double> levels(size_t(ns), INFINITY), index;
+    for (const auto& lim : r.limits) levels[size_t(lim.state)] = lim.level;
+    for (long t = 0; t < l; ++t)
+      for (long i = 0; i < ns; ++i) index.push_back(double(t * c + i));
+    consts.push_back({"residual.levels", kFloat, {ns}, levels});
+    consts.push_back({"residual.tolerance", kFloat, {}, {r.tolerance}});
+    consts.push_back({"residual.rows.index", kInt64, {l, ns}, index});
+    want.push_back({"Gather", "residual.rows", "residual.rows", {input_, "residual.rows.index"}, {{"axis", 1}}});
+    want.push_back({"Sub", "residual.offset", "residual.offset", {"residual.rows", "residual.levels"}, {}});
+    want.push_back({"Abs", "residual.distance", "residual.distance", {"residual.offset"}, {}});
+    want.push_back({"Greater", "residual.in_range", "residual.in_range", {"residual.distance", "residual.tolerance"}, {}});
+    want.push_back({"Cast", "residual.in_range_float", "residual.in_range_float", {"residual.in_range"}, {{"to", kFloat}}});
+    want.push_back({"ArgMax", "residual.last_in_range", "residual.last_in_range", {"residual.in_range_float"},
+                    {{"axis", 1}, {"select_last_index", 1}}});
+    want.push_back({"GatherElements", "residual.picked", "residual.picked", {"residual.rows", "residual.last_in_range"},
+                    {{"axis", 1}}});
+    want.push_back({"Squeeze", base, base, {"residual.picked", "residual.axis"}, {}});
+  }
+  want.push_back({"Mul", "residual.change", "residual.change", {"", "residual.scale"}, {}});
+  want.push_back({"Add", "residual.add", g_.outputs[0], {"residual.change", base}, {}});
+
+  const std::string why = " (metadata 'envi.residual' declares a residual mean head" +
+                          std::string(r.limits.empty() ? "" : " with limit levels") + ")";
+  std::set<std::string> seen;
+  for (const Node* n : residual_) {
+    if (!seen.insert(n->name).second) throw ModelError("graph node '" + n->name + "' appears twice" + why);
+    for (const auto& out : n->outputs)
+      if (values_.count(out) || inits_.count(out)) throw ModelError("value '" + out + "' is defined twice");
+    auto it = std::find_if(want.begin(), want.end(), [&](const ResidualNode& w) { return w.name == n->name; });
+    if (it == want.end()) throw ModelError("graph node '" + n->name + "' is not part of the residual mean head" + why);
+    std::map<std::string, int64_t> attrs;
+    bool plain_attrs = true;
+    for (const auto& a : n->attrs) {
+      attrs[a.name] = a.i;
+      plain_attrs = plain_attrs && a.has_i && !a.has_f && !a.other;
+    }
+    std::vector<std::string> inputs = n->inputs;
+    if (it->inputs.size() == inputs.size() && !inputs.empty() && it->inputs[0].empty()) inputs[0].clear();  // the mean head
+    if (n->op != it->op || !(n->domain.empty() || n->domain == "ai.onnx") || inputs != it->inputs ||
+        n->outputs != std::vector<std::string>{it->output} || attrs != it->attrs || !plain_attrs)
+      throw ModelError("graph node '" + n->name + "' must be " + describe(it->op, it->inputs, it->attrs) + " -> " + it->output +
+                       ", it is " + describe(n->op, inputs, attrs) + why);
+  }
+  for (const auto& w : want)
+    if (!seen.count(w.name)) throw ModelError("the graph has no node '" + w.name + "'" + why);
+  for (const auto& k : consts) {
+    auto it = inits_.find(k.name);
+    if (it == inits_.end()) throw ModelError("the graph has no initializer '" + k.name + "'" + why);
+    const Tensor& t = *it->second;
+    std::vector<double> got;
+    if (t.data_type == kFloat) got.assign(t.data.begin(), t.data.end());
+    else for (int64_t v : t.ints) got.push_back(double(v));
+    bool same = t.data_type == k.type && t.dims == k.dims && got.size() == k.values.size();
+    for (size_t i = 0; same && i < got.size(); ++i)
+      same = k.type == kFloat ? float(got[i]) == float(k.values[i]) : got[i] == k.values[i];
+    if (!same) throw ModelError("initializer '" + k.name + "' does not hold what metadata 'envi.residual' implies" + why);
+  }
+}
+
 // ---------------------------------------------------------------- metadata
 
 std::vector<ChannelInfo> channels(const Json& list) {
@@ -493,6 +626,19 @@ void read_metadata(Model& m) {
           throw ModelError("metadata 'envi.limit_events' must hold [state index, reading] pairs");
         m.limit_events.push_back({int(iv[0]), iv[1]});
       }
+    if (md.count("envi.residual") && !md["envi.residual"].is_null()) {
+      const Json& r = md["envi.residual"];
+      double scale = r.at("scale").as_number(), tolerance = r.at("tolerance").as_number();
+      if (!(std::isfinite(scale) && scale > 0 && std::isfinite(tolerance) && tolerance >= 0))
+        throw ModelError("metadata 'envi.residual' needs a positive scale and a tolerance >= 0");
+      m.residual = {true, float(scale), float(tolerance), {}};
+      for (const auto& e : r.at("limit_levels").as_array()) {
+        auto iv = e.as_numbers();
+        if (iv.size() != 2 || !(iv[0] >= 0 && iv[0] < double(m.states.size()) && iv[0] == std::floor(iv[0])) || !std::isfinite(iv[1]))
+          throw ModelError("metadata 'envi.residual' limit_levels must hold [state index, normalised level] pairs");
+        m.residual.limits.push_back({int(iv[0]), float(iv[1])});
+      }
+    }
     if (const Json* alg = md.count("envi.algorithm") ? &md["envi.algorithm"] : nullptr)
       if (alg->type == Json::Type::String) m.algorithm = alg->string;
   } catch (const ModelError&) {
@@ -510,6 +656,10 @@ void read_metadata(Model& m) {
   if (!m.round_to.empty() && m.round_to.size() != ns) throw ModelError("envi metadata: round_to does not match the states");
   for (double r : m.round_to)
     if (!(r > 0 && std::isfinite(r))) throw ModelError("envi metadata: round_to must be positive");
+  // a residual head's limits are its limit events' (EnvModel.limit_levels): the same states, in order
+  bool same = !m.residual.on || m.residual.limits.size() == m.limit_events.size();
+  for (size_t k = 0; same && k < m.residual.limits.size(); ++k) same = m.residual.limits[k].state == m.limit_events[k].state;
+  if (!same) throw ModelError("envi metadata: 'envi.residual' limit_levels must name the states of 'envi.limit_events', in order");
 }
 
 void check_shapes(const Model& m) {
@@ -596,8 +746,13 @@ std::string content_digest(const Graph& g, const Metadata& metadata) {
     c.u32(uint32_t(t->data_type));
     c.u64(t->dims.size());
     for (int64_t d : t->dims) c.u64(uint64_t(d));
-    c.u64(t->data.size() * 4);
-    for (float v : t->data) { uint32_t u; std::memcpy(&u, &v, 4); c.u32(u); }
+    if (t->data_type == kInt64) {
+      c.u64(t->ints.size() * 8);
+      for (int64_t v : t->ints) c.u64(uint64_t(v));
+    } else {
+      c.u64(t->data.size() * 4);
+      for (float v : t->data) { uint32_t u; std::memcpy(&u, &v, 4); c.u32(u); }
+    }
   }
   Metadata md;
   for (const auto& kv : metadata)
@@ -702,9 +857,11 @@ int Model::max_width() const {
 Model load_model(const uint8_t* data, size_t size) {
   File file = parse_file(data, size);
   if (file.opset < 7 || file.opset > 21) throw ModelError("unsupported or missing default opset version " + std::to_string(file.opset));
-  Model m = Compiler(file.graph).compile();
+  Compiler compiler(file.graph);
+  Model m = compiler.compile();
   m.metadata = file.metadata;
   read_metadata(m);
+  compiler.check_residual(m);
   check_shapes(m);
   // Last, so that a file broken in structure is named by what is wrong with it (and fuzzing
   // reaches every check above); what passes them must still be the file that was exported.

@@ -150,6 +150,7 @@ PYBIND11_MODULE(ENVI_MODULE_NAME, mod) {
       .def_property_readonly("n_state", &Model::n_state)
       .def_property_readonly("n_action", &Model::n_action)
       .def_property_readonly("gaussian", &Model::gaussian)
+      .def_property_readonly("residual", [](const Model& m) { return m.residual.on; })
       .def_readonly("metadata", &Model::metadata)
       .def_property_readonly("layers", [](const Model& m) {
         py::list out;

@@ -1,6 +1,7 @@
 // Writes small ONNX models byte by byte (protobuf wire format), so the C++ tests and the fuzzer
 // need neither Python nor libprotobuf, and can build the broken files they want.
 #pragma once
+#include <cmath>
 #include <cstdint>
 #include <cstring>
 #include <random>
@@ -30,6 +31,16 @@ inline Bytes tensor(const std::string& name, const std::vector<int64_t>& dims, c
   return t;
 }
 
+// An int64 tensor (the residual head's indices and axes).
+inline Bytes tensor_i64(const std::string& name, const std::vector<int64_t>& dims, const std::vector<int64_t>& data) {
+  Bytes t;
+  for (int64_t d : dims) field_int(t, 1, uint64_t(d));
+  field_int(t, 2, 7);  // INT64
+  field_bytes(t, 8, name);
+  field_bytes(t, 9, Bytes(reinterpret_cast<const char*>(data.data()), data.size() * 8));
+  return t;
+}
+
 inline Bytes attr_int(const std::string& name, int64_t v) {
   Bytes a;
   field_bytes(a, 1, name);
@@ -39,11 +50,11 @@ inline Bytes attr_int(const std::string& name, int64_t v) {
 }
 
 inline Bytes node(const std::string& op, const std::vector<std::string>& in, const std::string& out,
-                  const std::vector<Bytes>& attrs = {}, const std::string& domain = "") {
+                  const std::vector<Bytes>& attrs = {}, const std::string& domain = "", const std::string& name = "") {
   Bytes n;
   for (const auto& i : in) field_bytes(n, 1, i);
   field_bytes(n, 2, out);
-  field_bytes(n, 3, out + "_node");
+  field_bytes(n, 3, name.empty() ? out + "_node" : name);
   field_bytes(n, 4, op);
   for (const auto& a : attrs) field_bytes(n, 5, a);
   if (!domain.empty()) field_bytes(n, 7, domain);
@@ -63,7 +74,47 @@ struct Spec {
   std::string post = R"({"clamp": true, "limits": [[0.0, 100.0]], "round_to": null})";
   uint32_t seed = 1;
   bool hash = true;  // write envi.content_sha256, as envi-export does
+  bool clamp = true;  // more than one state: clamp to 0..100 (one state: `post` says)
+  // A residual mean head, written as envi-export writes it (envi_py/export.py, _residual_base):
+  // mean = 2 tanh(head) + base. With `limit_state` >= 0 (Gaussian only) that state saturates at its
+  // normaliser's high end (80, normalised +1): an event head, envi.limit_events and a limit level.
+  bool residual = false;
+  int limit_state = -1;
+  std::string residual_meta;  // envi.residual as written; empty: what `residual` implies
 };
+
+// The residual head's nodes and constants for a window of `history` rows of `channels`.
+inline void residual_head(Bytes& graph, const Spec& s, const std::string& head) {
+  const int ns = s.n_state, c = s.n_state + s.n_action, l = s.history;
+  auto add = [&](const std::string& op, const std::vector<std::string>& in, const std::string& out,
+                 const std::vector<Bytes>& attrs = {}) { field_bytes(graph, 1, node(op, in, out, attrs, "", out)); };
+  field_bytes(graph, 5, tensor_i64("residual.axis", {1}, {1}));
+  if (s.limit_state < 0) {
+    add("Slice", {"x", "residual.starts", "residual.ends", "residual.axis"}, "residual.base");
+    field_bytes(graph, 5, tensor_i64("residual.starts", {1}, {int64_t((l - 1) * c)}));
+    field_bytes(graph, 5, tensor_i64("residual.ends", {1}, {int64_t((l - 1) * c + ns)}));
+  } else {
+    std::vector<int64_t> index;
+    for (int t = 0; t < l; ++t)
+      for (int i = 0; i < ns; ++i) index.push_back(t * c + i);
+    std::vector<float> levels(size_t(ns), INFINITY);
+    levels[size_t(s.limit_state)] = 1.f;
+    field_bytes(graph, 5, tensor_i64("residual.rows.index", {l, ns}, index));
+    field_bytes(graph, 5, tensor("residual.levels", {ns}, levels));
+    field_bytes(graph, 5, tensor("residual.tolerance", {}, {1e-5f}));
+    add("Gather", {"x", "residual.rows.index"}, "residual.rows", {attr_int("axis", 1)});
+    add("Sub", {"residual.rows", "residual.levels"}, "residual.offset");
+    add("Abs", {"residual.offset"}, "residual.distance");
+    add("Greater", {"residual.distance", "residual.tolerance"}, "residual.in_range");
+    add("Cast", {"residual.in_range"}, "residual.in_range_float", {attr_int("to", 1)});
+    add("ArgMax", {"residual.in_range_float"}, "residual.last_in_range", {attr_int("axis", 1), attr_int("select_last_index", 1)});
+    add("GatherElements", {"residual.rows", "residual.last_in_range"}, "residual.picked", {attr_int("axis", 1)});
+    add("Squeeze", {"residual.picked", "residual.axis"}, "residual.base");
+  }
+  field_bytes(graph, 5, tensor("residual.scale", {}, {2.f}));
+  add("Mul", {head, "residual.scale"}, "residual.change");
+  field_bytes(graph, 1, node("Add", {"residual.change", "residual.base"}, "mean", {}, "", "residual.add"));
+}
 
 // A model (history*channels) -> hidden tanh -> n_state tanh [+ log-std head], the lane-keeping
 // schema and metadata (or as many colour states and angle actions as asked).
@@ -76,12 +127,14 @@ inline Bytes model(const Spec& s, std::vector<Bytes> extra_nodes = {}) {
   field_bytes(graph, 1, node("Gemm", {"x", "w0", "b0"}, "h0", {attr_int("transB", 1)}));
   field_bytes(graph, 1, node("Tanh", {"h0"}, "a0"));
   field_bytes(graph, 1, node("Gemm", {"a0", "w1", "b1"}, "m0", {attr_int("transB", 1)}));
-  field_bytes(graph, 1, node("Tanh", {"m0"}, "mean"));
+  field_bytes(graph, 1, node("Tanh", {"m0"}, s.residual ? "t0" : "mean"));
+  if (s.residual) residual_head(graph, s, "t0");
   if (s.gaussian) {
     field_bytes(graph, 1, node("MatMul", {"a0", "w2"}, "s0"));
     field_bytes(graph, 1, node("Add", {"s0", "b2"}, "s1"));
     field_bytes(graph, 1, node("Clip", {"s1", "lo", "hi"}, "log_std"));
   }
+  if (s.limit_state >= 0) field_bytes(graph, 1, node("Gemm", {"a0", "w3", "b3"}, "event_logit", {attr_int("transB", 1)}));
   for (const auto& n : extra_nodes) field_bytes(graph, 1, n);
   field_bytes(graph, 2, "g");
   field_bytes(graph, 5, tensor("w0", {s.hidden, in}, rnd(size_t(s.hidden * in))));
@@ -94,9 +147,14 @@ inline Bytes model(const Spec& s, std::vector<Bytes> extra_nodes = {}) {
     field_bytes(graph, 5, tensor("lo", {}, {-7.f}));
     field_bytes(graph, 5, tensor("hi", {}, {1.f}));
   }
+  if (s.limit_state >= 0) {
+    field_bytes(graph, 5, tensor("w3", {1, s.hidden}, rnd(size_t(s.hidden))));
+    field_bytes(graph, 5, tensor("b3", {1}, {-3.f}));  // events rare: most steps take the value head
+  }
   field_bytes(graph, 11, value_info("x"));
   field_bytes(graph, 12, value_info("mean"));
   if (s.gaussian) field_bytes(graph, 12, value_info("log_std"));
+  if (s.limit_state >= 0) field_bytes(graph, 12, value_info("event_logit"));
 
   Bytes m;
   field_int(m, 1, 8);  // ir_version
@@ -140,9 +198,16 @@ inline Bytes model(const Spec& s, std::vector<Bytes> extra_nodes = {}) {
   if (ns > 1) {
     std::string limits;
     for (int i = 0; i < ns; ++i) limits += std::string(i ? ", " : "") + "[0.0, 100.0]";
-    post = R"({"clamp": true, "limits": [)" + limits + R"(], "round_to": null})";
+    post = R"({"clamp": )" + std::string(s.clamp ? "true" : "false") + R"(, "limits": [)" + limits + R"(], "round_to": null})";
   }
   meta("envi.post", post);  // required: no prefix of the file is a complete model
+  if (s.limit_state >= 0) meta("envi.limit_events", "[[" + std::to_string(s.limit_state) + ", 80.0]]");
+  std::string residual = s.residual_meta;
+  if (residual.empty() && s.residual) {
+    std::string limits = s.limit_state >= 0 ? "[" + std::to_string(s.limit_state) + ", 1.0]" : "";
+    residual = R"({"scale": 2.0, "tolerance": 1e-05, "limit_levels": [)" + limits + "]}";
+  }
+  if (!residual.empty()) meta("envi.residual", residual);
   // As envi-export does: the content hash over everything above, the last entry.
   if (s.hash) meta("envi.content_sha256", "\"" + envi::content_sha256(reinterpret_cast<const uint8_t*>(m.data()), m.size()) + "\"");
   return m;

@@ -74,26 +74,33 @@ int main() {
                     long(w.steps_seen), long(w.allocating_steps));
       }
   }
-  // two states, two actions, a combine of a PID and a bang-bang: still no allocation per step
+  // two states, two actions, a combine of a PID and a bang-bang: still no allocation per step, with
+  // a residual mean head whose second state has a limit event too
   spec.gaussian = true;
   spec.n_state = spec.n_action = 2;
-  pb::Bytes bytes = pb::model(spec);
-  envi::Model m = envi::load_model(reinterpret_cast<const uint8_t*>(bytes.data()), bytes.size());
-  std::vector<double> init(5 * 4, 40.0);
-  envi::Job job;
-  job.init = init.data();
-  job.windows = 1;
-  job.runs = 600;
-  job.steps = 20;
-  job.threads = 2;
-  job.block = 256;
-  Watch w(envi::plan(job).threads);
-  envi::simulate(m, envi::Controller::parse(R"({"name": "combine", "params": {"loops": [)"
-                                            R"({"name": "pid", "params": {"ki": 1, "kd": 0.1, "input": 1}}, {"name": "bang-bang"}]}})"),
-                 job, w);
-  CHECK(w.steps_seen > 0);
-  CHECK(w.allocating_steps == 0);
-  std::printf("2 states/2 actions, combine: %ld steps watched, %ld allocated\n", long(w.steps_seen), long(w.allocating_steps));
+  for (bool residual : {false, true}) {
+    spec.residual = residual;
+    spec.limit_state = residual ? 1 : -1;
+    pb::Bytes bytes = pb::model(spec);
+    envi::Model m = envi::load_model(reinterpret_cast<const uint8_t*>(bytes.data()), bytes.size());
+    CHECK(m.residual.on == residual);
+    std::vector<double> init(5 * 4, 40.0);
+    envi::Job job;
+    job.init = init.data();
+    job.windows = 1;
+    job.runs = 600;
+    job.steps = 20;
+    job.threads = 2;
+    job.block = 256;
+    Watch w(envi::plan(job).threads);
+    envi::simulate(m, envi::Controller::parse(R"({"name": "combine", "params": {"loops": [)"
+                                              R"({"name": "pid", "params": {"ki": 1, "kd": 0.1, "input": 1}}, {"name": "bang-bang"}]}})"),
+                   job, w);
+    CHECK(w.steps_seen > 0);
+    CHECK(w.allocating_steps == 0);
+    std::printf("2 states/2 actions, combine, residual=%d: %ld steps watched, %ld allocated\n", residual,
+                long(w.steps_seen), long(w.allocating_steps));
+  }
   std::printf("test_alloc: %d failure(s)\n", failures());
   return failures() ? 1 : 0;
 }

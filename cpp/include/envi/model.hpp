@@ -48,6 +48,20 @@ struct Model {
   };
   std::vector<LimitEvent> limit_events;
 
+  // A residual mean head (metadata 'envi.residual'): mean = scale * (mean head) + base, the base
+  // being each state's last reading in the window (normalised), and for a state with a limit its
+  // last reading farther than `tolerance` from `level` (the last reading when none is).
+  struct Residual {
+    bool on = false;
+    float scale = 0.f, tolerance = 0.f;
+    struct Limit {
+      int state;
+      float level;  // the limit event's reading, normalised
+    };
+    std::vector<Limit> limits;
+  };
+  Residual residual;
+
   // From metadata_props.
   std::vector<ChannelInfo> states, actions;
   std::vector<double> norm_low, norm_high;  // per logged channel (states then actions)
