@@ -487,7 +487,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--residual",
         action="store_true",
-        help="the model predicts the change from the window's last state (PyTorch engine only)",
+        help="the model predicts the change from the window's last state "
+        "(the car twin's best model; no better on the real lane-keeping logs)",
     )
     p.add_argument(
         "--multistep",

@@ -27,7 +27,7 @@ import onnx
 from onnx import TensorProto, helper, numpy_helper
 
 from . import __version__
-from .model import LOG_STD_MAX, LOG_STD_MIN, Checkpoint
+from .model import LIMIT_LEVEL_TOL, LOG_STD_MAX, LOG_STD_MIN, RESIDUAL_SCALE, Checkpoint
 
 OPSET = 17
 FORMAT = "envi-onnx"
@@ -39,10 +39,6 @@ CONTENT_KEY = "envi.content_sha256"
 CONTENT_VERSION = "envi-content-v1"
 #: metadata key of a residual mean head's description (null for a model without one)
 RESIDUAL_KEY = "envi.residual"
-#: what a residual mean head multiplies its tanh output by, and how far (normalised) a reading may sit
-#: from its limit level and still count as at the limit: both as in ``EnvModel.heads`` / ``residual_base``
-RESIDUAL_SCALE = 2.0
-LIMIT_LEVEL_TOL = 1e-5
 
 
 def post_processing(ckpt: Checkpoint) -> dict[str, Any]:
@@ -232,7 +228,7 @@ def to_onnx(ckpt: Checkpoint) -> onnx.ModelProto:
     cfg = ckpt.config
     if cfg.kind != "mlp":
         raise ValueError(f"only MLP models can be exported, this one is {cfg.kind!r}")
-    if cfg.extras or cfg.context:
+    if not cfg.plain:
         raise ValueError(
             "models with derived channels or a run context cannot be exported yet "
             "(the runtimes only feed the window of logged channels to the model)"

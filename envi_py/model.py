@@ -36,6 +36,11 @@ from .system import LogSchema, SystemDescription
 CHECKPOINT_FORMAT = "envi-model"
 CHECKPOINT_VERSION = 1
 LOG_STD_MIN, LOG_STD_MAX = -7.0, 1.0
+#: what a residual mean head multiplies its tanh output by (a change of up to the whole normalised range),
+#: and how far (normalised) a reading may sit from its limit level and still count as at the limit; the
+#: exported graph and the C++ engine use the same two numbers (``envi.residual`` metadata)
+RESIDUAL_SCALE = 2.0
+LIMIT_LEVEL_TOL = 1e-5
 
 
 @dataclass
@@ -109,9 +114,9 @@ class ModelConfig:
 
     @property
     def plain(self) -> bool:
-        """True for the paper's structure (no derived channels, no context, no residual head): what the
-        exporters support."""
-        return not self.extras and not self.context and not self.residual
+        """True when the model's input is the window alone (no derived channels, no run context): what the
+        exporter and the native engine run, with any head (a residual one included)."""
+        return not self.extras and not self.context
 
     @property
     def stochastic(self) -> bool:
@@ -161,7 +166,7 @@ class EnvModel(nn.Module):
         h = self.body(x)
         mean = torch.tanh(self.mean(h))
         if self.config.residual:
-            mean = 2 * mean + self.residual_base(x)  # a change of up to the whole range, from anywhere
+            mean = RESIDUAL_SCALE * mean + self.residual_base(x)  # a change of up to the whole range, from anywhere
         log_std = None if self.log_std is None else self.log_std(h).clamp(LOG_STD_MIN, LOG_STD_MAX)
         return mean, log_std, None if self.event is None else self.event(h)
 
@@ -179,7 +184,7 @@ class EnvModel(nn.Module):
         order = torch.arange(cfg.history)
         for k, (i, _) in enumerate(cfg.limit_events):
             col = rows[..., i]
-            in_range = (col - self.limit_levels[k]).abs() > 1e-5
+            in_range = (col - self.limit_levels[k]).abs() > LIMIT_LEVEL_TOL
             last = torch.where(in_range, order, -1).max(dim=1).values
             picked = col.gather(1, last.clamp(min=0).unsqueeze(1)).squeeze(1)
             base[:, i] = torch.where(last >= 0, picked, col[:, -1])

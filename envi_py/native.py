@@ -91,7 +91,7 @@ def unsupported(ckpt: Checkpoint, controller: ControllerSpec, mean: bool = False
         return "the native module is not built"
     if ckpt.config.kind != "mlp":
         return f"the model is {ckpt.config.kind!r}, not an MLP"
-    if ckpt.config.extras or ckpt.config.context:
+    if not ckpt.config.plain:
         return "the model has derived channels or a run context"
     if controller.name not in REGISTRY:
         return f"controller {controller.name!r} is not a registered one"
