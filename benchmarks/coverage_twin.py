@@ -11,12 +11,12 @@ from a real run's initial window does, with a model whose error is known and set
 - slightly wrong: motor lag 0.20 s (real 0.15) and colour noise 2.0 (real 1.5);
 - badly wrong: motor lag 0.45 s, steering servo 0.15 s (real 0.06), distance noise 3 cm (real 0.7).
 
-Each repetition draws ``--real`` (10) real runs; each real run's own start gets ``--paired`` (20)
+Each repetition draws ``--real`` (10) real runs; each real run's own start gets ``--paired`` (40)
 model runs (its paired prediction f(s_i)); ``--starts`` (200) further real starts get one model run
 each (the unpaired predictions, as the recorded training starts in ``envi check``). Then
 :func:`envi_py.verdicts.ppi_verdict` gives the interval for the real P at 95 %, or withdraws the claim
 when its validity check rejects: the outcome count against the paired predictions, and each real run's
-margin against its own 20 paired margins (``--no-margins``: the outcome count alone, as before).
+margin against its own 40 paired margins (``--no-margins``: the outcome count alone, as before).
 Reported per (model, version, requirement), over ``--reps`` (200)
 repetitions: coverage of the truth when the claim is kept, how often it is withdrawn, coverage of
 the interval actually reported (kept or the real-only fallback), and the width against the exact
@@ -163,7 +163,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--reps", type=int, default=200)
     ap.add_argument("--real", type=int, default=10, help="real runs per repetition")
-    ap.add_argument("--paired", type=int, default=20, help="model runs from each real run's start")
+    ap.add_argument("--paired", type=int, default=40, help="model runs from each real run's start")
     ap.add_argument("--starts", type=int, default=200, help="further starts, one model run each")
     ap.add_argument("--truth", type=int, default=10_000, help="real runs behind the true probability")
     ap.add_argument("--quick", action="store_true", help="20 repetitions, 2,000 truth runs")

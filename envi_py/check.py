@@ -114,7 +114,7 @@ def check(
     delta: float = 0.05,
     max_runs: int = 4000,
     batch: int = 100,
-    sims_per_start: int = 20,
+    sims_per_start: int = 40,
     seed: int = 0,
     engine: str = "auto",
 ) -> list[CheckRow]:

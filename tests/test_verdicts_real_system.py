@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 from scipy import stats
@@ -16,7 +18,7 @@ from envi_py.verdicts import (
     ppi_verdict,
     rectifier_check,
 )
-from envi_py.verdicts.real_system import calibration_p_value
+from envi_py.verdicts.real_system import calibration_p_value, welch_df
 
 SIMS_PER_START, STARTS = 20, 400
 
@@ -78,8 +80,13 @@ def test_control_variate_by_hand():
     assert est.coefficient == pytest.approx(1.5384615, abs=1e-7)
     assert est.estimate == pytest.approx(0.5961538, abs=1e-7) == pytest.approx(theta)
     assert est.se == pytest.approx(np.sqrt(se2), rel=1e-12) == pytest.approx(0.235763, abs=1e-6)
-    half = 1.959964 * est.se
-    assert (est.low, est.high) == pytest.approx((theta - half, 1.0), abs=1e-6)  # theta + half = 1.058, clipped
+    # the floor (the model's own variance) is known, not estimated from the 4 runs: only the 5 simulated
+    # predictions' term counts, Welch-Satterthwaite (v_sim + v_real)^2 / (v_sim^2 / (5 - 1))
+    v_sim, v_real = c**2 * 0.1 / 4 / 5, 0.175 / 4
+    df = (v_sim + v_real) ** 2 / (v_sim**2 / 4)
+    assert est.df == pytest.approx(df) == pytest.approx(88.24, abs=0.01)
+    half = stats.t.ppf(0.975, df) * est.se
+    assert (est.low, est.high) == pytest.approx((theta - half, 1.0), abs=1e-6)  # theta + half = 1.07, clipped
 
 
 def test_ppi_is_the_control_variate_with_coefficient_one():
@@ -89,7 +96,13 @@ def test_ppi_is_the_control_variate_with_coefficient_one():
     est = ppi(sims, y, f)
     assert est.estimate == pytest.approx(sims.mean() + (y - f).mean())
     assert (y - f).var(ddof=1) > np.mean(f * (1 - f))
-    assert est.se == pytest.approx(np.sqrt(sims.var(ddof=1) / 4 + (y - f).var(ddof=1) / 5))
+    v_sim, v_real = sims.var(ddof=1) / 4, (y - f).var(ddof=1) / 5
+    assert est.se == pytest.approx(np.sqrt(v_sim + v_real))
+    # the rectifier's variance is estimated from the 5 real runs: the t quantile at Welch-Satterthwaite's df
+    df = (v_sim + v_real) ** 2 / (v_sim**2 / 3 + v_real**2 / 4)
+    assert est.df == pytest.approx(df) == pytest.approx(4.65, abs=0.01)
+    half = stats.t.ppf(0.975, df) * est.se  # about 2.7 se where the normal quantile would say 1.96
+    assert (est.low, est.high) == pytest.approx((max(0.0, est.estimate - half), min(1.0, est.estimate + half)))
 
 
 def test_claim_withdrawn_when_the_model_is_badly_wrong():
@@ -125,7 +138,15 @@ def test_estimated_predictions_never_make_a_point_interval():
     est = ppi(sims, y, f, sims_per_start=20)
     g = 0.5 / 21
     assert est.se == pytest.approx(np.sqrt(g * (1 - g) / 3)) and est.low == 0.0
+    assert est.df == math.inf  # the floor, a variance from the model's runs: the normal quantile
     assert est.high == pytest.approx(1.959964 * np.sqrt(g * (1 - g) / 3), rel=1e-6)
+
+
+def test_welch_degrees_of_freedom():
+    assert welch_df(0.0, 200, 0.04, 10) == pytest.approx(9.0)  # one term: its own n - 1
+    assert welch_df(0.01, 11, 0.01, 11) == pytest.approx(20.0)  # two equal terms: the pooled 2 (n - 1)
+    assert welch_df(0.0, 5, 0.0, 5) == math.inf  # nothing estimated: the sum is known
+    assert welch_df(0.01, 11, 0.05, math.inf) == pytest.approx(0.06**2 / (0.01**2 / 10))  # a known term adds none
 
 
 def test_rectifier_check_values():
