@@ -208,7 +208,7 @@ def rectifier_check(
         passed = p > level / 2 and p_margin > level / 2
     r = y - f
     mean, sd = float(r.mean()), float(r.std(ddof=1))
-    if sd == 0.0:  # every real run off by the same amount: the error is known exactly
+    if np.ptp(r) <= 1e-12:  # every real run off by the same amount (to rounding): the error is known exactly
         return RectifierCheck(r.size, mean, 0.0, mean, mean, p, level, passed, p_margin)
     lo, hi = stats.ttest_1samp(r, 0.0).confidence_interval(1.0 - level)
     return RectifierCheck(r.size, mean, sd, float(lo), float(hi), p, level, passed, p_margin)
