@@ -337,7 +337,8 @@ def cmd_check(args: argparse.Namespace) -> int:
     ckpt = Checkpoint.load(args.model)
     real = read_logs(args, "real", min_length=ckpt.config.history + 1)
     system = ckpt.system
-    reqs = requirements_of(system, args.require or [], args.probability)
+    # the requirements of the description the user names, not silently the checkpoint's older copy
+    reqs = requirements_of(load_system(args.system) if args.system else system, args.require or [], args.probability)
     unseen = [
         system.controller_for(parse_where_one(v)) if system and system.controller else None for v in args.unseen or []
     ]
