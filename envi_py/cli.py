@@ -20,7 +20,7 @@ from .controllers import ControllerSpec, parse_params
 from .dataset import EXTRA_CHANNELS
 from .diagnose.cli import register as register_diagnose
 from .experiments.cli import register as register_experiment
-from .logs import Log, LogError, load_logs, write_log, write_manifest
+from .logs import Log, LogError, finite_numbers, load_logs, require_signals, write_log, write_manifest
 from .system import SystemDescription, load_system
 from .twin.cli import register as register_twin
 
@@ -270,9 +270,10 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     if args.steps is not None and not 0 <= args.steps <= 1_000_000:
         raise ValueError(f"--steps must lie in 0..1000000, got {args.steps}")
     ckpt = Checkpoint.load(args.model)
-    init = read_logs(args, "init_logs", min_length=ckpt.config.history)
+    init = require_signals(read_logs(args, "init_logs", min_length=ckpt.config.history), ckpt.schema, args.model)
     out = Path(args.out)
-    given = ControllerSpec(args.controller, parse_params(args.param)) if args.controller else None
+    params = finite_numbers(parse_params(args.param), "--param values")  # a NaN gain once simulated NaN logs
+    given = ControllerSpec(args.controller, params) if args.controller else None
     specs = [given] if given else list(group_by_controller(init))
     stems = [Path(lg.path).stem if lg.path else lg.meta.run_id for lg in init]
     dup = sorted({st for st in stems if stems.count(st) > 1})
@@ -281,6 +282,14 @@ def cmd_simulate(args: argparse.Namespace) -> int:
             f"initial logs from different folders share the name {dup[0]!r}: their simulated runs would "
             "overwrite each other; simulate them into separate --out folders"
         )
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {out}: exists and is not a folder")
+    source = {spec: group[0].path for spec, group in group_by_controller(init).items()}
+    for spec in specs:  # an unknown controller is one error line naming its log, before any engine note
+        try:
+            spec.build(len(ckpt.schema.states), len(ckpt.schema.actions), ckpt.period_ms)
+        except ValueError as exc:
+            raise ValueError(f"{source[spec]}: {exc}" if spec is not given else str(exc)) from None
     engines = {choose_engine(ckpt, spec, args.engine, args.mean) for spec in specs}
     if args.engine == "auto" and "torch" in engines:
         from .native import unsupported
@@ -335,7 +344,7 @@ def cmd_check(args: argparse.Namespace) -> int:
     _positive(args, "max_runs", "batch", "sims_per_start")
     _at_most(args, max_runs=10_000_000, batch=1_000_000, sims_per_start=100_000)
     ckpt = Checkpoint.load(args.model)
-    real = read_logs(args, "real", min_length=ckpt.config.history + 1)
+    real = require_signals(read_logs(args, "real", min_length=ckpt.config.history + 1), ckpt.schema, args.model)
     system = ckpt.system
     # the requirements of the description the user names, not silently the checkpoint's older copy
     reqs = requirements_of(load_system(args.system) if args.system else system, args.require or [], args.probability)
@@ -660,6 +669,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.debug:
             raise
         msg = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        if isinstance(exc, OSError) and exc.filename and exc.strerror:  # not '[Errno 17] File exists: ...'
+            why = "exists and is not a folder" if isinstance(exc, FileExistsError) else exc.strerror
+            msg = f"{exc.filename}: {why}"
         print(f"envi {args.command}: error: {msg}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

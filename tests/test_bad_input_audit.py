@@ -135,3 +135,142 @@ def test_check_reads_the_requirements_of_the_system_it_is_given(lane_logs: Path,
     code, err = run_cli([*argv, "--sims-per-start", "2", "--engine", "torch", "--system", str(f), "--out", str(out)])
     assert code == 0, err
     assert "added" in (out / "check.md").read_text()
+
+
+# ----------------------------------------------------------------------------- logs and models
+
+
+@pytest.fixture(scope="module")
+def car_logs(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    d = tmp_path_factory.mktemp("car")
+    code, err = run_cli(
+        ["twin", "generate", "--system", "car", "--version", "0", "1", "--runs", "2", "--steps", "30", "--out", str(d)]
+    )
+    assert code == 0, err
+    return d
+
+
+@pytest.mark.parametrize(
+    "cmd, extra",
+    [
+        ("simulate", ["--init-logs"]),
+        ("check", ["--max-runs", "20", "--batch", "10", "--real"]),
+        ("diagnose", ["--no-retrain", "--runs", "2", "--real"]),
+    ],
+)
+def test_a_model_of_another_system_names_the_log_and_the_model(
+    cmd: str, extra: list[str], car_logs: Path, lane_model: Path, tmp_path: Path
+):
+    """Once a message naming neither file ('controller pid reads state channel 1') or, for the
+    diagnosis, an IndexError traceback."""
+    code, err = run_cli([cmd, "--model", str(lane_model), "--out", str(tmp_path / "o"), *extra, str(car_logs)])
+    line = assert_one_line(code, err, cmd, car_logs)
+    assert str(lane_model) in line and "another system" in line
+
+
+def test_a_controller_unknown_to_the_registry_in_a_sidecar_is_one_line_naming_the_log(
+    lane_logs: Path, lane_model: Path, tmp_path: Path
+):
+    """Once two lines: a note that the native engine cannot run it, then the error naming no file."""
+    d = tmp_path / "logs"
+    shutil.copytree(lane_logs, d)
+    side = sorted(d.glob("*.meta.json"))[0]
+    side.write_text(side.read_text().replace('"lane-keeping"', '"nosuch"', 1))
+    code, err = run_cli(["simulate", "--model", str(lane_model), "--init-logs", str(d), "--out", str(tmp_path / "o")])
+    assert "unknown controller 'nosuch'" in assert_one_line(
+        code, err, "simulate", side.with_suffix("").with_suffix(".csv")
+    )
+
+
+@pytest.mark.parametrize(
+    "argv, why",
+    [
+        (["--param", "x=nan"], "non-finite"),  # once simulated NaN logs, exit 0
+        (["--param", "x=inf"], "non-finite"),
+    ],
+)
+def test_simulate_refuses_a_non_finite_gain(
+    lane_logs: Path, lane_model: Path, tmp_path: Path, argv: list[str], why: str
+):
+    out = tmp_path / "o"
+    base = ["simulate", "--model", str(lane_model), "--init-logs", str(lane_logs), "--out", str(out)]
+    code, err = run_cli([*base, "--controller", "lane-keeping", *argv])
+    assert why in assert_one_line(code, err, "simulate", "--param")
+    assert not out.exists()
+
+
+def test_an_output_that_is_a_file_is_named_plainly(lane_logs: Path, lane_model: Path, tmp_path: Path):
+    """Once '[Errno 17] File exists: ...' (simulate: after the simulation's work)."""
+    f = tmp_path / "afile"
+    f.write_text("keep me\n")
+    for cmd, argv in (
+        ("simulate", ["--model", str(lane_model), "--init-logs", str(lane_logs)]),
+        ("split", ["--logs", str(lane_logs)]),
+    ):
+        code, err = run_cli([cmd, *argv, "--out", str(f)])
+        assert "exists and is not a folder" in assert_one_line(code, err, cmd, f)
+    assert f.read_text() == "keep me\n"
+
+
+def test_where_naming_an_unknown_parameter_says_so(lane_logs: Path, tmp_path: Path):
+    """Once 'no logs found matching {'y': [3.0]}', as if the value were wrong."""
+    code, err = run_cli(["split", "--logs", str(lane_logs), "--where", "y=3", "--out", str(tmp_path / "o")])
+    line = assert_one_line(code, err, "split", lane_logs)
+    assert "no log has the parameter 'y'" in line and "their parameters: x" in line
+
+
+def test_where_selects_the_cars_version_parameters_with_its_description(car_logs: Path, tmp_path: Path):
+    """The car's kp_steer sits in loops.0.params.kp: ``--where kp_steer=..`` once matched nothing."""
+    kept = load_logs(car_logs, load_system("car"), where={"kp_steer": [0.8]})
+    assert kept and len(kept) < len(load_logs(car_logs))
+    assert {lg.param["loops"][0]["params"]["kp"] for lg in kept} == {0.8}
+
+
+def test_mixed_control_periods_are_refused_naming_both_logs(lane_logs: Path, tmp_path: Path):
+    """One sidecar saying 50 ms among 40 ms ones was once read into one dataset silently."""
+    d = tmp_path / "logs"
+    shutil.copytree(lane_logs, d)
+    side = sorted(d.glob("*.meta.json"))[-1]
+    side.write_text(side.read_text().replace('"period_ms": 40.0', '"period_ms": 50.0'))
+    code, err = run_cli(["split", "--logs", str(d), "--out", str(tmp_path / "o")])
+    assert "mixed control periods" in assert_one_line(code, err, "split", side.with_suffix("").with_suffix(".csv"))
+
+
+# ----------------------------------------------------------------------------- envi twin generate
+
+
+@pytest.mark.parametrize(
+    "argv, why",
+    [
+        (["--param", "x=nan"], "non-finite"),  # once 100 rows of NaN, exit 0
+        (["--system", "car", "--param", "kp_steer=inf", "kp_speed=20"], "non-finite"),
+        (["--system", "car", "--world", "dropout_prob=nan"], "non-finite"),
+        (["--runs", "100000000000"], "at most"),  # once a MemoryError traceback
+        (["--runs", "0"], "at least 1"),
+    ],
+)
+def test_twin_generate_refuses_bad_values_before_any_work(tmp_path: Path, argv: list[str], why: str):
+    out = tmp_path / "o"
+    code, err = run_cli(["twin", "generate", *argv, "--out", str(out)])
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert code == 2 and len(lines) == 1 and why in lines[0], err
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("content", ["not json", '{"speed": "fast", "nosuch": 1}'])
+def test_twin_generate_names_a_bad_profile_file(tmp_path: Path, content: str):
+    """Once json's bare 'Expecting value: line 1 column 1 (char 0)'."""
+    prof = tmp_path / "profile.json"
+    prof.write_text(content)
+    code, err = run_cli(["twin", "generate", "--profile", str(prof), "--runs", "1", "--out", str(tmp_path / "o")])
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert code == 2 and len(lines) == 1 and str(prof) in lines[0] and "not a twin profile" in lines[0], err
+
+
+def test_twin_generate_into_a_file_says_it_is_not_a_folder(tmp_path: Path):
+    f = tmp_path / "afile"
+    f.write_text("keep me\n")
+    for system in ("lane-keeping", "car"):
+        code, err = run_cli(["twin", "generate", "--system", system, "--runs", "1", "--steps", "5", "--out", str(f)])
+        assert code == 2 and f"--out {f}: exists and is not a folder" in err, err
+    assert f.read_text() == "keep me\n"

@@ -12,6 +12,7 @@ from typing import Any
 
 def _cmd_diagnose(args: argparse.Namespace) -> int:
     from ..cli import read_logs
+    from ..logs import Log, require_signals
     from ..model import Checkpoint
     from .layers import save_layers
     from .report import write_diagnosis
@@ -21,10 +22,14 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
         args.parser.error("envi diagnose needs --model and --real (or the 'validate' mode)")
     ckpt = Checkpoint.load(args.model)
     hist = ckpt.config.history
-    real = read_logs(args, "real", min_length=hist + 1)
-    confirm = read_logs(args, "confirm", min_length=hist + 1) if args.confirm else None
-    train_logs = read_logs(args, "train_logs", min_length=hist + 1) if args.train_logs else None
-    val_logs = read_logs(args, "val_logs", min_length=hist + 1) if args.val_logs else None
+
+    def model_logs(attr: str) -> list[Log]:
+        return require_signals(read_logs(args, attr, min_length=hist + 1), ckpt.schema, args.model)
+
+    real = model_logs("real")
+    confirm = model_logs("confirm") if args.confirm else None
+    train_logs = model_logs("train_logs") if args.train_logs else None
+    val_logs = model_logs("val_logs") if args.val_logs else None
     kept: dict[str, Checkpoint] = {}
     d = diagnose(
         ckpt,
