@@ -199,8 +199,19 @@ def cmd_train(args: argparse.Namespace) -> int:
         raise ValueError(f"--multistep is a number of steps (0..1000), got {args.multistep}")
     if not 0 <= args.input_noise <= 100:  # NaN fails the comparison too
         raise ValueError(f"--input-noise is a multiple of the typical step (0..100), got {args.input_noise}")
+    if args.lr is not None and not 0 < args.lr < 1e3:  # NaN fails too; inf once trained to a NaN model
+        raise ValueError(f"--lr must be a positive learning rate below 1000, got {args.lr}")
+    if args.patience is not None and args.patience < 0:
+        raise ValueError(f"--patience must be at least 0, got {args.patience}")
+    if Path(args.output).is_dir():  # found before the training, not when saving it
+        raise ValueError(f"--output {args.output}: is a folder; name the model file, e.g. model.pt")
     logs = read_logs(args, min_length=args.history + 1)
     val = read_logs(args, "val_logs", min_length=args.history + 1) if args.val_logs else []
+    if val and val[0].meta.schema.columns != logs[0].meta.schema.columns:  # once a numpy broadcast error
+        raise ValueError(
+            f"{val[0].path or val[0].name}: columns {','.join(val[0].meta.schema.columns)} differ from the "
+            f"training logs' ({logs[0].path or logs[0].name}: {','.join(logs[0].meta.schema.columns)})"
+        )
     kwargs: dict[str, Any] = {"seed": args.seed, "history": args.history, "progress": not args.quiet}
     if args.algorithm != "random":
         kwargs.update(

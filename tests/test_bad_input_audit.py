@@ -274,3 +274,69 @@ def test_twin_generate_into_a_file_says_it_is_not_a_folder(tmp_path: Path):
         code, err = run_cli(["twin", "generate", "--system", system, "--runs", "1", "--steps", "5", "--out", str(f)])
         assert code == 2 and f"--out {f}: exists and is not a folder" in err, err
     assert f.read_text() == "keep me\n"
+
+
+# ----------------------------------------------------------------------------- train, verify, experiment
+
+
+@pytest.mark.parametrize(
+    "argv, why",
+    [
+        (["--lr", "-1"], "--lr must be"),  # once torch's 'Invalid learning rate: -1.0'
+        (["--lr", "inf"], "--lr must be"),  # once a whole training, then 'damaged model' on saving
+        (["--lr", "nan"], "--lr must be"),
+        (["--patience", "-1"], "--patience must be at least 0"),  # once a SelectionSettings(...) repr
+    ],
+)
+def test_train_names_the_bad_option(lane_logs: Path, tmp_path: Path, argv: list[str], why: str):
+    out = tmp_path / "m.pt"
+    code, err = run_cli(["train", "--logs", str(lane_logs), "--epochs", "2", "--quiet", "-o", str(out), *argv])
+    assert why in assert_one_line(code, err, "train", argv[0])
+    assert not out.exists()
+
+
+def test_train_into_a_folder_is_refused_before_training(lane_logs: Path, tmp_path: Path):
+    """Once found only when saving, naming the temporary file '.m.pt.tmp: Is a directory'."""
+    folder = tmp_path / "m.pt"
+    folder.mkdir()
+    code, err = run_cli(["train", "--logs", str(lane_logs), "--epochs", "2", "--quiet", "-o", str(folder)])
+    assert "is a folder" in assert_one_line(code, err, "train", folder)
+    assert not any(tmp_path.glob(".*.tmp"))
+
+
+def test_validation_logs_of_another_system_name_both_sets(lane_logs: Path, car_logs: Path, tmp_path: Path):
+    """Once numpy's 'operands could not be broadcast together with shapes (100,4) (2,)'."""
+    argv = ["train", "--logs", str(lane_logs), "--val-logs", str(car_logs), "--epochs", "2", "--quiet"]
+    code, err = run_cli([*argv, "-o", str(tmp_path / "m.pt")])
+    line = assert_one_line(code, err, "train", car_logs)
+    assert str(lane_logs) in line and "differ from the training logs'" in line
+
+
+def test_verify_names_simulations_of_another_system_and_a_negative_skip(
+    lane_logs: Path, car_logs: Path, tmp_path: Path
+):
+    """Once 'no simulated runs for controller lane-keeping(x=30); simulated: combine(...)', naming
+    no file; a negative --skip once 'skipping -1 rows ... leaves nothing to score'."""
+    code, err = run_cli(["verify", "--real", str(lane_logs), "--sim", str(car_logs)])
+    assert "another system" in assert_one_line(code, err, "verify", car_logs)
+    code, err = run_cli(["verify", "--real", str(lane_logs), "--sim", str(lane_logs), "--skip", "-1"])
+    assert_one_line(code, err, "verify", "--skip must be at least 0")
+
+
+@pytest.mark.parametrize(
+    "argv, why",
+    [
+        (["--reps", "0"], "--reps must be at least 1"),  # once exit 0 after doing nothing
+        (["--n", "0"], "--n must be at least 1"),  # once 'x=30: 6 logs cannot hold 0 training ...'
+        (["--n-val", "-1"], "--n-val at least 0"),
+        (["--n-test", "1"], "--n-test must be at least 2"),  # once blamed on the number of logs
+        (["--workers", "0"], "--workers must be at least 1"),
+        (["--epochs", "0"], "--epochs must be at least 1"),
+    ],
+)
+def test_experiment_refuses_bad_sizes_before_any_job(lane_logs: Path, tmp_path: Path, argv: list[str], why: str):
+    out = tmp_path / "exp"
+    base = ["experiment", "tovk", "--logs", str(lane_logs), "--tovk-version", "x=30", "--algorithms", "random"]
+    code, err = run_cli([*base, "--quiet", "--out", str(out), *argv])
+    assert_one_line(code, err, "experiment", why)
+    assert not out.exists()
