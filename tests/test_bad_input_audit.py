@@ -330,7 +330,7 @@ def test_verify_names_simulations_of_another_system_and_a_negative_skip(
         (["--n", "0"], "--n must be at least 1"),  # once 'x=30: 6 logs cannot hold 0 training ...'
         (["--n-val", "-1"], "--n-val at least 0"),
         (["--n-test", "1"], "--n-test must be at least 2"),  # once blamed on the number of logs
-        (["--workers", "0"], "--workers must be at least 1"),
+        (["--workers", "-1"], "--workers must be at least 0"),
         (["--epochs", "0"], "--epochs must be at least 1"),
     ],
 )
@@ -339,4 +339,64 @@ def test_experiment_refuses_bad_sizes_before_any_job(lane_logs: Path, tmp_path: 
     base = ["experiment", "tovk", "--logs", str(lane_logs), "--tovk-version", "x=30", "--algorithms", "random"]
     code, err = run_cli([*base, "--quiet", "--out", str(out), *argv])
     assert_one_line(code, err, "experiment", why)
+    assert not out.exists()
+
+
+# ----------------------------------------------------------------------------- envi-collect
+
+
+@pytest.mark.parametrize(
+    "argv, why",
+    [
+        (["--runs", "0"], "--runs must be at least 1"),  # once exit 0 having recorded nothing
+        (["--runs", "-3"], "--runs must be at least 1"),
+        (["--pings", "0"], "--pings must be at least 1"),
+        (["--reconnect", "nan"], "--reconnect is a number of seconds"),
+        (["--first-run", "-1"], "--first-run must be at least 0"),
+        (["--prefix", "a/b"], "--prefix must be a plain file name prefix"),
+    ],
+)
+def test_collect_refuses_bad_options_before_opening_the_port(tmp_path: Path, argv: list[str], why: str):
+    from firmware_bridge.host.collect import main as collect
+
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err), pytest.raises(SystemExit) as exc:
+        collect(["--port", str(tmp_path / "no-such-port"), "--out", str(tmp_path / "logs"), *argv])
+    lines = [ln for ln in err.getvalue().splitlines() if ln.strip()]
+    assert exc.value.code == 2 and len(lines) == 1 and why in lines[0], err.getvalue()
+    assert not (tmp_path / "logs").exists()
+
+
+# ----------------------------------------------------------------------------- envi diagnose
+
+
+@pytest.mark.parametrize(
+    "argv, why",
+    [
+        (["--runs", "0"], "--runs and --top must be at least 1"),  # once 'min() arg is an empty sequence'
+        (["--top", "-1"], "--runs and --top must be at least 1"),  # once exit 0
+    ],
+)
+def test_diagnose_refuses_bad_sizes_before_any_stage(
+    lane_logs: Path, lane_model: Path, tmp_path: Path, argv: list[str], why: str
+):
+    out = tmp_path / "d"
+    code, err = run_cli(["diagnose", "--model", str(lane_model), "--real", str(lane_logs), "--out", str(out), *argv])
+    assert_one_line(code, err, "diagnose", why)
+    assert not out.exists()
+
+
+@pytest.mark.parametrize(
+    "argv, why",
+    [
+        (["--runs", "0"], "--runs must be at least 1"),  # once the whole study ran (a 120 s timeout)
+        (["--seeds", "0"], "--seeds must be at least 1"),
+        (["--shrink-seeds", "-1"], "--shrink-seeds must be at least 0"),
+        (["--lr", "nan"], "--lr must be a positive"),
+    ],
+)
+def test_diagnose_validate_refuses_bad_sizes_before_any_trial(tmp_path: Path, argv: list[str], why: str):
+    out = tmp_path / "v"
+    code, err = run_cli(["diagnose", "validate", "--out", str(out), *argv])
+    assert_one_line(code, err, "diagnose", why)
     assert not out.exists()

@@ -20,6 +20,11 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
 
     if not args.model or not args.real:
         args.parser.error("envi diagnose needs --model and --real (or the 'validate' mode)")
+    # sizes and the output before any work (--runs 0 once 'min() arg is an empty sequence' after a stage)
+    if args.runs < 1 or args.top < 1:
+        raise ValueError(f"--runs and --top must be at least 1, got {args.runs} and {args.top}")
+    if Path(args.out).exists() and not Path(args.out).is_dir():
+        raise ValueError(f"--out {args.out}: exists and is not a folder")
     ckpt = Checkpoint.load(args.model)
     hist = ckpt.config.history
 
@@ -60,6 +65,15 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
 def _cmd_validate(args: argparse.Namespace) -> int:
     from .validate import ALL_CASES, Size, cross_table, layer_table, run_validation, score, to_markdown
 
+    # sizes before any trial (--runs 0 once ran the whole study into a timeout)
+    for name in ("seeds", "jobs", "train", "diag", "steps", "epochs", "history", "runs"):
+        if getattr(args, name) < 1:
+            raise ValueError(f"--{name} must be at least 1, got {getattr(args, name)}")
+    for name in ("shrink_seeds", "val", "first_seed"):
+        if getattr(args, name) < 0:
+            raise ValueError(f"--{name.replace('_', '-')} must be at least 0, got {getattr(args, name)}")
+    if not 0 < args.lr < 1e3:
+        raise ValueError(f"--lr must be a positive learning rate below 1000, got {args.lr}")
     worlds = list(dict.fromkeys(args.world))
     known = {c.name: c for c in ALL_CASES}
     unknown = set(args.cases or ()) - set(known)
