@@ -352,6 +352,8 @@ def cmd_check(args: argparse.Namespace) -> int:
 
     if not 0 < args.alpha < 0.5:
         raise ValueError(f"--alpha must lie in (0, 0.5), got {args.alpha}")
+    if not 0 < args.delta < 0.5:  # 5 was once accepted: an indifference region wider than [0, 1]
+        raise ValueError(f"--delta must lie in (0, 0.5), got {args.delta}")
     _positive(args, "max_runs", "batch", "sims_per_start")
     _at_most(args, max_runs=10_000_000, batch=1_000_000, sims_per_start=100_000)
     ckpt = Checkpoint.load(args.model)
@@ -359,6 +361,14 @@ def cmd_check(args: argparse.Namespace) -> int:
     system = ckpt.system
     # the requirements of the description the user names, not silently the checkpoint's older copy
     reqs = requirements_of(load_system(args.system) if args.system else system, args.require or [], args.probability)
+    for v in args.unseen or []:  # a misspelt or NaN parameter, before the simulations
+        finite_numbers(parse_where_one(v), f"--unseen {v!r} values")
+        unknown = sorted(set(parse_where_one(v)) - set(system.versions.params)) if system else []
+        if system and system.versions.params and unknown:
+            raise ValueError(
+                f"--unseen {v!r}: system {system.name!r} has no version parameter {unknown[0]!r} "
+                f"(its parameters: {', '.join(system.versions.params)})"
+            )
     unseen = [
         system.controller_for(parse_where_one(v)) if system and system.controller else None for v in args.unseen or []
     ]

@@ -400,3 +400,20 @@ def test_diagnose_validate_refuses_bad_sizes_before_any_trial(tmp_path: Path, ar
     code, err = run_cli(["diagnose", "validate", "--out", str(out), *argv])
     assert_one_line(code, err, "diagnose", why)
     assert not out.exists()
+
+
+@pytest.mark.parametrize(
+    "argv, why",
+    [
+        (["--unseen", "y=3"], "has no version parameter 'y' (its parameters: x)"),  # once 'has no version parameter x'
+        (["--unseen", "x=nan"], "non-finite"),  # once simulated, then 'signal color holds NaN'
+        (["--delta", "5"], "--delta must lie in (0, 0.5)"),  # once accepted
+    ],
+)
+def test_check_names_a_bad_unseen_version_or_delta(
+    lane_logs: Path, lane_model: Path, tmp_path: Path, argv: list[str], why: str
+):
+    base = ["check", "--model", str(lane_model), "--real", str(lane_logs), "--max-runs", "20", "--batch", "10"]
+    code, err = run_cli([*base, "--out", str(tmp_path / "o"), *argv])
+    assert_one_line(code, err, "check", why)
+    assert not (tmp_path / "o").exists()
