@@ -417,3 +417,12 @@ def test_check_names_a_bad_unseen_version_or_delta(
     code, err = run_cli([*base, "--out", str(tmp_path / "o"), *argv])
     assert_one_line(code, err, "check", why)
     assert not (tmp_path / "o").exists()
+
+
+def test_a_measured_period_a_little_off_the_nominal_is_not_another_period(lane_logs: Path, tmp_path: Path):
+    """Simulated logs record their initial log's measured period (41 ms in a 40 ms dataset)."""
+    d = tmp_path / "logs"
+    shutil.copytree(lane_logs, d)
+    side = sorted(d.glob("*.meta.json"))[-1]
+    side.write_text(side.read_text().replace('"period_ms": 40.0', '"period_ms": 41.0'))
+    assert len(load_logs(d)) == len(load_logs(lane_logs))
