@@ -139,7 +139,9 @@ def check(
     for spec, logs in groups.items():
         label = version_label(spec, system)
         real_runs = signals_of(logs, logs[0].meta.schema, hist, ckpt.period_ms)
-        starts = list(logs) + [lg for lg in extra.get(spec, []) if lg not in logs]
+        # by content: a Log holds arrays, so ``lg in logs`` (dataclass ==) is ambiguous and raises
+        seen = {lg.sha256() for lg in logs}
+        starts = list(logs) + [lg for lg in extra.get(spec, []) if lg.sha256() not in seen]
         paired_runs, outside = checker.runs(spec, logs, sims_per_start)
         extra_runs = checker.runs(spec, starts[len(logs) :], sims_per_start)[0] if len(starts) > len(logs) else None
         for spec_req, req in zip(requirements, reqs):

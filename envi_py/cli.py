@@ -20,7 +20,7 @@ from .controllers import ControllerSpec, parse_params
 from .dataset import EXTRA_CHANNELS
 from .diagnose.cli import register as register_diagnose
 from .experiments.cli import register as register_experiment
-from .logs import Log, LogError, load_logs, write_log, write_manifest
+from .logs import Log, LogError, finite_numbers, load_logs, require_signals, write_log, write_manifest
 from .system import SystemDescription, load_system
 from .twin.cli import register as register_twin
 
@@ -199,8 +199,19 @@ def cmd_train(args: argparse.Namespace) -> int:
         raise ValueError(f"--multistep is a number of steps (0..1000), got {args.multistep}")
     if not 0 <= args.input_noise <= 100:  # NaN fails the comparison too
         raise ValueError(f"--input-noise is a multiple of the typical step (0..100), got {args.input_noise}")
+    if args.lr is not None and not 0 < args.lr < 1e3:  # NaN fails too; inf once trained to a NaN model
+        raise ValueError(f"--lr must be a positive learning rate below 1000, got {args.lr}")
+    if args.patience is not None and args.patience < 0:
+        raise ValueError(f"--patience must be at least 0, got {args.patience}")
+    if Path(args.output).is_dir():  # found before the training, not when saving it
+        raise ValueError(f"--output {args.output}: is a folder; name the model file, e.g. model.pt")
     logs = read_logs(args, min_length=args.history + 1)
     val = read_logs(args, "val_logs", min_length=args.history + 1) if args.val_logs else []
+    if val and val[0].meta.schema.columns != logs[0].meta.schema.columns:  # once a numpy broadcast error
+        raise ValueError(
+            f"{val[0].path or val[0].name}: columns {','.join(val[0].meta.schema.columns)} differ from the "
+            f"training logs' ({logs[0].path or logs[0].name}: {','.join(logs[0].meta.schema.columns)})"
+        )
     kwargs: dict[str, Any] = {"seed": args.seed, "history": args.history, "progress": not args.quiet}
     if args.algorithm != "random":
         kwargs.update(
@@ -270,9 +281,10 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     if args.steps is not None and not 0 <= args.steps <= 1_000_000:
         raise ValueError(f"--steps must lie in 0..1000000, got {args.steps}")
     ckpt = Checkpoint.load(args.model)
-    init = read_logs(args, "init_logs", min_length=ckpt.config.history)
+    init = require_signals(read_logs(args, "init_logs", min_length=ckpt.config.history), ckpt.schema, args.model)
     out = Path(args.out)
-    given = ControllerSpec(args.controller, parse_params(args.param)) if args.controller else None
+    params = finite_numbers(parse_params(args.param), "--param values")  # a NaN gain once simulated NaN logs
+    given = ControllerSpec(args.controller, params) if args.controller else None
     specs = [given] if given else list(group_by_controller(init))
     stems = [Path(lg.path).stem if lg.path else lg.meta.run_id for lg in init]
     dup = sorted({st for st in stems if stems.count(st) > 1})
@@ -281,6 +293,14 @@ def cmd_simulate(args: argparse.Namespace) -> int:
             f"initial logs from different folders share the name {dup[0]!r}: their simulated runs would "
             "overwrite each other; simulate them into separate --out folders"
         )
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {out}: exists and is not a folder")
+    source = {spec: group[0].path for spec, group in group_by_controller(init).items()}
+    for spec in specs:  # an unknown controller is one error line naming its log, before any engine note
+        try:
+            spec.build(len(ckpt.schema.states), len(ckpt.schema.actions), ckpt.period_ms)
+        except ValueError as exc:
+            raise ValueError(f"{source[spec]}: {exc}" if spec is not given else str(exc)) from None
     engines = {choose_engine(ckpt, spec, args.engine, args.mean) for spec in specs}
     if args.engine == "auto" and "torch" in engines:
         from .native import unsupported
@@ -332,12 +352,23 @@ def cmd_check(args: argparse.Namespace) -> int:
 
     if not 0 < args.alpha < 0.5:
         raise ValueError(f"--alpha must lie in (0, 0.5), got {args.alpha}")
+    if not 0 < args.delta < 0.5:  # 5 was once accepted: an indifference region wider than [0, 1]
+        raise ValueError(f"--delta must lie in (0, 0.5), got {args.delta}")
     _positive(args, "max_runs", "batch", "sims_per_start")
     _at_most(args, max_runs=10_000_000, batch=1_000_000, sims_per_start=100_000)
     ckpt = Checkpoint.load(args.model)
-    real = read_logs(args, "real", min_length=ckpt.config.history + 1)
+    real = require_signals(read_logs(args, "real", min_length=ckpt.config.history + 1), ckpt.schema, args.model)
     system = ckpt.system
-    reqs = requirements_of(system, args.require or [], args.probability)
+    # the requirements of the description the user names, not silently the checkpoint's older copy
+    reqs = requirements_of(load_system(args.system) if args.system else system, args.require or [], args.probability)
+    for v in args.unseen or []:  # a misspelt or NaN parameter, before the simulations
+        finite_numbers(parse_where_one(v), f"--unseen {v!r} values")
+        unknown = sorted(set(parse_where_one(v)) - set(system.versions.params)) if system else []
+        if system and system.versions.params and unknown:
+            raise ValueError(
+                f"--unseen {v!r}: system {system.name!r} has no version parameter {unknown[0]!r} "
+                f"(its parameters: {', '.join(system.versions.params)})"
+            )
     unseen = [
         system.controller_for(parse_where_one(v)) if system and system.controller else None for v in args.unseen or []
     ]
@@ -661,6 +692,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.debug:
             raise
         msg = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        if isinstance(exc, OSError) and exc.filename and exc.strerror:  # not '[Errno 17] File exists: ...'
+            why = "exists and is not a folder" if isinstance(exc, FileExistsError) else exc.strerror
+            msg = f"{exc.filename}: {why}"
         print(f"envi {args.command}: error: {msg}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -99,7 +99,7 @@ class LogMeta:
             schema = LogSchema.from_json(d)
             controller = None if d.get("controller") is None else ControllerSpec.from_json(d["controller"]).to_json()
             if controller is not None:
-                _finite_numbers(controller["params"], "controller params")
+                finite_numbers(controller["params"], "controller params")
         except ValueError as exc:
             raise LogError(f"{where}: sidecar {exc}") from None
         period = d.get("period_ms")
@@ -183,7 +183,7 @@ class Log:
         return h.hexdigest()
 
 
-def _finite_numbers(node: Any, what: str) -> None:
+def finite_numbers(node: Any, what: str) -> Any:
     """Every number in a JSON tree finite: a NaN or infinite controller gain is never a version."""
     stack = [node]
     while stack:
@@ -194,6 +194,7 @@ def _finite_numbers(node: Any, what: str) -> None:
             stack.extend(item.values())
         elif isinstance(item, list):
             stack.extend(item)
+    return node
 
 
 def _json_depth(node: Any) -> int:
@@ -628,8 +629,17 @@ def load_logs(
             warnings.warn(f"skipping bad log: {msg}", stacklevel=2)
             continue
         logs.append(log)
-    if where:
-        logs = [lg for lg in logs if _matches(lg, where)]
+    if where and logs:
+        params = [_version_params(lg, system) for lg in logs]
+        known = sorted({k for p in params for k in p})
+        unknown = [k for k in where if k not in known]
+        if unknown:  # not 'no logs found': the user misspelt a parameter, say which and what there is
+            raise LogError(
+                f"{', '.join(map(str, sources))}: no log has the parameter {unknown[0]!r} "
+                f"(their parameters: {', '.join(known) or 'none'}"
+                + ("; a --system names the version parameters)" if system is None else ")")
+            )
+        logs = [lg for lg, p in zip(logs, params) if _matches(p, where)]
     if not logs:
         raise LogError(f"{', '.join(map(str, sources))}: no logs found" + (f" matching {where}" if where else ""))
     first = logs[0]
@@ -639,11 +649,43 @@ def load_logs(
                 f"{lg.path}: schema {lg.meta.schema.columns} differs from {first.path}: "
                 f"{first.meta.schema.columns} (mixed schemas in one dataset)"
             )
+    timed = [lg for lg in logs if lg.meta.period_ms is not None]
+    for lg in timed[1:]:
+        ref = timed[0]
+        # one model, one control period: never mixed. A simulated log records its initial log's measured
+        # period (40 or 41 ms for a 40 ms loop), so only a difference beyond 10 % is another period.
+        if abs(lg.meta.period_ms - ref.meta.period_ms) > 0.1 * ref.meta.period_ms:
+            raise LogError(
+                f"{lg.path or lg.name}: recorded at a {lg.meta.period_ms:g} ms period, {ref.path or ref.name} "
+                f"at {ref.meta.period_ms:g} ms (mixed control periods in one dataset)"
+            )
     return logs
 
 
-def _matches(log: Log, where: dict[str, Any]) -> bool:
-    params = log.param
+def require_signals(logs: Sequence[Log], schema: LogSchema, model: str | os.PathLike) -> list[Log]:
+    """The logs, if they hold the states and actions the model was trained on (in its order): a
+    model run on another system's logs otherwise fails deep inside with a message naming neither."""
+    want = [c.name for c in schema.states], [c.name for c in schema.actions]
+    for lg in logs:
+        have = [c.name for c in lg.meta.schema.states], [c.name for c in lg.meta.schema.actions]
+        if have != want:
+            raise LogError(
+                f"{lg.path or lg.name}: holds states {','.join(have[0])} and actions {','.join(have[1])}, "
+                f"the model {model} reads states {','.join(want[0])} and actions {','.join(want[1])} "
+                "(a model of another system?)"
+            )
+    return list(logs)
+
+
+def _version_params(log: Log, system: SystemDescription | None) -> dict[str, Any]:
+    """The parameters ``where`` selects on: the description's version parameters (the car's
+    ``kp_steer`` sits in ``loops.0.params.kp``) with the controller's own top-level ones."""
+    if system is None or not system.versions.params or not log.meta.controller:
+        return log.param
+    return {**log.param, **system.version_of(log.controller)}
+
+
+def _matches(params: dict[str, Any], where: dict[str, Any]) -> bool:
     for k, want in where.items():
         allowed = want if isinstance(want, (list, tuple, set)) else [want]
         if params.get(k) not in allowed and str(params.get(k)) not in {str(a) for a in allowed}:

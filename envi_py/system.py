@@ -23,6 +23,7 @@ The lane-keeping robot and the car following a lead vehicle are shipped descript
 
 from __future__ import annotations
 
+import difflib
 import json
 import math
 import re
@@ -433,7 +434,37 @@ def _requirement(r: Any, i: int) -> RequirementSpec:
     return RequirementSpec(str(r.get("name") or f"R{i + 1}"), r["expr"], kind, float(p))
 
 
+#: The keys each part of a TOML description may hold: a typo ("periodms", "[sytem]") is an error
+#: naming the key and the nearest known one, never a silently ignored setting.
+TOML_KEYS: dict[str, tuple[str, ...]] = {
+    "the top level": ("system", "signals", "versions", "controller", "goals", "requirements", "goals_preset"),
+    "[system]": ("name", "period_ms", "goals_preset"),
+    "[[signals]]": ("name", "role", "unit", "range", "resolution", "saturates"),
+    "[versions]": ("pattern", "params", "map"),
+    "[controller]": ("name", "params"),
+    "[[requirements]]": ("name", "expr", "kind", "probability"),
+}
+
+
+def _known_keys(table: Any, part: str) -> None:
+    """Refuse a key ``part`` does not know, suggesting the nearest known one."""
+    if not isinstance(table, dict):
+        return
+    known = TOML_KEYS[part]
+    for key in table:
+        if key not in known:
+            near = difflib.get_close_matches(key, known, n=1)
+            hint = f"did you mean {near[0]!r}? " if near else ""
+            raise ValueError(f"{part}: unknown key {key!r} ({hint}known: {', '.join(known)})")
+
+
 def _from_toml(doc: dict[str, Any], where: str) -> SystemDescription:
+    _known_keys(doc, "the top level")
+    for part, key in (("[system]", "system"), ("[versions]", "versions"), ("[controller]", "controller")):
+        _known_keys(doc.get(key), part)
+    for part, key in (("[[signals]]", "signals"), ("[[requirements]]", "requirements")):
+        for entry in doc.get(key) if isinstance(doc.get(key), list) else ():
+            _known_keys(entry, part)
     sysd = doc.get("system", {})
     if not isinstance(sysd, dict):
         raise ValueError("[system] must be a table")
@@ -486,6 +517,36 @@ def _validated(desc: SystemDescription, where: str) -> SystemDescription:
     return desc
 
 
+def _uses_checked(desc: SystemDescription, where: str) -> SystemDescription:
+    """Every goal's metric and parameters and every requirement parse against the declared signals,
+    and every version parameter's ``map`` path leads into the controller, so a typo in the file is
+    refused (naming the file) when it is read, not after a training at ``envi check``."""
+    from .goals.presets import goals_of  # lazily: the goals package reads this module's types
+    from .goals.registry import metric
+    from .goals.requirements import parse
+
+    signals = [c.name for c in desc.schema.states + desc.schema.actions + desc.schema.logged]
+    try:
+        for g in goals_of(desc):
+            m = metric(g.metric)
+            unknown = sorted(set(g.params) - set(m.params))
+            missing = [p for p in m.required if p not in g.params]
+            if unknown or missing:
+                raise ValueError(
+                    f"goal {g.name!r}: metric {g.metric!r} "
+                    + (f"has no parameter {unknown[0]!r}" if unknown else f"needs parameter {missing[0]!r}")
+                    + f"; parameters: {', '.join(m.params) or 'none'}"
+                )
+        for r in desc.requirements:
+            parse(r, signals)
+        if desc.controller is not None and desc.versions.map:
+            desc.controller_for({p: 0 for p in desc.versions.map})
+    except ValueError as exc:
+        msg = str(exc)
+        raise ValueError(msg if msg.startswith(where) else f"{where}: {msg}") from None
+    return desc
+
+
 # ---------------------------------------------------------------------- file-name patterns
 
 
@@ -528,14 +589,15 @@ def shipped() -> dict[str, Path]:
 
 
 def load_system(name_or_path: str | Path) -> SystemDescription:
-    """A shipped description by name, or a TOML file."""
+    """A shipped description by name, or a TOML file (whose goals and requirements are parsed too: the
+    shipped ones are by the tests, and at import time the goals package cannot be loaded yet)."""
     known = shipped()
     if str(name_or_path) in known:
         return SystemDescription.load(known[str(name_or_path)])
     path = Path(name_or_path)
     if not path.is_file():
         raise ValueError(f"{path}: no such system description; shipped: {', '.join(known)}")
-    return SystemDescription.load(path)
+    return _uses_checked(SystemDescription.load(path), str(path))
 
 
 def lane_keeping() -> SystemDescription:

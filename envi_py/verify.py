@@ -237,7 +237,16 @@ def verify(
     at least 4 real runs) the fair real-vs-real reference is computed (:func:`fair_reference`)."""
     if not real or not sim:
         raise ValueError("verification needs real and simulated logs")
+    if skip < 0:
+        raise ValueError(f"--skip must be at least 0, got {skip}")
     schema = real[0].meta.schema
+    modelled = [c.name for c in schema.states + schema.actions]  # simulated logs carry no logged-only columns
+    got = [c.name for c in sim[0].meta.schema.states + sim[0].meta.schema.actions]
+    if got != modelled:  # once 'no simulated runs for controller ...'
+        raise ValueError(
+            f"{sim[0].path or sim[0].name}: signals {','.join(got)} differ from the real logs' "
+            f"({real[0].path or real[0].name}: {','.join(modelled)}): simulated from another system?"
+        )
     period = (
         period_ms
         or (system.period_ms if system and system.period_ms else None)
@@ -250,7 +259,7 @@ def verify(
     for spec, rl in real_g.items():
         if spec not in sim_g:
             raise ValueError(
-                f"no simulated runs for controller {spec.label()}; simulated: "
+                f"{rl[0].path or rl[0].name}: no simulated runs for its controller {spec.label()}; simulated: "
                 f"{', '.join(s.label() for s in sim_g) or 'none'}"
             )
         sl = sim_g[spec]

@@ -12,6 +12,7 @@ from typing import Any
 
 def _cmd_diagnose(args: argparse.Namespace) -> int:
     from ..cli import read_logs
+    from ..logs import Log, require_signals
     from ..model import Checkpoint
     from .layers import save_layers
     from .report import write_diagnosis
@@ -19,12 +20,21 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
 
     if not args.model or not args.real:
         args.parser.error("envi diagnose needs --model and --real (or the 'validate' mode)")
+    # sizes and the output before any work (--runs 0 once 'min() arg is an empty sequence' after a stage)
+    if args.runs < 1 or args.top < 1:
+        raise ValueError(f"--runs and --top must be at least 1, got {args.runs} and {args.top}")
+    if Path(args.out).exists() and not Path(args.out).is_dir():
+        raise ValueError(f"--out {args.out}: exists and is not a folder")
     ckpt = Checkpoint.load(args.model)
     hist = ckpt.config.history
-    real = read_logs(args, "real", min_length=hist + 1)
-    confirm = read_logs(args, "confirm", min_length=hist + 1) if args.confirm else None
-    train_logs = read_logs(args, "train_logs", min_length=hist + 1) if args.train_logs else None
-    val_logs = read_logs(args, "val_logs", min_length=hist + 1) if args.val_logs else None
+
+    def model_logs(attr: str) -> list[Log]:
+        return require_signals(read_logs(args, attr, min_length=hist + 1), ckpt.schema, args.model)
+
+    real = model_logs("real")
+    confirm = model_logs("confirm") if args.confirm else None
+    train_logs = model_logs("train_logs") if args.train_logs else None
+    val_logs = model_logs("val_logs") if args.val_logs else None
     kept: dict[str, Checkpoint] = {}
     d = diagnose(
         ckpt,
@@ -55,6 +65,15 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
 def _cmd_validate(args: argparse.Namespace) -> int:
     from .validate import ALL_CASES, Size, cross_table, layer_table, run_validation, score, to_markdown
 
+    # sizes before any trial (--runs 0 once ran the whole study into a timeout)
+    for name in ("seeds", "jobs", "train", "diag", "steps", "epochs", "history", "runs"):
+        if getattr(args, name) < 1:
+            raise ValueError(f"--{name} must be at least 1, got {getattr(args, name)}")
+    for name in ("shrink_seeds", "val", "first_seed"):
+        if getattr(args, name) < 0:
+            raise ValueError(f"--{name.replace('_', '-')} must be at least 0, got {getattr(args, name)}")
+    if not 0 < args.lr < 1e3:
+        raise ValueError(f"--lr must be a positive learning rate below 1000, got {args.lr}")
     worlds = list(dict.fromkeys(args.world))
     known = {c.name: c for c in ALL_CASES}
     unknown = set(args.cases or ()) - set(known)

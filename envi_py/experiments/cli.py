@@ -3,15 +3,28 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 from typing import Any
 
 
 def _cmd(args: argparse.Namespace) -> int:
-    from ..cli import read_logs, system_of
+    from ..cli import _at_most, _positive, read_logs, system_of
     from .executor import make_executor
     from .run import run_experiment
     from .versions import VersionChoice
 
+    # before any log is read or job started (--reps 0 once finished 'successfully' doing nothing)
+    _positive(args, "reps", "epochs", "history", "runs")
+    _at_most(args, reps=10_000, epochs=1_000_000, history=10_000, runs=1_000_000)
+    if min(args.n) < 1 or args.n_val < 0:
+        raise ValueError(f"--n must be at least 1 and --n-val at least 0, got --n {args.n} --n-val {args.n_val}")
+    if args.workers is not None and args.workers < 0:  # 0: in this process
+        raise ValueError(f"--workers must be at least 0 (0: in this process), got {args.workers}")
+    if args.n_test < 2:  # the grid's split needs two (once blamed on the number of logs)
+        raise ValueError(f"--n-test must be at least 2 (test logs per version), got {args.n_test}")
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {out}: exists and is not a folder")
     logs = read_logs(args, min_length=args.history + 1)
     versions = VersionChoice(
         tuple(args.train_versions or ()),
@@ -107,7 +120,9 @@ def register(sub: Any) -> None:
         help="'authors': their sorted-order 5-fold split (first n train, last 10 test)",
     )
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--workers", type=int, default=None, help="local worker processes (default: all cores)")
+    p.add_argument(
+        "--workers", type=int, default=None, help="local worker processes (default: all cores; 0: in this process)"
+    )
     p.add_argument("--dask", default=None, metavar="ADDRESS", help="run on a Dask scheduler, e.g. tcp://host:8786")
     p.add_argument(
         "--fresh",

@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 
 from envi_py.controllers import ControllerSpec, parse_params
-from envi_py.logs import LogError, load_logs
+from envi_py.logs import LogError, finite_numbers, load_logs
 from envi_py.system import lane_keeping, load_system
 
 from .car import generate_car, generate_car_versions, write_car_logs
@@ -17,8 +17,42 @@ from .generate import generate, write_logs
 from .profile import TwinProfile, default_profile
 
 
+#: The most samples (runs x steps) one ``generate`` writes: beyond it the arrays do not fit in memory
+#: and numpy fails with a MemoryError traceback (or the system's OOM killer ends the process).
+MAX_SAMPLES = 100_000_000
+
+
 def _profile(args: argparse.Namespace) -> TwinProfile:
-    return TwinProfile.load(args.profile) if args.profile else default_profile()
+    return _load_profile(args.profile) if args.profile else default_profile()
+
+
+def _load_profile(path: str) -> TwinProfile:
+    """A profile JSON, or a ValueError naming the file (not json's bare 'Expecting value')."""
+    try:
+        return TwinProfile.load(path)
+    except OSError as exc:
+        raise ValueError(f"{path}: cannot read the profile ({exc.strerror})") from None
+    except (ValueError, TypeError, KeyError, AttributeError) as exc:
+        raise ValueError(f"{path}: not a twin profile JSON ({exc})") from None
+
+
+def _checked(args: argparse.Namespace) -> dict[str, object]:
+    """The size, output folder and parameters checked before any work; returns ``--param``'s values
+    (a NaN gain once wrote logs full of NaN, a too large size a MemoryError traceback)."""
+    if args.runs < 1 or args.steps < 1:
+        raise ValueError(f"--runs and --steps must be at least 1, got {args.runs} and {args.steps}")
+    if args.runs * args.steps > MAX_SAMPLES:
+        raise ValueError(f"--runs x --steps is at most {MAX_SAMPLES:,} samples, got {args.runs} x {args.steps}")
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {out}: exists and is not a folder")
+    finite_numbers(parse_params(args.world), "--world values")
+    return finite_numbers(parse_params(args.param), "--param values")
+
+
+def _os_message(exc: OSError) -> str:
+    """'FILE: reason' for an OSError (its str() is '[Errno 17] File exists: ...')."""
+    return f"{exc.filename}: {exc.strerror}" if exc.filename and exc.strerror else str(exc)
 
 
 def cmd_generate(args: argparse.Namespace) -> int:
@@ -31,7 +65,7 @@ def cmd_generate(args: argparse.Namespace) -> int:
         print("envi twin generate: --version and --world apply to --system car only", file=sys.stderr)
         return 2
     try:
-        spec = ControllerSpec(args.controller or "lane-keeping", parse_params(args.param))
+        spec = ControllerSpec(args.controller or "lane-keeping", _checked(args))
         spec.build()  # fail on a bad controller before any work
         effects = parse_effects(args.effects)
         if args.family == "diffdrive":
@@ -41,8 +75,11 @@ def cmd_generate(args: argparse.Namespace) -> int:
         else:
             logs = generate(spec, args.runs, args.steps, effects, args.seed, _profile(args))
         paths = write_logs(logs, args.out)
-    except (ValueError, OSError) as exc:
+    except ValueError as exc:
         print(f"envi twin generate: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:
+        print(f"envi twin generate: {_os_message(exc)}", file=sys.stderr)
         return 2
     active = ", ".join(logs[0].meta.provenance["effects"]) or "none"
     print(f"wrote {len(paths)} {args.family} twin logs to {args.out} (effects: {active})")
@@ -53,6 +90,7 @@ def _generate_car(args: argparse.Namespace) -> int:
     """The car twin: the shipped versions (all, or ``--version``), or one controller from
     ``--param kp_steer=.. kp_speed=..`` on the description's controller (or ``--controller``)."""
     try:
+        _checked(args)
         if args.effects is not None or args.profile is not None:
             raise ValueError(
                 "--effects and --profile apply to the lane-keeping twin; the car's world "
@@ -75,8 +113,11 @@ def _generate_car(args: argparse.Namespace) -> int:
         else:
             logs = generate_car_versions(args.runs, args.steps, args.seed, args.version, **world)
         paths = write_car_logs(logs, args.out)
-    except (ValueError, OSError) as exc:
+    except ValueError as exc:
         print(f"envi twin generate: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:
+        print(f"envi twin generate: {_os_message(exc)}", file=sys.stderr)
         return 2
     print(f"wrote {len(paths)} car twin logs to {args.out} (pattern car_{{kp_steer}}_{{kp_speed}}_{{run}}.csv)")
     return 0
@@ -99,7 +140,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         print(f"envi twin calibrate: {exc}", file=sys.stderr)
         return 2
     budget = 25.0 if args.quick else args.budget
-    start = TwinProfile.load(args.start) if args.start else None
+    start = _load_profile(args.start) if args.start else None
     prof = calibrate(
         logs,
         key=args.key,

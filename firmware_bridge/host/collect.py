@@ -384,9 +384,29 @@ class Session:
             self.link.close()
 
 
+def checked_args(parser: argparse.ArgumentParser, argv: list[str] | None) -> argparse.Namespace:
+    """The options, refused with argparse's one line before the port is opened (``--runs 0`` once
+    exited 0 having recorded nothing, ``--prefix a/b`` named files outside --out)."""
+    args = parser.parse_args(argv)
+    if args.runs < 1:
+        parser.error(f"--runs must be at least 1, got {args.runs}")
+    if args.pings < 1:
+        parser.error(f"--pings must be at least 1, got {args.pings}")
+    if not 0 <= args.reconnect <= 86_400:  # NaN fails too
+        parser.error(f"--reconnect is a number of seconds in 0..86400, got {args.reconnect}")
+    if args.first_run is not None and args.first_run < 0:
+        parser.error(f"--first-run must be at least 0, got {args.first_run}")
+    if args.prefix is not None and (not args.prefix or Path(args.prefix).name != args.prefix):
+        parser.error(f"--prefix must be a plain file name prefix, got {args.prefix!r}")
+    if args.out.exists() and not args.out.is_dir():
+        parser.error(f"--out {args.out}: exists and is not a folder")
+    return args
+
+
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    bar = tqdm(unit="row", disable=args.quiet, dynamic_ncols=True)  # total known after the first handshake
+    args = checked_args(build_parser(), argv)
+    # total known after the first handshake; shown after 1 s, so a port refused at once leaves one line
+    bar = tqdm(unit="row", disable=args.quiet, dynamic_ncols=True, delay=1.0)
     session: Session | None = None
     code = 0
     try:
