@@ -309,10 +309,19 @@ def export(ckpt: Checkpoint, path: str | Path, check: bool = True) -> Path:
         if not err <= PARITY_TOL:
             raise ValueError(f"onnxruntime differs from PyTorch by {err:.3g} (> {PARITY_TOL:g}); not written")
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    if path.is_dir():
+        raise ValueError(f"{path}: is a folder; give the ONNX file to write")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ValueError(f"{path}: cannot create its folder: {exc.strerror or exc}") from exc
     tmp = path.with_name("." + path.name + ".tmp")
-    tmp.write_bytes(model.SerializeToString())
-    tmp.replace(path)
+    try:  # temporary file, then rename: a reader never sees half a model, a failure leaves no litter
+        tmp.write_bytes(model.SerializeToString())
+        tmp.replace(path)
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        raise ValueError(f"{path}: cannot write: {exc.strerror or exc}") from exc
     return path
 
 

@@ -93,6 +93,13 @@ def test_cli_writes_and_reports(tmp_path, capsys):
     (tmp_path / "junk.pt").write_bytes(b"junk")
     assert main([str(tmp_path / "junk.pt"), "-o", str(tmp_path / "x.onnx")]) == 2  # bad input: one line, exit code 2
     assert "junk.pt" in capsys.readouterr().err and not (tmp_path / "x.onnx").exists()
+    # an output that is a folder, or under a file: one line naming it, exit code 2, no temporary file left
+    (tmp_path / "afile").write_text("x")
+    for out in (tmp_path, tmp_path / "afile" / "x.onnx"):
+        assert main([str(ck_path), "-o", str(out), "--no-check"]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and str(out) in err
+    assert not list(tmp_path.glob(".*.tmp"))
 
 
 def test_refuses_what_runtimes_cannot_feed():
