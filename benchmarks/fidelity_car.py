@@ -56,7 +56,7 @@ from envi_py.model import Checkpoint
 from envi_py.simulate import simulate_versions
 from envi_py.system import Channel, load_system
 from envi_py.train import train
-from envi_py.train.common import limit_events, observed_limits
+from envi_py.train.common import SelectionSettings, limit_events, observed_limits
 from envi_py.twin.car import CAR_TRAINED, CAR_UNSEEN, generate_car_versions
 from envi_py.verify import verify
 
@@ -78,6 +78,8 @@ CONFIGS: dict[str, tuple[str, dict[str, Any]]] = {
     "bc-res-lr3e-4": ("bc", {"residual": True, "lr": 3e-4}),
     "bc-res-noise05": ("bc", {"residual": True, "input_noise": 0.5}),
     "bc-res-wide": ("bc", {"residual": True, "hidden": (512, 512)}),
+    # twice the selection's simulated runs per validation log, twice its patience: a less noisy choice of epoch
+    "bc-res-sel": ("bc", {"residual": True, "selection": SelectionSettings(runs=10, patience=20)}),
     TWIN: ("none", {}),
 }
 TARGET = 1.5
@@ -214,7 +216,10 @@ def run_config(name: str, args: argparse.Namespace) -> dict[str, Any]:
     return {
         "config": name,
         "algorithm": algorithm,
-        "train_kwargs": {"epochs": args.epochs, **extra},
+        "train_kwargs": {
+            "epochs": args.epochs,
+            **{k: v.to_json() if isinstance(v, SelectionSettings) else v for k, v in extra.items()},
+        },
         "train_seconds": round(train_s, 1),
         "selected_epoch": None if ckpt is None else (ckpt.record.selection or {}).get("best_epoch"),
         "versions": out,
