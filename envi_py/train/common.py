@@ -191,12 +191,7 @@ class Selector:
     truncated at the ends), infinite when i itself diverged; it is final once evaluation i+h is in,
     so the weights of the last h evaluations are held until then. The kept epoch has the lowest
     smoothed score, a tie (within ``tie``) going to the lower one-step loss. A model whose
-    simulated runs diverge is never kept when any epoch did better. The last h evaluations, whose
-    windows never complete, are kept only when no other evaluation could be: averaged over h fewer
-    evaluations, one lucky last draw weighs twice as much (smooth 3), and after an early stop the
-    last evaluations are the ones that did not improve. Measured on the car twin
-    (``benchmarks/fidelity_car.py``, residual head, seed 1): the half window picked the last epoch,
-    180, whose one-step validation loss was 1.0 worse than its neighbours', over epoch 70."""
+    simulated runs diverge is never kept when any epoch did better."""
 
     val_logs: Sequence[Log]
     settings: SelectionSettings = field(default_factory=SelectionSettings)
@@ -259,8 +254,6 @@ class Selector:
         last = len(self.evaluations) - 1
         while self.pending and (final or self.pending[0][0] + h <= last):
             i, state = self.pending.pop(0)
-            if i + h > last and self.best_index >= 0:  # an incomplete window: only when nothing else is kept
-                continue
             if self._better(i):
                 self.best_index, self.best_smoothed, self.best_state = i, self.smoothed(i), state
 
