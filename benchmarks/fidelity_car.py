@@ -20,9 +20,11 @@ The ratio is averaged over the test sets, and its spread across them is printed 
 the floor itself rests on 10 runs per side; the JSON also holds the pooled ratio (summed matched W1
 over summed floor W1), which one set's near-zero floor cannot blow up. Divergence is reported two
 ways: "held", the rule above, with Fisher's one-sided p of "simulated runs hold more often than
-real" (pooled over sets), and "runaway", the same rule with a saturating sensor's limit reading
-taken out (a state where real runs never go). Config ``twin`` is the twin itself as the model (fresh
-field runs in place of simulated ones): what a perfect model scores under the same statistic.
+real" (pooled over sets), and "runaway", the same rule at the limits the simulator clamps to (the
+training range, where a collapsing state comes to rest unseen by the first rule) with a saturating
+sensor's limit reading taken out: a state where real runs never go. Config ``twin`` is the twin
+itself as the model (fresh field runs in place of simulated ones): what a perfect model scores
+under the same statistic.
 Models that are not plain MLPs (a residual head, derived channels) are simulated with the PyTorch
 engine, plain ones with the native engine.
 
@@ -119,6 +121,7 @@ class Scoring:
     states: tuple[Channel, ...]
     observed: dict[str, tuple[float, float]]  # each state's range in the training data
     limit_readings: tuple[tuple[int, float], ...]  # (state index, reading) of saturating sensors
+    clamp: tuple[tuple[float, float], ...]  # per state, the range simulated states are clamped to
     skip: int
     period_ms: float
 
@@ -126,32 +129,37 @@ class Scoring:
 def scoring_of_model(ckpt: Any) -> Scoring:
     states = tuple(ckpt.schema.states)
     observed = {c.name: (float(ckpt.norm.low[i]), float(ckpt.norm.high[i])) for i, c in enumerate(states)}
-    return Scoring(states, observed, tuple(ckpt.config.limit_events), ckpt.config.history, ckpt.period_ms)
+    clamp = tuple(zip(*(lim.tolist() for lim in ckpt.limits())))
+    return Scoring(states, observed, tuple(ckpt.config.limit_events), clamp, ckpt.config.history, ckpt.period_ms)
 
 
 def scoring_of_logs(train_logs: list[Log], skip: int) -> Scoring:
     states = tuple(train_logs[0].meta.schema.states)
     ranges = observed_limits(train_logs)
     observed = {c.name: ranges[i] for i, c in enumerate(states)}
-    return Scoring(states, observed, limit_events(train_logs), skip, float(np.median(np.diff(train_logs[0].time))))
+    period = float(np.median(np.diff(train_logs[0].time)))
+    return Scoring(states, observed, limit_events(train_logs), tuple(ranges), skip, period)
 
 
 def runaway_channels(sc: Scoring) -> list[Channel]:
-    """The states with each saturating sensor's limit reading taken out of the rule: that reading is
-    what the sensor says when nothing is in range (the car twin's far starts hold it for most of a
-    run, 15-17 % of real runs for 9 samples or more), not a clipped runaway prediction."""
-    out = list(sc.states)
+    """The states with their limits where a simulator clamps (the training data's range: a model
+    whose distance collapses sits there, inside the observed range the selection's rule checks),
+    and each saturating sensor's limit reading taken out: that reading is what the sensor says when
+    nothing is in range (the car twin's far starts hold it for most of a run, 15-17 % of real runs
+    for 9 samples or more), not a clamped runaway prediction."""
+    out = [replace(ch, low=lo, high=hi) for ch, (lo, hi) in zip(sc.states, sc.clamp)]
     for i, reading in sc.limit_readings:
         ch = out[i]
-        out[i] = replace(ch, high=math.inf) if reading == ch.high else replace(ch, low=-math.inf)
+        out[i] = replace(ch, high=math.inf) if reading >= ch.high else replace(ch, low=-math.inf)
     return out
 
 
 def divergence(real: list[Log], sim: list[Log], sc: Scoring) -> dict[str, int]:
     """Counts of runs that diverge, simulated and real: by the model selection's rule
     (:func:`envi_py.goals.selection.diverged_fraction`: a state at a limit of its range, or beyond the
-    training data's, for a tenth of the run) and by the same rule without the saturating sensor's
-    limit reading (:func:`runaway_channels`): a state where real runs never go."""
+    training data's, for a tenth of the run) and by the same rule at the limits the simulator clamps
+    to, without the saturating sensor's limit reading (:func:`runaway_channels`): a state where real
+    runs never go."""
     out = {"sim_runs": len(sim), "real_runs": len(real)}
     for rule, states in (("held", list(sc.states)), ("runaway", runaway_channels(sc))):
         for side, logs in (("sim", sim), ("real", real)):
