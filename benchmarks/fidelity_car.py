@@ -52,7 +52,11 @@ The seed moves the worst ratio more than any setting does. Even the best models 
 1.6-1.9 % of simulated runs never re-acquire the lead (none real); a window of 10 rows all at 255
 cannot say how long the echo has been lost. Not better at seeds 0 and 1: history 20 (worst 6.50,
 6.26), lr 3e-4 (6.07, 6.08), 10 selection runs with patience 20 (the same epochs), a training batch
-with typical far-start coverage (``--train-seed 334``: 8.72, 4.65).
+with typical far-start coverage (``--train-seed 334``: 8.72, 4.65). ``bc`` at seed 0 under the
+same protocol: worst 5.01, 10 cells above. Tried in the selection and undone: keeping the last
+evaluations only on complete smoothing windows (seed 1 then kept epoch 70: worst 11.1), and marking
+epochs whose simulated runs rest on a clamp limit as diverged (seeds 1 and 3: 139 and 410 collapsed
+runs became 12 and 30, but seed 0 lost its good epoch: worst 6.48).
 """
 
 from __future__ import annotations
