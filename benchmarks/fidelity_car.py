@@ -1,7 +1,7 @@
 """Closed-loop fidelity of envi's models of the car twin (issue 14's done-when), per version.
 
-Usage: ``python benchmarks/fidelity_car.py [--quick] [--configs bc,bc-lr1e-3] [--n 20] [--test 20]
-[--test-sets 2] [--out bench_out/fidelity_car.json]``.
+Usage: ``python benchmarks/fidelity_car.py [--quick] [--configs bc,bc-res,twin] [--seed 0] [--n 20]
+[--test 20] [--test-sets 2] [--save-dir D] [--load-dir D] [--out bench_out/fidelity_car.json]``.
 
 Protocol. The car twin (:mod:`envi_py.twin.car`) gives field logs of five controller versions
 (gains): three are trained on (TMVK) and two are never seen (TMVU). A model is trained on ``n``
@@ -17,8 +17,16 @@ Target (issue 14): every goal's ratio within 1.5 for every version, TMVK and TMV
 run diverging (a state held at a limit of its range, or beyond the training data's, for a tenth of
 the run, counted against the real runs by the same rule: :func:`envi_py.goals.selection.diverged_fraction`).
 The ratio is averaged over the test sets, and its spread across them is printed beside it, since
-the floor itself rests on 10 runs per side. Models that are not plain MLPs (a residual head, derived
-channels) are simulated with the PyTorch engine, plain ones with the native engine.
+the floor itself rests on 10 runs per side; the JSON also holds the pooled ratio (summed matched W1
+over summed floor W1), which one set's near-zero floor cannot blow up. Divergence is reported two
+ways: "held", the rule above, with Fisher's one-sided p of "simulated runs hold more often than
+real" (pooled over sets), and "runaway", the same rule at the limits the simulator clamps to (the
+training range, where a collapsing state comes to rest unseen by the first rule) with a saturating
+sensor's limit reading taken out: a state where real runs never go. Config ``twin`` is the twin
+itself as the model (fresh field runs in place of simulated ones): what a perfect model scores
+under the same statistic.
+Models that are not plain MLPs (a residual head, derived channels) are simulated with the PyTorch
+engine, plain ones with the native engine.
 
 Measured (2 test sets x 20 logs per version, 2 simulated runs per test log, seed 0, 2026-11-24):
 ``bc`` worst ratio 10.3 (closest approach of kp_speed 50: its simulated distance crept 1 cm a step
@@ -28,33 +36,61 @@ approach of kp_speed 50 2.14, from a few simulated runs in the tails); with ``--
 9 of 15 within 1.5, no p below 0.16 (``bc`` was not re-run at seed 1). Tried and not better than
 ``bc``: 600 epochs (worst 6.0), the 10-step unrolled loss (11.1; with the residual head 14.4),
 input noise of one step (9.5).
+
+Measured again (4 test sets of 20 logs per version, 2026-11-24; commands and tables in the carfid log).
+The target is met by no model at any training seed, and not by a perfect one either: ``twin`` on
+the same 4 sets has worst 2.18 (closest approach of kp_speed 50), and over 20 test sets a perfect
+model meets "all 15 cells within 1.5" in 24 % of 2-set draws and 21 % of 4-set draws by the mean of
+per-set ratios (40 % and 59 % by the pooled ratio): per-set ratios of closest approach and gap error
+of kp_speed 50 reach 12 and 17, from halves of 10 runs that hold the few far-start runs unevenly.
+The models have a real excess all the same. Worst ratio (mean of ratios; pooled) and simulated runs
+that run away, of 800, at training seeds 0-3: ``bc-res`` 1.81, 6.08, 3.36, 6.08 (pooled 1.83, 3.41,
+2.67, 2.92), run away 7, 139, 0, 410 (the distance collapses onto its 12 cm clamp);
+``bc-res-noise05`` 2.67, 1.65, 4.54, 1.86 (pooled 2.39, 1.64, 2.69, 1.87), run away 0, 0, 0, 1;
+real runs never run away (0 of 1600) and no config holds 255 more often than real (Fisher p >= 0.11).
+The seed moves the worst ratio more than any setting does. Even the best models miss in the tails:
+1.6-1.9 % of simulated runs never re-acquire the lead (none real); a window of 10 rows all at 255
+cannot say how long the echo has been lost. Not better at seeds 0 and 1: history 20 (worst 6.50,
+6.26), lr 3e-4 (6.07, 6.08), 10 selection runs with patience 20 (the same epochs), a training batch
+with typical far-start coverage (``--train-seed 334``: 8.72, 4.65). ``bc`` at seed 0 under the
+same protocol: worst 5.01, 10 cells above. Tried in the selection and undone: keeping the last
+evaluations only on complete smoothing windows (seed 1 then kept epoch 70: worst 11.1), and marking
+epochs whose simulated runs rest on a clamp limit as diverged (seeds 1 and 3: 139 and 410 collapsed
+runs became 12 and 30, but seed 0 lost its good epoch: worst 6.48).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import platform
 import sys
 import time
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
+from scipy import stats
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from envi_py.goals.evaluate import signals_of
 from envi_py.goals.selection import diverged_fraction
 from envi_py.logs import Log
+from envi_py.model import Checkpoint
 from envi_py.simulate import simulate_versions
-from envi_py.system import LogSchema, load_system
+from envi_py.system import Channel, load_system
 from envi_py.train import train
+from envi_py.train.common import SelectionSettings, limit_events, observed_limits
 from envi_py.twin.car import CAR_TRAINED, CAR_UNSEEN, generate_car_versions
 from envi_py.verify import verify
 
+#: the twin itself as the model (fresh field runs as the simulated ones): how a perfect model scores
+TWIN = "twin"
 #: name -> (envi algorithm, extra training keywords); the first is envi's default
 CONFIGS: dict[str, tuple[str, dict[str, Any]]] = {
     "bc": ("bc", {}),
@@ -67,6 +103,13 @@ CONFIGS: dict[str, tuple[str, dict[str, Any]]] = {
     "bc-ms10-noise1": ("bc", {"multistep": 10, "input_noise": 1.0}),
     "bc-res": ("bc", {"residual": True}),  # the mean head predicts the change from the last state
     "bc-res-ms10": ("bc", {"residual": True, "multistep": 10}),
+    "bc-res-h20": ("bc", {"residual": True, "history": 20}),  # a window that sees more of a lost echo
+    "bc-res-lr3e-4": ("bc", {"residual": True, "lr": 3e-4}),
+    "bc-res-noise05": ("bc", {"residual": True, "input_noise": 0.5}),  # no collapse onto the clamp at 4 seeds
+    "bc-res-wide": ("bc", {"residual": True, "hidden": (512, 512)}),
+    # twice the selection's simulated runs per validation log, twice its patience: a less noisy choice of epoch
+    "bc-res-sel": ("bc", {"residual": True, "selection": SelectionSettings(runs=10, patience=20)}),
+    TWIN: ("none", {}),
 }
 TARGET = 1.5
 
@@ -75,48 +118,113 @@ def versions_logs(runs: int, seed: int, versions: tuple[int, ...]) -> list[Log]:
     return generate_car_versions(runs, seed=seed, versions=list(versions))
 
 
-def divergence(real: list[Log], sim: list[Log], ckpt: Any) -> tuple[float, float]:
-    """Fractions of simulated and real runs that diverge, by the model selection's rule."""
-    schema = LogSchema(ckpt.schema.states, ckpt.schema.actions)
-    observed = {c.name: (float(ckpt.norm.low[i]), float(ckpt.norm.high[i])) for i, c in enumerate(schema.states)}
-    skip, period = ckpt.config.history, ckpt.period_ms
-    fr = diverged_fraction([signals_of(real, real[0].meta.schema, skip, period)], schema.states, observed, None, 0.05)
-    fs = diverged_fraction([signals_of(sim, sim[0].meta.schema, skip, period)], schema.states, observed, None, 0.05)
-    return float(fs), float(fr)
+@dataclass(frozen=True)
+class Scoring:
+    """What the divergence rules need of a model (or, for the twin itself, of its training logs)."""
+
+    states: tuple[Channel, ...]
+    observed: dict[str, tuple[float, float]]  # each state's range in the training data
+    limit_readings: tuple[tuple[int, float], ...]  # (state index, reading) of saturating sensors
+    clamp: tuple[tuple[float, float], ...]  # per state, the range simulated states are clamped to
+    skip: int
+    period_ms: float
+
+
+def scoring_of_model(ckpt: Any) -> Scoring:
+    states = tuple(ckpt.schema.states)
+    observed = {c.name: (float(ckpt.norm.low[i]), float(ckpt.norm.high[i])) for i, c in enumerate(states)}
+    clamp = tuple(zip(*(lim.tolist() for lim in ckpt.limits())))
+    return Scoring(states, observed, tuple(ckpt.config.limit_events), clamp, ckpt.config.history, ckpt.period_ms)
+
+
+def scoring_of_logs(train_logs: list[Log], skip: int) -> Scoring:
+    states = tuple(train_logs[0].meta.schema.states)
+    ranges = observed_limits(train_logs)
+    observed = {c.name: ranges[i] for i, c in enumerate(states)}
+    period = float(np.median(np.diff(train_logs[0].time)))
+    return Scoring(states, observed, limit_events(train_logs), tuple(ranges), skip, period)
+
+
+def runaway_channels(sc: Scoring) -> list[Channel]:
+    """The states with their limits where a simulator clamps (the training data's range: a model
+    whose distance collapses sits there, inside the observed range the selection's rule checks),
+    and each saturating sensor's limit reading taken out: that reading is what the sensor says when
+    nothing is in range (the car twin's far starts hold it for most of a run, 15-17 % of real runs
+    for 9 samples or more), not a clamped runaway prediction."""
+    out = [replace(ch, low=lo, high=hi) for ch, (lo, hi) in zip(sc.states, sc.clamp)]
+    for i, reading in sc.limit_readings:
+        ch = out[i]
+        out[i] = replace(ch, high=math.inf) if reading >= ch.high else replace(ch, low=-math.inf)
+    return out
+
+
+def divergence(real: list[Log], sim: list[Log], sc: Scoring) -> dict[str, int]:
+    """Counts of runs that diverge, simulated and real: by the model selection's rule
+    (:func:`envi_py.goals.selection.diverged_fraction`: a state at a limit of its range, or beyond the
+    training data's, for a tenth of the run) and by the same rule at the limits the simulator clamps
+    to, without the saturating sensor's limit reading (:func:`runaway_channels`): a state where real
+    runs never go."""
+    out = {"sim_runs": len(sim), "real_runs": len(real)}
+    for rule, states in (("held", list(sc.states)), ("runaway", runaway_channels(sc))):
+        for side, logs in (("sim", sim), ("real", real)):
+            runs = signals_of(logs, logs[0].meta.schema, sc.skip, sc.period_ms)
+            out[f"{side}_{rule}"] = round(diverged_fraction([runs], states, sc.observed, None, 0.05) * len(logs))
+    return out
+
+
+def model_of(name: str, args: argparse.Namespace, train_logs: list[Log], system: Any) -> tuple[Any, float]:
+    """The config's model: loaded from ``--load-dir`` when there, else trained (and its seconds)."""
+    algorithm, extra = CONFIGS[name]
+    if args.load_dir is not None and (args.load_dir / f"{name}.pt").exists():
+        return Checkpoint.load(args.load_dir / f"{name}.pt"), float("nan")
+    val_logs = versions_logs(5, 200, tuple(CAR_TRAINED))
+    t0 = time.perf_counter()
+    ckpt = train(algorithm, train_logs, val_logs, system=system, seed=args.seed, epochs=args.epochs, **extra)
+    seconds = time.perf_counter() - t0
+    if args.save_dir is not None:
+        ckpt.save(args.save_dir / f"{name}.pt")
+    return ckpt, seconds
 
 
 def run_config(name: str, args: argparse.Namespace) -> dict[str, Any]:
     algorithm, extra = CONFIGS[name]
     system = load_system("car")
     trained = tuple(CAR_TRAINED)
-    train_logs = versions_logs(args.n, 100, trained)
-    val_logs = versions_logs(5, 200, trained)
-    kwargs = {"epochs": args.epochs, **extra}
-    t0 = time.perf_counter()
-    ckpt = train(algorithm, train_logs, val_logs, system=system, seed=args.seed, **kwargs)
-    train_s = time.perf_counter() - t0
-    if args.save_dir is not None:
-        ckpt.save(args.save_dir / f"{name}.pt")
+    train_logs = versions_logs(args.n, args.train_seed, trained)
+    ckpt, train_s = (None, 0.0) if name == TWIN else model_of(name, args, train_logs, system)
+    sc = scoring_of_logs(train_logs, 10) if ckpt is None else scoring_of_model(ckpt)
     rows: dict[str, dict[str, Any]] = {}
     for k in range(args.test_sets):
         real = versions_logs(args.test, 300 + 17 * k, tuple(CAR_TRAINED) + tuple(CAR_UNSEEN))
-        engine = "native" if ckpt.config.plain else "torch"  # the native engine runs plain MLPs only
-        sim = simulate_versions(ckpt, real, runs=args.sims, seed=k, engine=engine)
-        for g in verify(real, sim, system, skip=ckpt.config.history, seed=k):
+        if ckpt is None:  # the twin itself: fresh field runs stand in for the simulated ones
+            sim = versions_logs(args.test * args.sims, 50_000 + 17 * k, tuple(CAR_TRAINED) + tuple(CAR_UNSEEN))
+        else:
+            engine = "native" if ckpt.config.plain else "torch"  # the native engine runs plain MLPs only
+            sim = simulate_versions(ckpt, real, runs=args.sims, seed=k, engine=engine)
+        for g in verify(real, sim, system, skip=sc.skip, seed=k):
             row = rows.setdefault(
-                g.version, {"goals": g.goals, "ratio": [], "p": [], "sim_div": [], "real_div": [], "n_real": g.n_real}
+                g.version,
+                {"goals": g.goals, "ratio": [], "matched": [], "floor": [], "p": [], "div": [], "n_real": g.n_real},
             )
             row["ratio"].append((g.matched.w1 / g.floor.w1).tolist())
+            row["matched"].append(g.matched.w1.tolist())
+            row["floor"].append(g.floor.w1.tolist())
             row["p"].append(g.tests["goals_w1"]["p_value"])
             mine = [lg for lg in sim if system.version_label(lg.controller) == g.version]
             theirs = [lg for lg in real if system.version_label(lg.controller) == g.version]
-            fs, fr = divergence(theirs, mine, ckpt)
-            row["sim_div"].append(fs)
-            row["real_div"].append(fr)
+            row["div"].append(divergence(theirs, mine, sc))
     trained_labels = {system.version_label(lg.controller) for lg in train_logs}
     out = []
     for version, row in rows.items():
         ratio = np.asarray(row["ratio"])
+        div = {key: sum(d[key] for d in row["div"]) for key in row["div"][0]}
+        held = stats.fisher_exact(
+            [
+                [div["sim_held"], div["sim_runs"] - div["sim_held"]],
+                [div["real_held"], div["real_runs"] - div["real_held"]],
+            ],
+            alternative="greater",
+        )
         out.append(
             {
                 "version": version,
@@ -125,22 +233,37 @@ def run_config(name: str, args: argparse.Namespace) -> dict[str, Any]:
                 "ratio_mean": ratio.mean(axis=0).tolist(),
                 "ratio_min": ratio.min(axis=0).tolist(),
                 "ratio_max": ratio.max(axis=0).tolist(),
+                "ratio_per_set": ratio.tolist(),
+                "ratio_pooled": (np.sum(row["matched"], axis=0) / np.sum(row["floor"], axis=0)).tolist(),
+                "matched_w1_per_set": row["matched"],
+                "floor_w1_per_set": row["floor"],
                 "p_values": row["p"],
-                "sim_diverged": float(np.mean(row["sim_div"])),
-                "real_diverged": float(np.mean(row["real_div"])),
+                "divergence": div,
+                "sim_diverged": div["sim_held"] / div["sim_runs"],
+                "real_diverged": div["real_held"] / div["real_runs"],
+                "held_more_p": float(held.pvalue),
                 "n_real_per_set": row["n_real"],
             }
         )
     worst = max(max(r["ratio_mean"]) for r in out)
+    pooled = np.asarray([r["ratio_pooled"] for r in out])
+    runaway = sum(r["divergence"]["sim_runaway"] for r in out)
     return {
         "config": name,
         "algorithm": algorithm,
-        "train_kwargs": kwargs,
+        "train_kwargs": {
+            "epochs": args.epochs,
+            **{k: v.to_json() if isinstance(v, SelectionSettings) else v for k, v in extra.items()},
+        },
         "train_seconds": round(train_s, 1),
-        "selected_epoch": (ckpt.record.selection or {}).get("best_epoch"),
+        "selected_epoch": None if ckpt is None else (ckpt.record.selection or {}).get("best_epoch"),
         "versions": out,
         "worst_ratio": worst,
-        "meets_target": bool(worst <= TARGET and all(r["sim_diverged"] <= r["real_diverged"] for r in out)),
+        "cells_above": int(sum(np.sum(np.asarray(r["ratio_mean"]) > TARGET) for r in out)),
+        "worst_pooled": float(pooled.max()),
+        "cells_above_pooled": int(np.sum(pooled > TARGET)),
+        "sim_runaway": runaway,
+        "meets_target": bool(worst <= TARGET and runaway == 0 and min(r["held_more_p"] for r in out) >= 0.05),
     }
 
 
@@ -151,18 +274,24 @@ def print_table(res: dict[str, Any]) -> None:
         f"epoch {res['selected_epoch']})"
     )
     head = " | ".join(f"{g[:16]:>16}" for g in goals)
-    print(f"{'version':<26} {'role':<5} | {head} | {'p (per set)':<16} | diverged sim/real")
+    print(f"{'version':<26} {'role':<5} | {head} | {'p (per set)':<16} | held sim/real (p) | runaway sim/real")
     for r in res["versions"]:
         cells = " | ".join(
             f"{m:>5.2f} [{lo:.2f},{hi:.2f}]".rjust(16)
             for m, lo, hi in zip(r["ratio_mean"], r["ratio_min"], r["ratio_max"])
         )
         ps = ",".join(f"{p:.2f}" for p in r["p_values"])
+        d = r["divergence"]
         print(
-            f"{r['version']:<26} {r['role']:<5} | {cells} | {ps:<16} | {r['sim_diverged']:.3f}/{r['real_diverged']:.3f}"
+            f"{r['version']:<26} {r['role']:<5} | {cells} | {ps:<16} | "
+            f"{r['sim_diverged']:.3f}/{r['real_diverged']:.3f} ({r['held_more_p']:.2f}) | "
+            f"{d['sim_runaway']}/{d['sim_runs']} {d['real_runaway']}/{d['real_runs']}"
         )
     verdict = "MET" if res["meets_target"] else "NOT met"
-    print(f"worst goal ratio {res['worst_ratio']:.2f} (target <= {TARGET}): {verdict}")
+    print(
+        f"worst goal ratio {res['worst_ratio']:.2f} (target <= {TARGET}), {res['cells_above']} cells above, "
+        f"{res['sim_runaway']} simulated runs run away: {verdict}"
+    )
 
 
 def main() -> None:
@@ -174,8 +303,15 @@ def main() -> None:
     ap.add_argument("--sims", type=int, default=2, help="simulated runs per test log")
     ap.add_argument("--epochs", type=int, default=300)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument(
+        "--train-seed",
+        type=int,
+        default=100,
+        help="the twin's seed for the training logs (a diagnostic; 100 by default)",
+    )
     ap.add_argument("--quick", action="store_true", help="a smoke run: 30 epochs, 10 logs, 1 test set")
     ap.add_argument("--save-dir", type=Path, default=None, help="keep each config's model there as <config>.pt")
+    ap.add_argument("--load-dir", type=Path, default=None, help="use <config>.pt from there instead of training")
     ap.add_argument("--out", type=Path, default=Path("bench_out/fidelity_car.json"))
     args = ap.parse_args()
     if args.quick:
