@@ -197,7 +197,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         raise ValueError(f"--play-width is a fraction of the action range (0..1), got {args.play_width}")
     if not 0 <= args.multistep <= 1000:
         raise ValueError(f"--multistep is a number of steps (0..1000), got {args.multistep}")
-    if not 0 <= args.input_noise <= 100:  # NaN fails the comparison too
+    if args.input_noise is not None and not 0 <= args.input_noise <= 100:  # NaN fails the comparison too
         raise ValueError(f"--input-noise is a multiple of the typical step (0..100), got {args.input_noise}")
     if args.lr is not None and not 0 < args.lr < 1e3:  # NaN fails too; inf once trained to a NaN model
         raise ValueError(f"--lr must be a positive learning rate below 1000, got {args.lr}")
@@ -224,13 +224,15 @@ def cmd_train(args: argparse.Namespace) -> int:
             selection=SelectionSettings(runs=args.select_runs, patience=args.patience),
         )
         if args.algorithm == "bc":
-            kwargs.update(head=args.head, multistep=args.multistep, input_noise=args.input_noise)
+            kwargs.update(head=args.head, multistep=args.multistep)
+            if args.input_noise is not None:  # else the system description's [training] default
+                kwargs["input_noise"] = args.input_noise
         elif args.multistep or args.input_noise:
             raise ValueError(f"--multistep and --input-noise are behaviour-cloning losses, not {args.algorithm}'s")
-        if args.residual:
-            kwargs["residual"] = True
         elif args.head == "deterministic":
             raise ValueError(f"--head deterministic: {args.algorithm} trains a Gaussian policy (PPO needs one)")
+        if args.residual is not None:  # else the system description's [training] default
+            kwargs["residual"] = args.residual
         if args.lr is not None:
             kwargs["lr"] = args.lr
     if args.algorithm != "random":
@@ -517,9 +519,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--context", action="store_true", help="append the per-run context of the initial window")
     p.add_argument(
         "--residual",
-        action="store_true",
-        help="the model predicts the change from the window's last state "
-        "(the car twin's best model; no better on the real lane-keeping logs)",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="the model predicts the change from the window's last state (default: the system "
+        "description's [training] residual: on for the car, off for lane keeping, as measured)",
     )
     p.add_argument(
         "--multistep",
@@ -530,8 +533,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--input-noise",
         type=float,
-        default=0.0,
-        help="bc: perturb the training windows' states by this many times their typical logged step (0: none)",
+        default=None,
+        help="bc: perturb the training windows' states by this many times their typical logged step "
+        "(default: the system description's [training] input_noise, else 0: none)",
     )
     p.add_argument("--eval-every", type=int, default=10, help="epochs between closed-loop validations")
     p.add_argument("--select-runs", type=int, default=5, help="simulated runs per validation log at each validation")

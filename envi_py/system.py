@@ -15,7 +15,11 @@ model can always say which signals it reads and writes. It declares
   controller parameter (``kp_steer = "loops.0.params.kp"``);
 - ``[controller]``: the controller's registered name or import path and its fixed parameters;
 - ``[[goals]]`` and ``[[requirements]]``: goal metrics over the signals, and requirements with the
-  probability they must hold with (``envi_py.goals``); ``preset`` names a shipped set of goals.
+  probability they must hold with (``envi_py.goals``); ``preset`` names a shipped set of goals;
+- ``[training]``: the model settings measured best for this system, which ``envi train`` (and
+  everything that trains: demo, experiment) uses unless told otherwise: ``residual`` (the mean head
+  predicts the change from the last reading) and ``input_noise`` (behaviour cloning's window
+  perturbation, in typical logged steps).
 
 The lane-keeping robot and the car following a lead vehicle are shipped descriptions
 (``envi_py/systems/*.toml``); ``envi init --logs DIR`` drafts one from a folder of logs.
@@ -164,6 +168,42 @@ class Versions:
 
 
 @dataclass(frozen=True)
+class TrainingDefaults:
+    """Model settings a system's description recommends (``[training]``): the defaults of a training
+    on its logs, each overridden by the caller's own choice (``--residual`` / ``--no-residual``)."""
+
+    residual: bool = False
+    input_noise: float = 0.0
+
+    def for_algorithm(self, algorithm: str) -> dict[str, Any]:
+        """The keyword arguments ``algorithm``'s trainer takes from these defaults: the residual head
+        for every learnt model, input noise for behaviour cloning only (its loss, not GAIL's)."""
+        out: dict[str, Any] = {}
+        if algorithm in ("bc", "gail", "bcxgail") and self.residual:
+            out["residual"] = True
+        if algorithm == "bc" and self.input_noise:
+            out["input_noise"] = self.input_noise
+        return out
+
+    def to_json(self) -> dict[str, Any]:
+        return {"residual": self.residual, "input_noise": self.input_noise}
+
+
+def _training(d: Any) -> TrainingDefaults:
+    if d is None:
+        return TrainingDefaults()
+    if not isinstance(d, dict):
+        raise ValueError("[training] must be a table")
+    residual = d.get("residual", False)
+    if not isinstance(residual, bool):
+        raise ValueError(f"[training] residual must be true or false, not {residual!r:.40}")
+    noise = d.get("input_noise", 0.0)
+    if isinstance(noise, bool) or not isinstance(noise, (int, float)) or not math.isfinite(noise) or noise < 0:
+        raise ValueError(f"[training] input_noise must be a number >= 0, not {noise!r:.40}")
+    return TrainingDefaults(residual, float(noise))
+
+
+@dataclass(frozen=True)
 class GoalSpec:
     """A goal metric: a library metric (or ``package.module:function``) on one signal."""
 
@@ -204,6 +244,7 @@ class SystemDescription:
     preset: str | None = None
     goals: tuple[GoalSpec, ...] = ()
     requirements: tuple[RequirementSpec, ...] = ()
+    training: TrainingDefaults = field(default_factory=TrainingDefaults)
     source: str | None = None  # the file it was read from, for messages
 
     # ------------------------------------------------------------------ versions of a log
@@ -285,6 +326,7 @@ class SystemDescription:
             "preset": self.preset,
             "goals": [g.to_json() for g in self.goals],
             "requirements": [r.to_json() for r in self.requirements],
+            "training": self.training.to_json(),
         }
 
     @staticmethod
@@ -308,6 +350,7 @@ class SystemDescription:
                 requirements=tuple(
                     _requirement(r, i) for i, r in enumerate(_list(d.get("requirements"), "requirements"))
                 ),
+                training=_training(d.get("training")),
                 source=where,
             )
         except (AttributeError, TypeError, ValueError) as exc:
@@ -437,12 +480,22 @@ def _requirement(r: Any, i: int) -> RequirementSpec:
 #: The keys each part of a TOML description may hold: a typo ("periodms", "[sytem]") is an error
 #: naming the key and the nearest known one, never a silently ignored setting.
 TOML_KEYS: dict[str, tuple[str, ...]] = {
-    "the top level": ("system", "signals", "versions", "controller", "goals", "requirements", "goals_preset"),
+    "the top level": (
+        "system",
+        "signals",
+        "versions",
+        "controller",
+        "goals",
+        "requirements",
+        "goals_preset",
+        "training",
+    ),
     "[system]": ("name", "period_ms", "goals_preset"),
     "[[signals]]": ("name", "role", "unit", "range", "resolution", "saturates"),
     "[versions]": ("pattern", "params", "map"),
     "[controller]": ("name", "params"),
     "[[requirements]]": ("name", "expr", "kind", "probability"),
+    "[training]": ("residual", "input_noise"),
 }
 
 
@@ -460,7 +513,12 @@ def _known_keys(table: Any, part: str) -> None:
 
 def _from_toml(doc: dict[str, Any], where: str) -> SystemDescription:
     _known_keys(doc, "the top level")
-    for part, key in (("[system]", "system"), ("[versions]", "versions"), ("[controller]", "controller")):
+    for part, key in (
+        ("[system]", "system"),
+        ("[versions]", "versions"),
+        ("[controller]", "controller"),
+        ("[training]", "training"),
+    ):
         _known_keys(doc.get(key), part)
     for part, key in (("[[signals]]", "signals"), ("[[requirements]]", "requirements")):
         for entry in doc.get(key) if isinstance(doc.get(key), list) else ():
@@ -501,6 +559,7 @@ def _from_toml(doc: dict[str, Any], where: str) -> SystemDescription:
         preset=_opt_text(doc.get("goals_preset") or sysd.get("goals_preset"), "goals_preset"),
         goals=tuple(_goal(g) for g in _list(doc.get("goals"), "goals")),
         requirements=tuple(_requirement(r, i) for i, r in enumerate(_list(doc.get("requirements"), "requirements"))),
+        training=_training(doc.get("training")),
         source=where,
     )
 

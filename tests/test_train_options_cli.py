@@ -1,11 +1,15 @@
-"""`envi train` options for closed-loop stability: --residual, --multistep, --input-noise."""
+"""`envi train` options for closed-loop stability: --residual, --multistep, --input-noise, and the
+defaults a system description's ``[training]`` table gives them."""
 
 from __future__ import annotations
+
+import re
 
 import pytest
 
 from envi_py.cli import main
 from envi_py.model import Checkpoint
+from envi_py.system import SHIPPED_DIR, TrainingDefaults, load_system
 from envi_py.twin.car import generate_car_versions, write_car_logs
 
 
@@ -31,6 +35,8 @@ def test_the_options_reach_the_checkpoint(car_dir, tmp_path):
         (["--input-noise", "nan"], "--input-noise is a multiple of the typical step"),
         (["--multistep", "-1"], "--multistep is a number of steps"),
         (["--algorithm", "gail", "--multistep", "3"], "behaviour-cloning losses, not gail's"),
+        (["--algorithm", "gail", "--head", "deterministic"], "gail trains a Gaussian policy"),
+        (["--algorithm", "gail", "--residual", "--head", "deterministic"], "gail trains a Gaussian policy"),
     ],
 )
 def test_bad_values_are_one_line_and_exit_code_2(car_dir, tmp_path, capsys, extra, message):
@@ -38,3 +44,42 @@ def test_bad_values_are_one_line_and_exit_code_2(car_dir, tmp_path, capsys, extr
     assert main([*argv, *extra]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and message in err[0]
+
+
+def test_the_system_description_sets_the_defaults_and_the_command_line_wins(car_dir, tmp_path):
+    """The car's [training] (residual head, input noise 0.5) applies to a plain `envi train` on its logs,
+    also without --system (twin logs carry sidecars); --no-residual / --input-noise override it; lane
+    keeping's description sets neither; a deterministic BC head is still allowed."""
+    base = ["train", "--logs", str(car_dir), "--epochs", "1", "--hidden", "8", "--quiet"]
+    for extra, residual, noise in (
+        ([], True, 0.5),
+        (["--system", "car"], True, 0.5),
+        (["--no-residual", "--input-noise", "0"], False, 0.0),
+        (["--head", "deterministic"], True, 0.5),
+    ):
+        out = tmp_path / f"m{len(extra)}.pt"
+        assert main([*base, *extra, "-o", str(out)]) == 0, extra
+        ck = Checkpoint.load(out)
+        assert ck.config.residual is residual and ck.record.hyper["input_noise"] == noise, extra
+    assert load_system("car").training == TrainingDefaults(residual=True, input_noise=0.5)
+    assert load_system("lane-keeping").training == TrainingDefaults()
+    assert TrainingDefaults(True, 0.5).for_algorithm("gail") == {"residual": True}  # input noise is BC's loss
+    assert TrainingDefaults(True, 0.5).for_algorithm("random") == {}
+
+
+@pytest.mark.parametrize(
+    "line, bad, message",
+    [
+        ("residual = true", "residual = 1", "residual must be true or false"),
+        ("input_noise = 0.5", "input_noise = -0.5", "input_noise must be a number >= 0"),
+        ("input_noise = 0.5", "input_noise = nan", "input_noise must be a number >= 0"),
+        ("residual = true", "residuals = true", "unknown key 'residuals' (did you mean 'residual'?"),
+    ],
+)
+def test_a_bad_training_table_is_refused_naming_the_file(tmp_path, line, bad, message):
+    text = (SHIPPED_DIR / "car.toml").read_text().replace(line, bad)
+    path = tmp_path / "car.toml"
+    path.write_text(text)
+    with pytest.raises(ValueError, match=re.escape(message)) as err:
+        load_system(path)
+    assert str(path) in str(err.value)

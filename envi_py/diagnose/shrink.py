@@ -73,7 +73,7 @@ def retrain_with(ckpt: Checkpoint, finding: Finding, train_logs: Sequence[Log], 
     rec = ckpt.record
     cfg = _config_of(ckpt)
     cfg.update(finding.fix)
-    hyper = {k: rec.hyper[k] for k in ("epochs", "lr", "eval_every") if k in rec.hyper}
+    hyper = {k: rec.hyper[k] for k in ("epochs", "lr", "eval_every", "multistep", "input_noise") if k in rec.hyper}
     return train(rec.algorithm, train_logs, val_logs, seed=rec.seed, **hyper, **cfg)
 
 

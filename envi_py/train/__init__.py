@@ -10,7 +10,7 @@ from typing import Any, Callable, Sequence
 
 from ..logs import Log
 from ..model import Checkpoint
-from ..system import SystemDescription
+from ..system import SystemDescription, describe_schema
 
 Trainer = Callable[..., Checkpoint]
 
@@ -40,7 +40,10 @@ def train(
     **kwargs: Any,
 ) -> Checkpoint:
     """Train with the named algorithm. The system description the logs were read with is recorded
-    in the checkpoint (from their schema when none is given), so the model says what it reads."""
+    in the checkpoint (from their schema when none is given), so the model says what it reads; its
+    ``[training]`` defaults (residual head, input noise) apply unless ``kwargs`` say otherwise."""
     if not train_logs:
         raise ValueError("no training logs")
+    system = system or describe_schema(train_logs[0].meta.schema)
+    kwargs = {**system.training.for_algorithm(name), **kwargs}
     return get_trainer(name)(train_logs, val_logs, system=system, **kwargs)
