@@ -92,7 +92,10 @@ from envi_py.verify import verify
 #: the twin itself as the model (fresh field runs as the simulated ones): how a perfect model scores
 TWIN = "twin"
 #: name -> (envi algorithm, extra training keywords); the first is envi's default
+#: every config starts from envi's plain model, whatever the car description's [training] recommends;
+#: ``default`` alone takes the description's defaults (residual head, input noise 0.5)
 CONFIGS: dict[str, tuple[str, dict[str, Any]]] = {
+    "default": ("bc", {}),
     "bc": ("bc", {}),
     "bc-lr5e-5": ("bc", {"lr": 5e-5}),  # the paper's lr, envi's default before
     "bc-e600": ("bc", {"epochs": 600}),
@@ -179,6 +182,9 @@ def model_of(name: str, args: argparse.Namespace, train_logs: list[Log], system:
         return Checkpoint.load(args.load_dir / f"{name}.pt"), float("nan")
     val_logs = versions_logs(5, 200, tuple(CAR_TRAINED))
     t0 = time.perf_counter()
+    if name != "default":  # the plain model plus the config's own changes
+        plain = {"residual": False, "input_noise": 0.0} if algorithm == "bc" else {"residual": False}
+        extra = {**plain, **extra}
     ckpt = train(algorithm, train_logs, val_logs, system=system, seed=args.seed, epochs=args.epochs, **extra)
     seconds = time.perf_counter() - t0
     if args.save_dir is not None:
@@ -199,7 +205,7 @@ def run_config(name: str, args: argparse.Namespace) -> dict[str, Any]:
         if ckpt is None:  # the twin itself: fresh field runs stand in for the simulated ones
             sim = versions_logs(args.test * args.sims, 50_000 + 17 * k, tuple(CAR_TRAINED) + tuple(CAR_UNSEEN))
         else:
-            engine = "native" if ckpt.config.plain else "torch"  # the native engine runs plain MLPs only
+            engine = "native" if ckpt.config.plain else "torch"  # models fed by the window alone run natively
             sim = simulate_versions(ckpt, real, runs=args.sims, seed=k, engine=engine)
         for g in verify(real, sim, system, skip=sc.skip, seed=k):
             row = rows.setdefault(
@@ -296,7 +302,7 @@ def print_table(res: dict[str, Any]) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--configs", default="bc", help=f"comma-separated, of: {', '.join(CONFIGS)}")
+    ap.add_argument("--configs", default="default", help=f"comma-separated, of: {', '.join(CONFIGS)}")
     ap.add_argument("--n", type=int, default=20, help="training logs per trained version")
     ap.add_argument("--test", type=int, default=20, help="test logs per version and test set")
     ap.add_argument("--test-sets", type=int, default=2)
