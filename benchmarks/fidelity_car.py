@@ -63,12 +63,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import platform
 import sys
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -79,7 +78,7 @@ from scipy import stats
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from envi_py.goals.evaluate import signals_of
-from envi_py.goals.selection import diverged_fraction
+from envi_py.goals.selection import diverged_fraction, runaway_states
 from envi_py.logs import Log
 from envi_py.model import Checkpoint
 from envi_py.simulate import simulate_versions
@@ -148,27 +147,15 @@ def scoring_of_logs(train_logs: list[Log], skip: int) -> Scoring:
     return Scoring(states, observed, limit_events(train_logs), tuple(ranges), skip, period)
 
 
-def runaway_channels(sc: Scoring) -> list[Channel]:
-    """The states with their limits where a simulator clamps (the training data's range: a model
-    whose distance collapses sits there, inside the observed range the selection's rule checks),
-    and each saturating sensor's limit reading taken out: that reading is what the sensor says when
-    nothing is in range (the car twin's far starts hold it for most of a run, 15-17 % of real runs
-    for 9 samples or more), not a clamped runaway prediction."""
-    out = [replace(ch, low=lo, high=hi) for ch, (lo, hi) in zip(sc.states, sc.clamp)]
-    for i, reading in sc.limit_readings:
-        ch = out[i]
-        out[i] = replace(ch, high=math.inf) if reading >= ch.high else replace(ch, low=-math.inf)
-    return out
-
-
 def divergence(real: list[Log], sim: list[Log], sc: Scoring) -> dict[str, int]:
     """Counts of runs that diverge, simulated and real: by the model selection's rule
     (:func:`envi_py.goals.selection.diverged_fraction`: a state at a limit of its range, or beyond the
     training data's, for a tenth of the run) and by the same rule at the limits the simulator clamps
-    to, without the saturating sensor's limit reading (:func:`runaway_channels`): a state where real
-    runs never go."""
+    to, without the saturating sensor's limit reading (:func:`envi_py.goals.selection.runaway_states`,
+    as ``envi check`` counts): a state where real runs never go."""
     out = {"sim_runs": len(sim), "real_runs": len(real)}
-    for rule, states in (("held", list(sc.states)), ("runaway", runaway_channels(sc))):
+    runaway = runaway_states(sc.states, sc.clamp, sc.limit_readings)
+    for rule, states in (("held", list(sc.states)), ("runaway", runaway)):
         for side, logs in (("sim", sim), ("real", real)):
             runs = signals_of(logs, logs[0].meta.schema, sc.skip, sc.period_ms)
             out[f"{side}_{rule}"] = round(diverged_fraction([runs], states, sc.observed, None, 0.05) * len(logs))

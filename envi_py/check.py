@@ -30,7 +30,7 @@ import numpy as np
 from .controllers import ControllerSpec
 from .goals.evaluate import Runs, signals_of
 from .goals.requirements import Requirement, parse, satisfied
-from .goals.selection import diverged_fraction
+from .goals.selection import diverged_fraction, runaway_states
 from .logs import Log, group_by_controller
 from .model import Checkpoint
 from .simulate import simulate_logs
@@ -85,8 +85,9 @@ class Checker:
 
     def runs(self, spec: ControllerSpec, starts: Sequence[Log], per_start: int) -> tuple[Runs, int]:
         """``per_start`` simulated runs from each start, as goal-ready signals, and how many of them
-        left the training data: some state outside its training range (widened by 5 %) or at a range
-        limit for a tenth of the run (:func:`envi_py.goals.selection.diverged_fraction`)."""
+        left the training data: some state outside its training range (widened by 5 %) or resting on
+        a limit the simulator clamps to for a tenth of the run, a saturating sensor's no-echo reading
+        excepted (:func:`envi_py.goals.selection.runaway_states`)."""
         self._calls += 1
         sims = simulate_logs(
             self.ckpt, spec, starts, runs=per_start, seed=self.seed + 9973 * self._calls, engine=self.engine
@@ -96,7 +97,9 @@ class Checker:
         observed = {
             c.name: (float(self.ckpt.norm.low[i]), float(self.ckpt.norm.high[i])) for i, c in enumerate(schema.states)
         }
-        outside = round(diverged_fraction([runs], schema.states, observed, None, 0.05) * runs.count)
+        clamp = list(zip(*(lim.tolist() for lim in self.ckpt.limits())))
+        states = runaway_states(schema.states, clamp, self.ckpt.config.limit_events)
+        outside = round(diverged_fraction([runs], states, observed, None, 0.05) * runs.count)
         return runs, int(outside)
 
 

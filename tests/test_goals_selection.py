@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from envi_py.goals.evaluate import Runs
-from envi_py.goals.selection import default_goals, selection_score
+from envi_py.goals.selection import default_goals, diverged_fraction, runaway_states, selection_score
 from envi_py.system import GoalSpec, load_system
 
 CAR = load_system("car")
@@ -100,3 +100,24 @@ def test_bad_goals_and_observed_ranges_are_errors() -> None:
         selection_score(real, sim, CAR.schema, (CAR.goals[0], CAR.goals[0]))
     with pytest.raises(ValueError, match="does not declare"):
         selection_score(real, sim, CAR.schema, (GoalSpec("g", "min", "nowhere"),))
+
+
+def test_runaway_states_spare_the_no_echo_reading_and_catch_a_collapse_onto_the_clamp():
+    """The car's distance: holding 255 (no echo) is what real runs do, a collapse onto the 12 cm clamp
+    is what they never do; the declared-range rule sees it the other way round."""
+    car = load_system("car")
+    states = car.schema.states
+    observed = {"color": (5.0, 95.0), "distance": (12.0, 255.0)}
+    clamp = [(5.0, 95.0), (12.0, 255.0)]
+    t = 50
+    color = np.full((3, t), 40.0)
+    distance = np.vstack([np.full(t, 24.0), np.full(t, 255.0), np.full(t, 12.0)])  # fine, no echo, collapsed
+    runs = Runs({"color": color, "distance": distance}, 40.0)
+    one = [Runs({k: v[i : i + 1] for k, v in runs.signals.items()}, 40.0) for i in range(3)]
+    declared = [diverged_fraction([r], states, observed, None, 0.05) for r in one]
+    assert declared == [0.0, 1.0, 0.0]  # flags the sensor's legitimate reading, misses the collapse
+    runaway = runaway_states(states, clamp, [(1, 255.0)])
+    assert runaway[1].high == math.inf and runaway[1].low == 12.0 and runaway[0].low == 5.0
+    assert [diverged_fraction([r], runaway, observed, None, 0.05) for r in one] == [0.0, 0.0, 1.0]
+    # a sensor saturating at its low end is spared there instead
+    assert runaway_states(states, clamp, [(1, 12.0)])[1].low == -math.inf
