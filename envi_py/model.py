@@ -453,8 +453,12 @@ class Checkpoint:
             "sha256": _content_hash(cfg, norm, state),
         }
         tmp = path.with_name("." + path.name + ".tmp")
-        torch.save(blob, tmp)
-        tmp.replace(path)
+        try:  # temporary file, then rename: a reader never sees half a model, a failure leaves no litter
+            torch.save(blob, tmp)
+            tmp.replace(path)
+        except BaseException:  # KeyboardInterrupt too: the half-written temporary file goes
+            tmp.unlink(missing_ok=True)
+            raise
         return path
 
     @staticmethod

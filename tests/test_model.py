@@ -190,3 +190,20 @@ def test_training_sets_the_normalised_limit_levels(tmp_path):
     assert ck.model.limit_levels.tolist() == pytest.approx([want])
     back = Checkpoint.load(ck.save(tmp_path / "m.pt"))
     assert back.model.limit_levels.tolist() == pytest.approx([want])
+
+
+def test_a_failed_save_leaves_no_temporary_file(tmp_path, monkeypatch):
+    """Interrupted or failing mid-write (here: torch.save raising), the checkpoint's temporary file goes
+    and the error propagates; an existing model file is untouched."""
+    ck = small_ckpt()
+    path = ck.save(tmp_path / "m.pt")
+    before = path.read_bytes()
+
+    def broken(*_args, **_kwargs):
+        (tmp_path / ".m.pt.tmp").write_bytes(b"half")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(torch, "save", broken)
+    with pytest.raises(KeyboardInterrupt):
+        ck.save(path)
+    assert not (tmp_path / ".m.pt.tmp").exists() and path.read_bytes() == before

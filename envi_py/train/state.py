@@ -73,11 +73,15 @@ class TrainingState:
         }
         self.path.parent.mkdir(parents=True, exist_ok=True)
         tmp = self.path.with_name("." + self.path.name + ".tmp")
-        with open(tmp, "wb") as fh:
-            torch.save(blob, fh)
-            fh.flush()
-            os.fsync(fh.fileno())
-        tmp.replace(self.path)
+        try:
+            with open(tmp, "wb") as fh:
+                torch.save(blob, fh)
+                fh.flush()
+                os.fsync(fh.fileno())
+            tmp.replace(self.path)
+        except BaseException:  # KeyboardInterrupt too: no half-written temporary file is left behind
+            tmp.unlink(missing_ok=True)
+            raise
 
     def restore(
         self, ckpt: Checkpoint, opt: torch.optim.Optimizer, rng: np.random.Generator, selector: Selector
