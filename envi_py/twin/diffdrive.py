@@ -34,10 +34,10 @@ from typing import Any, Mapping
 import numpy as np
 
 from envi_py.controllers import ControllerSpec
-from envi_py.logs import LANE_KEEPING_SCHEMA, Log, LogMeta
+from envi_py.logs import Log
 
 from .effects import EFFECTS, Effect, Param, colour_reading, effect_params, steering_command
-from .generate import sample_periods
+from .generate import lane_logs, sample_periods
 
 SUBSTEPS = 4  # Euler sub-steps per control period: the motors' time constant is a few periods
 
@@ -266,25 +266,10 @@ def generate_diffdrive(
         batch.apply(a, moving[:, i] / 1000)
     dt = logged[:, profile.warmup :]
     time = np.concatenate([np.zeros((runs, 1)), np.cumsum(dt[:, :-1], axis=1)], axis=1)
-    logs = []
-    for r in range(runs):
-        meta = LogMeta(
-            schema=LANE_KEEPING_SCHEMA,
-            controller=controller.to_json(),
-            period_ms=profile.period_ms,
-            run_id=f"diffdrive_{seed}_{r}",
-            source="twin",
-            provenance={
-                "world": "diffdrive",
-                "effects": active,
-                "injected": sorted(active),
-                "seed": seed,
-                "run": r,
-                "profile": profile.to_json(),
-            },
-        )
-        logs.append(Log(None, time[r].copy(), color[r][:, None].copy(), angle[r][:, None].copy(), meta))
-    return logs
+    provenance = {"world": "diffdrive", "effects": active, "injected": sorted(active), "seed": seed}
+    return lane_logs(
+        controller, time, color, angle, profile.period_ms, f"diffdrive_{seed}", provenance, profile.to_json()
+    )
 
 
 def resemblance(real: list[Log], runs: int = 20, steps: int = 100, seed: int = 0) -> list[dict[str, Any]]:

@@ -84,15 +84,32 @@ def generate(
     prof = profile.to_json()
     prof.pop("fit", None)
     injected = sorted(resolve({}, {k: v for k, v in (effects or {}).items() if v not in (None, False, 0)}))
+    provenance = {"effects": active, "injected": injected, "seed": seed}
+    return lane_logs(controller, time, color, angle, profile.period_ms, f"twin_{seed}", provenance, prof)
+
+
+def lane_logs(
+    controller: ControllerSpec,
+    time: np.ndarray,
+    color: np.ndarray,
+    angle: np.ndarray,
+    period_ms: float,
+    run_prefix: str,
+    provenance: dict[str, Any],
+    profile: dict[str, Any],
+) -> list[Log]:
+    """One lane-keeping log per run (rows of ``time``, ``color``, ``angle``), as both twin world
+    families write them: run ids ``<run_prefix>_<r>``, the sidecar's provenance with the run index
+    and the profile, so each log says how it was made."""
     logs = []
-    for r in range(runs):
+    for r in range(time.shape[0]):
         meta = LogMeta(
             schema=LANE_KEEPING_SCHEMA,
             controller=controller.to_json(),
-            period_ms=profile.period_ms,
-            run_id=f"twin_{seed}_{r}",
+            period_ms=period_ms,
+            run_id=f"{run_prefix}_{r}",
             source="twin",
-            provenance={"effects": active, "injected": injected, "seed": seed, "run": r, "profile": prof},
+            provenance={**provenance, "run": r, "profile": profile},
         )
         logs.append(Log(None, time[r].copy(), color[r][:, None].copy(), angle[r][:, None].copy(), meta))
     return logs
