@@ -20,7 +20,17 @@ from .controllers import ControllerSpec, parse_params
 from .dataset import EXTRA_CHANNELS
 from .diagnose.cli import register as register_diagnose
 from .experiments.cli import register as register_experiment
-from .logs import Log, LogError, finite_numbers, load_logs, require_signals, write_log, write_manifest
+from .logs import (
+    Log,
+    LogError,
+    finite_numbers,
+    load_logs,
+    refuse_earlier_logs,
+    remove_logs,
+    require_signals,
+    write_log,
+    write_manifest,
+)
 from .system import SystemDescription, load_system
 from .twin.cli import register as register_twin
 
@@ -282,10 +292,16 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     _at_most(args, runs=100_000_000)
     if args.steps is not None and not 0 <= args.steps <= 1_000_000:
         raise ValueError(f"--steps must lie in 0..1000000, got {args.steps}")
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {out}: exists and is not a folder")
+    refuse_earlier_logs(out, args.force)  # before any work: new runs among old ones read back as one set
+    params = parse_params(args.param, "--param")  # a NaN gain once simulated NaN logs
     ckpt = Checkpoint.load(args.model)
     init = require_signals(read_logs(args, "init_logs", min_length=ckpt.config.history), ckpt.schema, args.model)
-    out = Path(args.out)
-    params = finite_numbers(parse_params(args.param), "--param values")  # a NaN gain once simulated NaN logs
+    inside = [lg.path for lg in init if lg.path is not None and lg.path.resolve().parent == out.resolve()]
+    if inside:  # --force would delete the very logs the simulation starts from
+        raise ValueError(f"--out {out}: holds the initial log {inside[0].name}; simulate into another folder")
     given = ControllerSpec(args.controller, params) if args.controller else None
     specs = [given] if given else list(group_by_controller(init))
     stems = [Path(lg.path).stem if lg.path else lg.meta.run_id for lg in init]
@@ -295,8 +311,6 @@ def cmd_simulate(args: argparse.Namespace) -> int:
             f"initial logs from different folders share the name {dup[0]!r}: their simulated runs would "
             "overwrite each other; simulate them into separate --out folders"
         )
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"--out {out}: exists and is not a folder")
     source = {spec: group[0].path for spec, group in group_by_controller(init).items()}
     for spec in specs:  # an unknown controller is one error line naming its log, before any engine note
         try:
@@ -315,12 +329,14 @@ def cmd_simulate(args: argparse.Namespace) -> int:
                     file=sys.stderr,
                 )
     t0 = time.perf_counter()
+    replaced = remove_logs(out) if args.force else 0  # only now: every check above has passed
     n = 0
     for spec, group in versions_to_simulate(init, given):
         for _, _, lg in iter_simulate(ckpt, spec, group, args.steps, args.runs, args.seed, args.engine, args.mean):
             write_log(lg, out / f"{lg.meta.run_id}.csv")  # run ids are checked plain names: no path escapes
             n += 1
-    print(f"simulated {n} runs in {time.perf_counter() - t0:.2f} s ({'+'.join(sorted(engines))} engine) -> {out}")
+    note = f" (replaced {replaced} earlier logs)" if replaced else ""
+    print(f"simulated {n} runs in {time.perf_counter() - t0:.2f} s ({'+'.join(sorted(engines))} engine) -> {out}{note}")
     return 0
 
 
@@ -481,7 +497,12 @@ def build_parser() -> argparse.ArgumentParser:
         "logs are consecutive slices of one run, so blocks keeps neighbours apart)",
     )
     p.add_argument("--seed", type=seed_type, default=0)
-    p.add_argument("--out", required=True, help="folder for the three manifests")
+    p.add_argument(
+        "--out",
+        required=True,
+        help="folder for train.json, val.json and test.json (all three rewritten by every split: none is left "
+        "from an earlier one)",
+    )
     p.set_defaults(func=cmd_split)
 
     p = sub.add_parser("train", help="train an environment model")
@@ -594,7 +615,17 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="simulate a stochastic model by its mean (no sampling): one deterministic run per window",
     )
-    p.add_argument("--out", required=True, help="folder for simulated logs")
+    p.add_argument(
+        "--out",
+        required=True,
+        help="folder for simulated logs (CSV with .meta.json sidecars); refused when it already holds logs",
+    )
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="replace the logs --out already holds: its CSV files and .meta.json sidecars are deleted "
+        "before writing (any other file stays), so the folder holds exactly this run",
+    )
     p.set_defaults(func=cmd_simulate)
 
     p = sub.add_parser("verify", help="compare real and simulated logs: accuracy, distances, floor")
@@ -660,7 +691,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--system", choices=("lane-keeping", "car"), default="lane-keeping", help="which twin system plays the field"
     )
     p.add_argument("--fast", action="store_true", help="a small demo (fewer logs, 40 epochs): a minute, not ten")
-    p.add_argument("--out", default="demo_out", help="output folder")
+    p.add_argument(
+        "--out",
+        default="demo_out",
+        help="output folder (default demo_out); a second demo replaces the logs the first left in its data/ "
+        "and sim/ subfolders (their CSV and .meta.json files only), the model and the report",
+    )
     p.add_argument("--seed", type=seed_type, default=0, help="seed of the twin, training and simulation")
     p.add_argument("--epochs", type=int, default=None, help="training epochs (default: 300, --fast 40)")
     p.set_defaults(func=cmd_demo)

@@ -27,6 +27,7 @@ from __future__ import annotations
 import importlib
 import inspect
 import json
+import math
 from dataclasses import dataclass, field
 from typing import Any, Callable, Protocol, runtime_checkable
 
@@ -358,15 +359,22 @@ def make_controller(
     return Checked(inner, spec.name, n_action)
 
 
-def parse_params(items: list[str] | None) -> dict[str, Any]:
-    """``["x=30", "threshold=40"]`` -> ``{"x": 30.0, "threshold": 40.0}`` (numbers where possible)."""
+def parse_params(items: list[str] | None, option: str = "parameter") -> dict[str, Any]:
+    """``["x=30", "threshold=40"]`` -> ``{"x": 30.0, "threshold": 40.0}`` (numbers where possible).
+
+    A non-finite number (``x=nan``, ``x=inf``) is a ValueError naming the parameter: a NaN gain runs
+    and writes logs full of NaN. ``option`` names where the items came from (``--param``) in errors."""
     out: dict[str, Any] = {}
     for item in items or []:
         key, sep, value = item.partition("=")
         if not sep or not key:
-            raise ValueError(f"parameter {item!r}: expected name=value")
+            raise ValueError(f"{option} {item!r}: expected name=value")
         try:
-            out[key.strip()] = float(value)
+            number = float(value)
         except ValueError:
             out[key.strip()] = value
+            continue
+        if not math.isfinite(number):
+            raise ValueError(f"{option} {item!r}: {key.strip()} is non-finite ({number}); give a finite number")
+        out[key.strip()] = number
     return out

@@ -6,6 +6,12 @@ logs of all five versions (the two never trained on are TMVU), and verified agai
 lane-keeping robot (x = 10..50, trained on 10, 30, 50) and the car following a lead vehicle (five
 gain sets, trained on three) are the two shipped systems. Simulation takes the native engine
 whenever it can run the model (``engine="auto"``), as ``envi simulate`` does.
+
+The output folder is the demo's own (``demo_out`` by default, written on every ``./dev.sh demo``):
+a run replaces the logs an earlier demo left in its ``data/`` and ``sim/`` subfolders instead of
+refusing as ``envi simulate`` does, since a second demo is the normal case and the logs it reads
+back must be this run's only (a ``--fast`` demo after a full one would read 14 stale logs per
+version, a lane-keeping demo after a car one two schemas). Other files there stay.
 """
 
 from __future__ import annotations
@@ -14,7 +20,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from .controllers import ControllerSpec
-from .logs import Log, group_by_controller, load_logs, write_log
+from .logs import Log, group_by_controller, load_logs, remove_logs, write_log
 from .simulate import choose_engine, simulate_versions
 from .system import load_system
 from .train import train
@@ -54,14 +60,18 @@ def _car_logs(data: Path, runs: int, seed: int) -> tuple[list[Log], set[Controll
 def run_demo(
     out: Path, seed: int = 0, system: str = "lane-keeping", size: DemoSize = FULL, epochs: int | None = None
 ) -> Path:
-    """Generate, train, simulate, verify; returns the report's Markdown path."""
-    data = out / "data"
+    """Generate, train, simulate, verify; returns the report's Markdown path. The logs an earlier
+    demo left in ``out/data`` and ``out/sim`` are replaced (see the module's docstring)."""
+    if system not in ("lane-keeping", "car"):
+        raise ValueError(f"no demo for system {system!r}; choose lane-keeping or car")
+    data, sim_dir = out / "data", out / "sim"
+    replaced = remove_logs(data) + remove_logs(sim_dir)
+    if replaced:
+        print(f"replaced {replaced} logs of an earlier demo in {data} and {sim_dir}")
     if system == "lane-keeping":
         logs, trained = _lane_logs(data, size.runs_per_version, seed)
-    elif system == "car":
-        logs, trained = _car_logs(data, size.runs_per_version, seed)
     else:
-        raise ValueError(f"no demo for system {system!r}; choose lane-keeping or car")
+        logs, trained = _car_logs(data, size.runs_per_version, seed)
     train_logs, val_logs, test_logs = [], [], []
     for spec, group in group_by_controller(logs).items():
         if spec in trained:
@@ -79,7 +89,7 @@ def run_demo(
     engine = choose_engine(ckpt, next(iter(group_by_controller(test_logs))), "auto")
     sims = simulate_versions(ckpt, test_logs, runs=size.sim_runs, seed=seed, engine="auto")
     for i, lg in enumerate(sims):
-        write_log(lg, out / "sim" / f"{i:05d}_{lg.meta.run_id}.csv")
+        write_log(lg, sim_dir / f"{i:05d}_{lg.meta.run_id}.csv")
     print(f"simulated {len(sims)} runs on the {engine} engine")
     results = verify(test_logs, sims, desc, skip=ckpt.config.history, seed=seed)
     print(to_text(results))

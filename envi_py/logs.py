@@ -541,6 +541,42 @@ def list_log_files(folder: Path, pattern: str | None) -> list[Path]:
     return sorted(files, key=_natural_key)
 
 
+def folder_logs(folder: str | os.PathLike) -> list[Path]:
+    """The files of ``folder`` that are logs to the reader: every CSV :func:`load_logs` of the folder
+    would read and every ``.meta.json`` sidecar (of those, or left without its CSV, which a later log
+    of that name would inherit). Empty for a missing folder. What a command writing logs refuses to
+    mix a new run with, and all its ``--force`` removes: any other file in the folder is the user's."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        return []
+    sidecars = [p for p in folder.glob("*.meta.json") if not p.name.startswith(".")]
+    logs = [p for p in list_log_files(folder, None) if not p.is_dir()]  # a folder named x.csv is no log
+    return logs + sorted(sidecars, key=_natural_key)
+
+
+def refuse_earlier_logs(folder: str | os.PathLike, force: bool, option: str = "--out") -> list[Path]:
+    """The log files ``folder`` holds from an earlier run (see :func:`folder_logs`); a ValueError
+    naming the folder, their number and ``--force`` when there are any and ``force`` is off: new
+    logs written among old ones would be read back as one dataset. Call it before any work."""
+    held = folder_logs(folder)
+    if held and not force:
+        n_csv = sum(p.suffix == ".csv" for p in held)
+        what = f"{n_csv} log{'s' * (n_csv != 1)}" if n_csv else f"{len(held)} log sidecar{'s' * (len(held) != 1)}"
+        raise ValueError(
+            f"{option} {folder}: holds {what} of an earlier run; pass --force to replace them "
+            "(other files stay) or choose an empty folder"
+        )
+    return held
+
+
+def remove_logs(folder: str | os.PathLike) -> int:
+    """Delete the log files :func:`folder_logs` finds (nothing else); returns how many CSV logs went."""
+    held = folder_logs(folder)
+    for p in held:
+        p.unlink(missing_ok=True)
+    return sum(p.suffix == ".csv" for p in held)
+
+
 def _manifest_error(path: Path, why: str) -> LogError:
     return LogError(f"{path}: not a valid manifest ({why})")
 

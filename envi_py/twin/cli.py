@@ -5,9 +5,10 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
+from typing import Callable
 
 from envi_py.controllers import ControllerSpec, parse_params
-from envi_py.logs import LogError, finite_numbers, load_logs
+from envi_py.logs import LogError, load_logs, refuse_earlier_logs, remove_logs
 from envi_py.system import lane_keeping, load_system
 
 from .car import generate_car, generate_car_versions, write_car_logs
@@ -38,7 +39,9 @@ def _load_profile(path: str) -> TwinProfile:
 
 def _checked(args: argparse.Namespace) -> dict[str, object]:
     """The size, output folder and parameters checked before any work; returns ``--param``'s values
-    (a NaN gain once wrote logs full of NaN, a too large size a MemoryError traceback)."""
+    (a NaN gain once wrote logs full of NaN, a too large size a MemoryError traceback). An output
+    folder holding logs of an earlier run is refused without ``--force``: the new logs would mix with
+    those the new run does not overwrite."""
     if args.runs < 1 or args.steps < 1:
         raise ValueError(f"--runs and --steps must be at least 1, got {args.runs} and {args.steps}")
     if args.runs * args.steps > MAX_SAMPLES:
@@ -46,8 +49,17 @@ def _checked(args: argparse.Namespace) -> dict[str, object]:
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {out}: exists and is not a folder")
-    finite_numbers(parse_params(args.world), "--world values")
-    return finite_numbers(parse_params(args.param), "--param values")
+    parse_params(args.world, "--world")
+    params = parse_params(args.param, "--param")
+    refuse_earlier_logs(out, args.force)
+    return params
+
+
+def _write(args: argparse.Namespace, write: Callable[[], list[Path]]) -> tuple[list[Path], str]:
+    """``write()`` into ``--out`` after removing its earlier logs when ``--force`` says so (only once
+    every check has passed); the paths written and a note of what was replaced."""
+    replaced = remove_logs(args.out) if args.force else 0
+    return write(), f"; replaced {replaced} earlier logs" if replaced else ""
 
 
 def _os_message(exc: OSError) -> str:
@@ -74,7 +86,7 @@ def cmd_generate(args: argparse.Namespace) -> int:
             logs = generate_diffdrive(spec, args.runs, args.steps, effects, args.seed)
         else:
             logs = generate(spec, args.runs, args.steps, effects, args.seed, _profile(args))
-        paths = write_logs(logs, args.out)
+        paths, note = _write(args, lambda: write_logs(logs, args.out))
     except ValueError as exc:
         print(f"envi twin generate: {exc}", file=sys.stderr)
         return 2
@@ -82,7 +94,7 @@ def cmd_generate(args: argparse.Namespace) -> int:
         print(f"envi twin generate: {_os_message(exc)}", file=sys.stderr)
         return 2
     active = ", ".join(logs[0].meta.provenance["effects"]) or "none"
-    print(f"wrote {len(paths)} {args.family} twin logs to {args.out} (effects: {active})")
+    print(f"wrote {len(paths)} {args.family} twin logs to {args.out} (effects: {active}{note})")
     return 0
 
 
@@ -96,11 +108,11 @@ def _generate_car(args: argparse.Namespace) -> int:
                 "--effects and --profile apply to the lane-keeping twin; the car's world "
                 "takes --world name=value (e.g. dropout_prob=0)"
             )
-        world = parse_params(args.world)
+        world = parse_params(args.world, "--world")
         if args.param is not None or args.controller is not None:
             if args.version is not None:
                 raise ValueError("give either --version or --param/--controller, not both")
-            params = parse_params(args.param)
+            params = parse_params(args.param, "--param")
             spec = (
                 ControllerSpec(args.controller, params)
                 if args.controller
@@ -112,14 +124,14 @@ def _generate_car(args: argparse.Namespace) -> int:
             logs = generate_car(spec, args.runs, args.steps, args.seed, **world)
         else:
             logs = generate_car_versions(args.runs, args.steps, args.seed, args.version, **world)
-        paths = write_car_logs(logs, args.out)
+        paths, note = _write(args, lambda: write_car_logs(logs, args.out))
     except ValueError as exc:
         print(f"envi twin generate: {exc}", file=sys.stderr)
         return 2
     except OSError as exc:
         print(f"envi twin generate: {_os_message(exc)}", file=sys.stderr)
         return 2
-    print(f"wrote {len(paths)} car twin logs to {args.out} (pattern car_{{kp_steer}}_{{kp_speed}}_{{run}}.csv)")
+    print(f"wrote {len(paths)} car twin logs to {args.out} (pattern car_{{kp_steer}}_{{kp_speed}}_{{run}}.csv{note})")
     return 0
 
 
@@ -212,7 +224,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--profile", default=None, help="profile JSON (default: the shipped calibrated one)")
-    p.add_argument("--out", required=True)
+    p.add_argument(
+        "--out",
+        required=True,
+        help="folder for the logs (CSV with .meta.json sidecars); refused when it already holds logs",
+    )
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="replace the logs --out already holds: its CSV files and .meta.json sidecars are deleted "
+        "before writing (any other file stays), so the folder holds exactly this run",
+    )
     p.set_defaults(func=cmd_generate)
 
     p = sub.add_parser("effects", help="list the effects, their parameters and units")
