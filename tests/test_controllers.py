@@ -61,6 +61,15 @@ def test_unknown_controller_and_parameters_are_errors():
     assert parse_params(["x=30", "mode=fast"]) == {"x": 30.0, "mode": "fast"}
 
 
+@pytest.mark.parametrize("value", ["nan", "NaN", "inf", "-inf", "Infinity", "1e999"])
+def test_parse_params_refuses_a_non_finite_value_naming_the_parameter(value):
+    """A NaN gain once simulated logs full of NaN; only the CLIs refused it, not the library."""
+    with pytest.raises(ValueError, match=rf"parameter 'gain={value}': gain is non-finite"):
+        parse_params(["x=30", f"gain={value}"])
+    with pytest.raises(ValueError, match=rf"^--param 'gain={value}': gain is non-finite"):
+        parse_params([f"gain={value}"], "--param")
+
+
 # ------------------------------------------------------------ the protocol: widths, memory, warm-up
 
 
