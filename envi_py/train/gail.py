@@ -221,7 +221,8 @@ def write_curves(rows: list[dict[str, float]], out: Path, title: str) -> tuple[P
             if ok.any():
                 ax.plot(np.array(ep)[ok], ys[ok], marker="." if k == "val_error" else None, label=k)
         ax.set_xlabel("epoch")
-        ax.legend(fontsize=8)
+        if ax.get_legend_handles_labels()[0]:  # a panel whose series are all NaN (one epoch) has none
+            ax.legend(fontsize=8)
     axes[0, 0].set_yscale("symlog", linthresh=1e-2)  # critic loss and policy loss differ by orders
     axes[1, 1].set_ylabel("closed-loop mean normalised W1")
     fig.suptitle(title)
