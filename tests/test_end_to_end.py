@@ -102,7 +102,8 @@ def test_bad_input_exits_2_with_one_line(tmp_path, capsys):
     assert main(["train", "--logs", str(bad), "-o", str(tmp_path / "m.pt")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "bad.csv" in err[0] and "missing column(s) angle" in err[0]
-    assert main(["simulate", "--model", str(bad), "--init-logs", str(bad), "--out", str(tmp_path)]) == 2
+    assert main(["simulate", "--model", str(bad), "--init-logs", str(bad), "--out", str(tmp_path / "sim")]) == 2
+    assert "bad.csv" in capsys.readouterr().err  # the model refused, not the folder (tmp_path holds bad.csv)
     with pytest.raises(SystemExit):
         main(["train", "--help"])
 

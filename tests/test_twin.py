@@ -242,8 +242,8 @@ def test_cli_generate_and_effects(tmp_path, capsys):
     assert len(logs) == 3 and logs[0].param == {"x": 20.0}
     assert _parser().parse_args(["twin", "effects"]).func(_parser().parse_args(["twin", "effects"])) == 0
     assert "rate_limit" in capsys.readouterr().out
-    bad = _parser().parse_args(["twin", "generate", "--effects", "warp=9", "--out", str(tmp_path)])
-    assert bad.func(bad) == 2
+    bad = _parser().parse_args(["twin", "generate", "--effects", "warp=9", "--out", str(tmp_path / "fresh")])
+    assert bad.func(bad) == 2 and "warp" in capsys.readouterr().err  # the effect refused, not the folder
 
 
 def test_cli_calibrate_runs_end_to_end(tmp_path, real_dir):
