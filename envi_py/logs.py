@@ -554,10 +554,10 @@ def folder_logs(folder: str | os.PathLike) -> list[Path]:
     return logs + sorted(sidecars, key=_natural_key)
 
 
-def refuse_earlier_logs(folder: str | os.PathLike, force: bool, option: str = "--out") -> list[Path]:
-    """The log files ``folder`` holds from an earlier run (see :func:`folder_logs`); a ValueError
-    naming the folder, their number and ``--force`` when there are any and ``force`` is off: new
-    logs written among old ones would be read back as one dataset. Call it before any work."""
+def refuse_earlier_logs(folder: str | os.PathLike, force: bool, option: str = "--out") -> None:
+    """A ValueError naming the folder, how many logs it holds (see :func:`folder_logs`) and ``--force``
+    when it holds any and ``force`` is off: new logs written among those of an earlier run would be
+    read back as one dataset. Call it before any work."""
     held = folder_logs(folder)
     if held and not force:
         n_csv = sum(p.suffix == ".csv" for p in held)
@@ -566,7 +566,6 @@ def refuse_earlier_logs(folder: str | os.PathLike, force: bool, option: str = "-
             f"{option} {folder}: holds {what} of an earlier run; pass --force to replace them "
             "(other files stay) or choose an empty folder"
         )
-    return held
 
 
 def remove_logs(folder: str | os.PathLike) -> int:

@@ -93,7 +93,8 @@ def test_folder_logs_are_the_csv_logs_and_sidecars_the_reader_sees(tmp_path: Pat
     assert names == ["twin_10_0.csv", "twin_10_1.csv", "orphan.meta.json", "twin_10_0.meta.json", "twin_10_1.meta.json"]
     with pytest.raises(ValueError, match=r"--sim .*: holds 2 logs of an earlier run; pass --force"):
         refuse_earlier_logs(tmp_path, force=False, option="--sim")
-    assert len(refuse_earlier_logs(tmp_path, force=True)) == 5
+    refuse_earlier_logs(tmp_path, force=True)  # --force: no refusal, nothing removed yet
+    assert len(folder_logs(tmp_path)) == 5
     assert remove_logs(tmp_path) == 2
     assert folder_logs(tmp_path) == []
     assert_user_files_kept(tmp_path)
@@ -198,12 +199,20 @@ def test_twin_generate_refuses_earlier_logs_and_force_replaces_them(
     assert_user_files_kept(out)
 
 
-def test_twin_generate_force_with_a_bad_option_keeps_the_earlier_logs(tmp_path: Path):
+@pytest.mark.parametrize(
+    "bad, why",
+    [
+        (["--effects", "warp=9"], "warp"),
+        (["--system", "car", "--version", "0", "0"], "--version 0 is given twice"),  # once found by the writer
+    ],
+)
+def test_twin_generate_force_with_a_bad_option_keeps_the_earlier_logs(tmp_path: Path, bad: list[str], why: str):
     out = tmp_path / "logs"
     assert run_cli(["twin", "generate", "--runs", "2", "--steps", "20", "--out", str(out)])[0] == 0
     before = snapshot(out)
-    code, _, err = run_cli(["twin", "generate", "--effects", "warp=9", "--force", "--out", str(out)])
-    assert code == 2 and "warp" in err
+    code, _, err = run_cli(["twin", "generate", *bad, "--runs", "1", "--steps", "20", "--force", "--out", str(out)])
+    lines = err.strip().splitlines()
+    assert code == 2 and len(lines) == 1 and why in lines[0], err
     assert snapshot(out) == before
 
 

@@ -108,6 +108,9 @@ def _generate_car(args: argparse.Namespace) -> int:
                 "--effects and --profile apply to the lane-keeping twin; the car's world "
                 "takes --world name=value (e.g. dropout_prob=0)"
             )
+        twice = sorted({v for v in args.version or () if args.version.count(v) > 1})
+        if twice:  # found here, not by the writer after --force has removed the earlier logs
+            raise ValueError(f"--version {twice[0]} is given twice: its logs would overwrite each other")
         world = parse_params(args.world, "--world")
         if args.param is not None or args.controller is not None:
             if args.version is not None:
