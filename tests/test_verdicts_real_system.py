@@ -18,7 +18,7 @@ from envi_py.verdicts import (
     ppi_verdict,
     rectifier_check,
 )
-from envi_py.verdicts.real_system import calibration_p_value, welch_df
+from envi_py.verdicts.real_system import calibration_p_value, detectable_error, welch_df
 
 SIMS_PER_START, STARTS = 20, 400
 
@@ -170,6 +170,34 @@ def test_calibration_test_matches_binomtest_and_shrinks_estimated_predictions():
     assert shrunk.passed and shrunk.p_value == pytest.approx(
         (0.5 / 21) * (20.5 / 21) ** 2 + (20.5 / 21) * (0.5 / 21) ** 2
     )
+
+
+def test_detectable_error_known_binomial_answer():
+    """All starts at 1/2, 10 runs, level 0.05: the exact two-sided test rejects counts 0, 1, 9, 10; the
+    smallest shift (in steps of 0.01) with rejection probability >= 0.8, computed here with scipy."""
+    reject = [k for k in range(11) if stats.binomtest(k, 10, 0.5).pvalue <= 0.05]
+    assert reject == [0, 1, 9, 10]
+
+    def power(p: float) -> float:
+        return float(sum(stats.binom.pmf(k, 10, p) for k in reject))
+
+    want = next(d / 100 for d in range(1, 101) if power(0.5 + d / 100) >= 0.8)
+    assert detectable_error(np.full(10, 0.5), 0.05) == pytest.approx((want, want))  # symmetric at 1/2
+    assert 0.4 < want < 0.45  # 10 runs at P = 0.5 miss an error of 0.4 more than a fifth of the time
+
+
+def test_detectable_error_shrinks_with_more_runs_and_is_none_at_the_edge():
+    ten, forty = detectable_error(np.full(10, 0.5), 0.05), detectable_error(np.full(40, 0.5), 0.05)
+    assert forty[0] < ten[0] and forty[1] < ten[1]
+    down, up = detectable_error(np.full(10, 0.95), 0.05)
+    assert up is None and down is not None  # no P above 1 to shift to; a drop is seen
+    chk = rectifier_check([1, 0, 1, 1, 1, 1, 0, 1, 1, 1], np.full(10, 0.8), level=0.05)
+    assert (chk.detectable_down, chk.detectable_up) == detectable_error(np.full(10, 0.8), 0.05)
+    assert chk.to_json()["detectable_error"]["power"] == 0.8 and "10 runs" in chk.detectable_text
+    # with margins the count test has half the level, so it needs a larger error
+    sims = np.tile(np.linspace(-1, 1, 20), (10, 1))
+    with_margins = rectifier_check([1] * 8 + [0] * 2, np.full(10, 0.8), 0.05, None, np.zeros(10), sims)
+    assert (with_margins.detectable_down, with_margins.detectable_up) == detectable_error(np.full(10, 0.8), 0.025)
 
 
 def test_model_only_carries_the_measured_error():

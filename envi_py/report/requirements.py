@@ -46,7 +46,10 @@ def method_text(meta: dict[str, Any]) -> str:
         f"+-{meta['delta']:g} around the required probability, stopped at {meta['max_runs']} runs at most; "
         "its interval is valid at the stopping time. Real system: prediction-powered inference from the "
         "model's predictions and the paired real runs, withdrawn to the real runs alone when a calibration "
-        "test rejects the model; a version without real runs rests on the model only."
+        "test rejects the model; a version without real runs rests on the model only. Each kept claim "
+        "states the smallest error in P(goal) the calibration test catches 80% of the time from its real "
+        "runs: a smaller error can pass unseen, and a kept claim of a slightly wrong model may then cover "
+        "less than its confidence (measured in benchmarks/coverage_twin.py)."
     )
 
 
