@@ -140,6 +140,27 @@ class Scoring:
     period_ms: float
 
 
+def pooled_interval(matched: Any, floor: Any, seed: int = 0) -> list[list[float]] | None:
+    """Per goal, the 95 % BCa bootstrap interval of the pooled ratio sum(matched) / sum(floor), resampling
+    whole test sets (each set's matched and floor W1 together): how far the pooled figure would move on
+    other test sets (None for a single set)."""
+    m, f = np.asarray(matched, dtype=float), np.asarray(floor, dtype=float)
+    if m.shape[0] < 2:
+        return None
+    out = []
+    for g in range(m.shape[1]):
+        res = stats.bootstrap(
+            (m[:, g], f[:, g]),
+            lambda a, b, axis=-1: a.sum(axis=axis) / b.sum(axis=axis),
+            paired=True,
+            vectorized=True,
+            n_resamples=2000,
+            random_state=seed,
+        )
+        out.append([float(res.confidence_interval.low), float(res.confidence_interval.high)])
+    return out
+
+
 def scoring_of_model(ckpt: Any) -> Scoring:
     states = tuple(ckpt.schema.states)
     observed = {c.name: (float(ckpt.norm.low[i]), float(ckpt.norm.high[i])) for i, c in enumerate(states)}
@@ -246,6 +267,7 @@ def run_config(name: str, args: argparse.Namespace) -> dict[str, Any]:
                 "ratio_max": ratio.max(axis=0).tolist(),
                 "ratio_per_set": ratio.tolist(),
                 "ratio_pooled": (np.sum(row["matched"], axis=0) / np.sum(row["floor"], axis=0)).tolist(),
+                "ratio_pooled_ci95": pooled_interval(row["matched"], row["floor"]),
                 "matched_w1_per_set": row["matched"],
                 "floor_w1_per_set": row["floor"],
                 "p_values": row["p"],
@@ -298,6 +320,11 @@ def print_table(res: dict[str, Any]) -> None:
             f"{r['sim_diverged']:.3f}/{r['real_diverged']:.3f} ({r['held_more_p']:.2f}) | "
             f"{d['sim_runaway']}/{d['sim_runs']} {d['real_runaway']}/{d['real_runs']}"
         )
+    print("pooled ratio over the sets (sum of matched W1 / sum of floor W1) [95 % bootstrap over sets]:")
+    for r in res["versions"]:
+        ci = r["ratio_pooled_ci95"] or [[float("nan")] * 2] * len(goals)
+        cells = " | ".join(f"{m:>5.2f} [{lo:.2f},{hi:.2f}]".rjust(16) for m, (lo, hi) in zip(r["ratio_pooled"], ci))
+        print(f"{r['version']:<26} {r['role']:<5} | {cells}")
     verdict = "MET" if res["meets_target"] else "NOT met"
     print(
         f"worst goal ratio {res['worst_ratio']:.2f} (target <= {TARGET}), {res['cells_above']} cells above, "
