@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -60,7 +61,10 @@ def test_resume_after_a_kill_gives_the_uninterrupted_checkpoint(tmp_path, monkey
     assert saves == [3, 6]
     for k, v in _weights(whole).items():
         assert torch.equal(v, _weights(resumed)[k]), k
-    assert resumed.record.selection == whole.record.selection
+    assert resumed.record.selection == whole.record.selection  # the training losses too, across the kill
+    losses = whole.record.selection["train_loss_curve"]
+    assert [e for e, _ in losses] == [e for e, _ in whole.record.selection["curve"]]
+    assert all(isinstance(v, float) and math.isfinite(v) for _, v in losses)
 
 
 def test_a_state_of_another_training_is_refused(tmp_path):

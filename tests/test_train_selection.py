@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from types import SimpleNamespace
 
 import pytest
@@ -97,6 +98,22 @@ def test_a_selector_restored_mid_run_chooses_as_an_uninterrupted_one(monkeypatch
     assert second.best_epoch == whole.best_epoch
     assert ckpt.model.weight.item() == whole_ckpt.model.weight.item() == 50
     assert ckpt.record.selection == whole_ckpt.record.selection
+
+
+def test_training_losses_are_recorded_and_an_older_state_still_loads(monkeypatch):
+    scores = iter([_score(d) for d in (0.5, 0.4)])
+    monkeypatch.setattr(common, "closed_loop_score", lambda ckpt, logs, runs=1: next(scores))
+    ckpt = SimpleNamespace(model=torch.nn.Linear(1, 1, bias=False), record=SimpleNamespace(selection={}))
+    sel = Selector(["val"], SelectionSettings(smooth=1, patience=0))
+    sel.consider(ckpt, 10, 2.5)
+    sel.consider(ckpt, 20)  # a caller without a training loss (GAIL)
+    state = sel.to_state()
+    older = {**state, "evaluations": [row[:4] for row in state["evaluations"]]}  # saved before the field
+    restored = Selector(["val"], SelectionSettings(smooth=1, patience=0))
+    restored.load_state(older)
+    assert math.isnan(restored.evaluations[0].train_loss) and restored.evaluations[0].distance == 0.5
+    sel.finish(ckpt, 20)
+    assert ckpt.record.selection["train_loss_curve"] == [[10, 2.5], [20, None]]
 
 
 @pytest.mark.parametrize("bad", [{"runs": 0}, {"smooth": 0}, {"patience": -1}, {"tie": 1.5}])

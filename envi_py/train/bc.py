@@ -134,7 +134,7 @@ def train_bc(
             opt.step()
             total += loss.item()
         if epoch % eval_every == 0 or epoch == epochs:
-            score = selector.consider(ckpt, epoch)
+            score = selector.consider(ckpt, epoch, total / len(xs))
             bar.set_postfix(loss=f"{total / len(xs):.2e}", val=f"{score:.4f}")
             if saver is not None:
                 saver.save(epoch, ckpt, opt, rng, selector)

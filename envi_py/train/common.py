@@ -175,12 +175,14 @@ class SelectionSettings:
 
 @dataclass
 class Evaluation:
-    """One validation: the closed-loop distance, whether it diverged, the one-step validation loss."""
+    """One validation: the closed-loop distance, whether it diverged, the one-step validation loss, and
+    the epoch's mean training loss (beside the validation loss it tells under- from over-fitting)."""
 
     epoch: int
     distance: float
     diverged: bool
     one_step: float = float("nan")
+    train_loss: float = float("nan")
 
 
 @dataclass
@@ -207,15 +209,16 @@ class Selector:
     def best_epoch(self) -> int:
         return self.evaluations[self.best_index].epoch if self.best_index >= 0 else -1
 
-    def consider(self, ckpt: Checkpoint, epoch: int) -> float:
-        """Score the current weights; returns the raw closed-loop distance (NaN without validation logs)."""
+    def consider(self, ckpt: Checkpoint, epoch: int, train_loss: float = float("nan")) -> float:
+        """Score the current weights; returns the raw closed-loop distance (NaN without validation logs).
+        ``train_loss``: the epoch's mean training loss, recorded beside the validation curves."""
         if not self.val_logs:
             return float("nan")
         ckpt.model.eval()
         result = closed_loop_score(ckpt, self.val_logs, runs=self.settings.runs)
         loss = self._one_step(ckpt)
         ckpt.model.train()
-        self.evaluations.append(Evaluation(epoch, result.distance, result.diverged, loss))
+        self.evaluations.append(Evaluation(epoch, result.distance, result.diverged, loss, train_loss))
         self.pending.append((len(self.evaluations) - 1, copy.deepcopy(ckpt.model.state_dict())))
         self._settle(final=False)
         return result.distance
@@ -274,7 +277,7 @@ class Selector:
     def to_state(self) -> dict[str, Any]:
         """What a resumed training needs (tensors, numbers, lists, dicts only)."""
         return {
-            "evaluations": [[e.epoch, e.distance, e.diverged, e.one_step] for e in self.evaluations],
+            "evaluations": [[e.epoch, e.distance, e.diverged, e.one_step, e.train_loss] for e in self.evaluations],
             "pending": [[i, s] for i, s in self.pending],
             "best_index": self.best_index,
             "best_smoothed": self.best_smoothed,
@@ -282,7 +285,11 @@ class Selector:
         }
 
     def load_state(self, blob: dict[str, Any]) -> None:
-        self.evaluations = [Evaluation(int(e), float(d), bool(v), float(o)) for e, d, v, o in blob["evaluations"]]
+        # a state saved before the training loss was recorded has 4 fields per evaluation
+        self.evaluations = [
+            Evaluation(int(e[0]), float(e[1]), bool(e[2]), float(e[3]), float(e[4]) if len(e) > 4 else float("nan"))
+            for e in blob["evaluations"]
+        ]
         self.pending = [(int(i), s) for i, s in blob["pending"]]
         self.best_index, self.best_smoothed = int(blob["best_index"]), float(blob["best_smoothed"])
         self.best_state = blob["best_state"]
@@ -302,6 +309,7 @@ class Selector:
             "settings": self.settings.to_json(),
             "curve": curve,
             "one_step_curve": [[e.epoch, _finite_or_none(e.one_step)] for e in self.evaluations],
+            "train_loss_curve": [[e.epoch, _finite_or_none(e.train_loss)] for e in self.evaluations],
             "diverged_epochs": [e.epoch for e in self.evaluations if e.diverged],
             "last_epoch": last_epoch,
             "stopped": self.stopped or f"reached the epoch cap ({last_epoch})",
