@@ -94,11 +94,16 @@ class RectifierCheck:
     @property
     def detectable_text(self) -> str:
         """The check's power in words: a kept claim rules out only errors the check would have seen."""
-        down = "none" if self.detectable_down is None else f"-{self.detectable_down:.2f}"
-        up = "none" if self.detectable_up is None else f"+{self.detectable_up:.2f}"
+        caught = [
+            f"a {word} of {d:.2f}" for word, d in (("drop", self.detectable_down), ("rise", self.detectable_up)) if d
+        ]
+        if not caught:
+            return f"from {self.n} runs the count test catches no error in P(goal) {DETECTION_POWER:.0%} of the time"
+        missed = [word for word, d in (("drop", self.detectable_down), ("rise", self.detectable_up)) if not d]
         return (
-            f"the count test catches an error of {down} / {up} in every start's P(goal) "
-            f"{DETECTION_POWER:.0%} of the time from {self.n} runs; smaller errors can pass it"
+            f"from {self.n} runs the count test catches {' or '.join(caught)} in every start's P(goal) "
+            f"{DETECTION_POWER:.0%} of the time" + (f", and cannot catch a {missed[0]}" if missed else "") + "; "
+            "smaller errors can pass it"
         )
 
     @property
