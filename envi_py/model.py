@@ -244,6 +244,20 @@ def _content_hash(config: dict[str, Any], norm: dict[str, Any], state_dict: dict
     return h.hexdigest()
 
 
+def load_torch_file(path: Path, missing: str, foreign: str, *, reason: bool = True) -> Any:
+    """What an envi torch file (checkpoint, training state) holds, read with ``weights_only`` so no
+    code in it runs. torch raises many types for a foreign or corrupt file: each becomes one
+    ValueError naming the file, ``missing`` when it does not exist, else ``foreign`` with the
+    exception's type (and its message when ``reason``). One owner, so every such file fails alike."""
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except FileNotFoundError:
+        raise ValueError(f"{path}: {missing}") from None
+    except Exception as exc:  # noqa: BLE001 - torch raises many types for a foreign or corrupt file
+        why = f"{type(exc).__name__}: {exc}" if reason else type(exc).__name__
+        raise ValueError(f"{path}: {foreign} ({why})") from None
+
+
 @dataclass
 class Checkpoint:
     """A trained model with its normaliser, log schema, system description and training record.
@@ -466,12 +480,7 @@ class Checkpoint:
         path = Path(path)
         if path.exists() and not path.is_file():
             raise ValueError(f"{path}: not a regular file")
-        try:
-            blob = torch.load(path, map_location="cpu", weights_only=True)
-        except FileNotFoundError:
-            raise ValueError(f"{path}: no such model file") from None
-        except Exception as exc:  # noqa: BLE001 - torch raises many types for a foreign or corrupt file
-            raise ValueError(f"{path}: not an envi model checkpoint ({type(exc).__name__}: {exc})") from None
+        blob = load_torch_file(path, "no such model file", "not an envi model checkpoint")
         if not isinstance(blob, dict) or blob.get("format") != CHECKPOINT_FORMAT:
             raise ValueError(f"{path}: not an envi model checkpoint (no '{CHECKPOINT_FORMAT}' header)")
         if blob.get("version") != CHECKPOINT_VERSION:

@@ -26,6 +26,39 @@ def initial_rows(init: np.ndarray, ckpt: Checkpoint) -> tuple[np.ndarray, np.nda
     return init[..., :ns], init[..., ns:]
 
 
+def window_shape(ckpt: Checkpoint, init: np.ndarray) -> tuple[int, int, int]:
+    """(K, l, C) of the initial windows ``init``, refused unless l and C are the model's."""
+    cfg = ckpt.config
+    k, hist, chans = init.shape
+    if hist != cfg.history or chans != cfg.channels:
+        raise ValueError(f"initial windows are {hist}x{chans}, the model needs {cfg.history}x{cfg.channels}")
+    return k, hist, chans
+
+
+class ModelWindow:
+    """The last l rows of a batch of runs as the model reads them (encoded, with the model's context).
+
+    One owner of encoding, stepping and sliding, so every PyTorch rollout (:func:`rollout`, the
+    diagnosis's layered one) feeds the model alike; ``intervals`` draws the 'dt' channel, if the
+    model has one, in the same order in every rollout."""
+
+    def __init__(self, ckpt: Checkpoint, rows: np.ndarray, intervals: np.random.Generator) -> None:
+        self.ckpt, self.intervals = ckpt, intervals
+        window = ckpt.encode_rows(rows, 0, intervals)
+        context = ckpt.context(window)
+        self.context = None if context is None else torch.from_numpy(context)
+        self.window = torch.from_numpy(window)
+
+    def next_state(self, gen: torch.Generator | None) -> np.ndarray:
+        """The model's next states (N, |s|) from the window (drawn with ``gen`` when it is stochastic)."""
+        return self.ckpt.next_state(self.ckpt.model_input(self.window, self.context), gen)
+
+    def push(self, row: np.ndarray, index: int) -> None:
+        """Slide the window by one physical row (N, 1, C), row ``index`` of the runs."""
+        encoded = self.ckpt.encode_rows(row, index, self.intervals, self.window[:, -1:].numpy())
+        self.window = torch.cat([self.window[:, 1:], torch.from_numpy(encoded)], dim=1)
+
+
 @torch.no_grad()
 def rollout(
     ckpt: Checkpoint,
@@ -46,9 +79,7 @@ def rollout(
     than not): one deterministic trajectory per window, what the model expects rather than what it samples.
     """
     cfg = ckpt.config
-    k, hist, chans = init.shape
-    if hist != cfg.history or chans != cfg.channels:
-        raise ValueError(f"initial windows are {hist}x{chans}, the model needs {cfg.history}x{cfg.channels}")
+    k, hist, chans = window_shape(ckpt, init)
     if steps < 0:
         raise ValueError(f"steps must not be negative, got {steps}")
     if mean and cfg.kind == "random":
@@ -62,18 +93,12 @@ def rollout(
     ctrl.warmup(*initial_rows(out[:, :hist], ckpt))
     gen = torch.Generator().manual_seed(int(seed)) if cfg.stochastic and not mean else None
     intervals = np.random.default_rng([int(seed), 1])  # the draws of the 'dt' channel, if the model has one
-    window_np = ckpt.encode_rows(out[:, :hist], 0, intervals)
-    ctx = ckpt.context(window_np)
-    context = None if ctx is None else torch.from_numpy(ctx)
-    window = torch.from_numpy(window_np)
+    window = ModelWindow(ckpt, out[:, :hist], intervals)
     for t in range(steps):
-        s = ckpt.next_state(ckpt.model_input(window, context), gen)
+        s = window.next_state(gen)
         out[:, hist + t, :ns] = s
         out[:, hist + t, ns:] = ctrl(s)
-        row = torch.from_numpy(
-            ckpt.encode_rows(out[:, hist + t : hist + t + 1], hist + t, intervals, window[:, -1:].numpy())
-        )
-        window = torch.cat([window[:, 1:], row], dim=1)
+        window.push(out[:, hist + t : hist + t + 1], hist + t)
     return out
 
 

@@ -52,7 +52,7 @@ from scipy import stats
 from ..controllers import ControllerSpec
 from ..logs import Log, group_by_controller
 from ..model import Checkpoint
-from ..simulate import initial_rows, initial_windows
+from ..simulate import ModelWindow, initial_rows, initial_windows, window_shape
 from ..verify import Scoring, fair_reference
 from .gap import cut_logs
 from .shrink import scoring_of
@@ -183,9 +183,7 @@ def layered_rollout(
     """:func:`envi_py.simulate.rollout` with ``layer`` around the model: returns the logged rows
     (K*runs, l+steps, |s|+|a|): the states the controller saw and the commands it gave."""
     cfg = ckpt.config
-    k, hist, chans = init.shape
-    if hist != cfg.history or chans != cfg.channels:
-        raise ValueError(f"initial windows are {hist}x{chans}, the model needs {cfg.history}x{cfg.channels}")
+    k, hist, chans = window_shape(ckpt, init)
     ns = cfg.n_state
     ctrl = controller.build(ns, cfg.n_action, ckpt.period_ms)
     batch = k * runs
@@ -198,20 +196,14 @@ def layered_rollout(
     intervals = np.random.default_rng([int(seed), 1])
     rng = np.random.default_rng([int(seed), 2])
     acts = _ActionState(layer, out[:, :hist, ns:], steps, rng) if layer.kind in ACTION_LAYERS else None
-    window_np = ckpt.encode_rows(view[:, :hist], 0, intervals)
-    ctx = ckpt.context(window_np)
-    context = None if ctx is None else torch.from_numpy(ctx)
-    window = torch.from_numpy(window_np)
+    window = ModelWindow(ckpt, view[:, :hist], intervals)
     for t in range(steps):
-        s = ckpt.next_state(ckpt.model_input(window, context), gen)
+        s = window.next_state(gen)
         seen = _state_layer(layer, s, rng)
         command = np.asarray(ctrl(seen), dtype=np.float64).reshape(batch, -1)
         out[:, hist + t, :ns], out[:, hist + t, ns:] = seen, command
         view[:, hist + t, :ns], view[:, hist + t, ns:] = s, command if acts is None else acts(command)
-        row = torch.from_numpy(
-            ckpt.encode_rows(view[:, hist + t : hist + t + 1], hist + t, intervals, window[:, -1:].numpy())
-        )
-        window = torch.cat([window[:, 1:], row], dim=1)
+        window.push(view[:, hist + t : hist + t + 1], hist + t)
     return out
 
 

@@ -268,13 +268,7 @@ def trial(
     )
     sig = [f.candidate for f in d.significant]
     out: dict[str, Any] = {
-        "world": world,
-        "case": case.name,
-        "seed": seed,
-        "mode": mode,
-        "expected": case.expected,
-        "novel": case.novel,
-        "head": case.head,
+        **_identity(case, seed, mode, world),
         "top": sig[0] if sig else None,
         "significant": sig,
         "findings": {
@@ -309,6 +303,20 @@ def trial(
     return out
 
 
+def _identity(case: Case, seed: int, mode: str, world: str) -> dict[str, Any]:
+    """The fields that say which trial a result is and what it should have found: one owner, so a
+    failed trial's record (:func:`_run_one`) keys and scores exactly like a finished one's."""
+    return {
+        "world": world,
+        "case": case.name,
+        "seed": seed,
+        "mode": mode,
+        "expected": case.expected,
+        "novel": case.novel,
+        "head": case.head,
+    }
+
+
 def _key(r: dict[str, Any]) -> tuple[str, str, str, int]:
     """A trial's identity; results written before there were two worlds are the tuned world's."""
     return r.get("world", TUNED_ON), r["mode"], r["case"], int(r["seed"])
@@ -321,13 +329,7 @@ def _run_one(args: tuple[Case, int, str, Size, bool, str]) -> dict[str, Any]:
         return trial(*args)
     except Exception as exc:  # noqa: BLE001 - any failure of the diagnosis is a validation outcome
         return {
-            "world": args[5],
-            "case": case.name,
-            "seed": seed,
-            "mode": mode,
-            "expected": case.expected,
-            "novel": case.novel,
-            "head": case.head,
+            **_identity(case, seed, mode, args[5]),
             "top": None,
             "significant": [],
             "findings": {},

@@ -19,7 +19,7 @@ from scipy import stats
 
 from ..goals.presets import LANE_KEEPING_SIGNAL
 from ..report.document import Provenance, Report, Section, Table, Text
-from ..report.files import write_files
+from ..report.files import strict, write_files
 from ..report.markdown import to_markdown as render_markdown
 from .versions import parse_label
 
@@ -112,17 +112,6 @@ def _fmt(mc: tuple[float, float], scale: float = 1.0, digits: int = 2) -> str:
         return "-"
     mean = f"{m * scale:.{digits}f}"
     return f"{mean} ± {h * scale:.{digits}f}" if np.isfinite(h) else f"{mean} (one rep.)"
-
-
-def strict_json(obj: Any) -> Any:
-    """``obj`` with every non-finite number as None: results.json stays standard JSON (no NaN)."""
-    if isinstance(obj, float):
-        return obj if np.isfinite(obj) else None
-    if isinstance(obj, dict):
-        return {k: strict_json(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [strict_json(v) for v in obj]
-    return obj
 
 
 def _cell() -> dict[str, list]:
@@ -344,7 +333,7 @@ def experiment_report(
         )
     )
     title = f"ENVI experiments: {', '.join(u.upper() for u in summary)}"
-    data = strict_json({"meta": meta, "summary": summary, "jobs": list(results)})
+    data = strict({"meta": meta, "summary": summary, "jobs": list(results)})
     return Report(
         title, _verdict(summary, meta), Provenance.collect(system=meta.get("system")), _intro(meta), sections, data
     )

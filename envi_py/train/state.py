@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..model import Checkpoint
+from ..model import Checkpoint, load_torch_file
 from .common import Selector
 
 STATE_FORMAT = "envi-training-state"
@@ -88,12 +88,7 @@ class TrainingState:
     ) -> int:
         """Load the state into the training's objects; returns the last finished epoch. The
         algorithm's own state is left in :attr:`extra` for it to load."""
-        try:
-            blob: Any = torch.load(self.path, map_location="cpu", weights_only=True)
-        except FileNotFoundError:
-            raise ValueError(f"{self.path}: no training state to resume from") from None
-        except Exception as exc:  # noqa: BLE001 - torch raises many types for a foreign or corrupt file
-            raise ValueError(f"{self.path}: not a training state ({type(exc).__name__})") from None
+        blob = load_torch_file(self.path, "no training state to resume from", "not a training state", reason=False)
         if not isinstance(blob, dict) or blob.get("format") != STATE_FORMAT:
             raise ValueError(f"{self.path}: not an envi training state")
         if blob.get("algorithm", "bc") != self.algorithm:

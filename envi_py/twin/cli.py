@@ -68,74 +68,72 @@ def _os_message(exc: OSError) -> str:
 
 
 def cmd_generate(args: argparse.Namespace) -> int:
+    """Either twin family's logs into ``--out``; every refusal is one line and exit code 2."""
     if args.system == "car":
         if args.family != "steered":
             print("envi twin generate: --family applies to the lane-keeping twin only", file=sys.stderr)
             return 2
-        return _generate_car(args)
-    if args.version is not None or args.world is not None:
-        print("envi twin generate: --version and --world apply to --system car only", file=sys.stderr)
-        return 2
+        job = _generate_car
+    else:
+        if args.version is not None or args.world is not None:
+            print("envi twin generate: --version and --world apply to --system car only", file=sys.stderr)
+            return 2
+        job = _generate_lane
     try:
-        spec = ControllerSpec(args.controller or "lane-keeping", _checked(args))
-        spec.build()  # fail on a bad controller before any work
-        effects = parse_effects(args.effects)
-        if args.family == "diffdrive":
-            if args.profile is not None:
-                raise ValueError("--profile is the steered world's calibrated profile; the diffdrive world has its own")
-            logs = generate_diffdrive(spec, args.runs, args.steps, effects, args.seed)
-        else:
-            logs = generate(spec, args.runs, args.steps, effects, args.seed, _profile(args))
-        paths, note = _write(args, lambda: write_logs(logs, args.out))
+        summary = job(args)
     except ValueError as exc:
         print(f"envi twin generate: {exc}", file=sys.stderr)
         return 2
     except OSError as exc:
         print(f"envi twin generate: {_os_message(exc)}", file=sys.stderr)
         return 2
+    print(summary)
+    return 0
+
+
+def _generate_lane(args: argparse.Namespace) -> str:
+    """The lane-keeping twin (steered or diffdrive world); the summary line of what was written."""
+    spec = ControllerSpec(args.controller or "lane-keeping", _checked(args))
+    spec.build()  # fail on a bad controller before any work
+    effects = parse_effects(args.effects)
+    if args.family == "diffdrive":
+        if args.profile is not None:
+            raise ValueError("--profile is the steered world's calibrated profile; the diffdrive world has its own")
+        logs = generate_diffdrive(spec, args.runs, args.steps, effects, args.seed)
+    else:
+        logs = generate(spec, args.runs, args.steps, effects, args.seed, _profile(args))
+    paths, note = _write(args, lambda: write_logs(logs, args.out))
     active = ", ".join(logs[0].meta.provenance["effects"]) or "none"
-    print(f"wrote {len(paths)} {args.family} twin logs to {args.out} (effects: {active}{note})")
-    return 0
+    return f"wrote {len(paths)} {args.family} twin logs to {args.out} (effects: {active}{note})"
 
 
-def _generate_car(args: argparse.Namespace) -> int:
+def _generate_car(args: argparse.Namespace) -> str:
     """The car twin: the shipped versions (all, or ``--version``), or one controller from
-    ``--param kp_steer=.. kp_speed=..`` on the description's controller (or ``--controller``)."""
-    try:
-        _checked(args)
-        if args.effects is not None or args.profile is not None:
-            raise ValueError(
-                "--effects and --profile apply to the lane-keeping twin; the car's world "
-                "takes --world name=value (e.g. dropout_prob=0)"
-            )
-        twice = sorted({v for v in args.version or () if args.version.count(v) > 1})
-        if twice:  # found here, not by the writer after --force has removed the earlier logs
-            raise ValueError(f"--version {twice[0]} is given twice: its logs would overwrite each other")
-        world = parse_params(args.world, "--world")
-        if args.param is not None or args.controller is not None:
-            if args.version is not None:
-                raise ValueError("give either --version or --param/--controller, not both")
-            params = parse_params(args.param, "--param")
-            spec = (
-                ControllerSpec(args.controller, params)
-                if args.controller
-                else load_system("car").controller_for(params)
-            )
-            if spec is None:
-                raise ValueError("the car system description declares no controller")
-            spec.build(n_state=2, n_action=2)  # fail on a bad controller before any work
-            logs = generate_car(spec, args.runs, args.steps, args.seed, **world)
-        else:
-            logs = generate_car_versions(args.runs, args.steps, args.seed, args.version, **world)
-        paths, note = _write(args, lambda: write_car_logs(logs, args.out))
-    except ValueError as exc:
-        print(f"envi twin generate: {exc}", file=sys.stderr)
-        return 2
-    except OSError as exc:
-        print(f"envi twin generate: {_os_message(exc)}", file=sys.stderr)
-        return 2
-    print(f"wrote {len(paths)} car twin logs to {args.out} (pattern car_{{kp_steer}}_{{kp_speed}}_{{run}}.csv{note})")
-    return 0
+    ``--param kp_steer=.. kp_speed=..`` on the description's controller (or ``--controller``);
+    the summary line of what was written."""
+    _checked(args)
+    if args.effects is not None or args.profile is not None:
+        raise ValueError(
+            "--effects and --profile apply to the lane-keeping twin; the car's world "
+            "takes --world name=value (e.g. dropout_prob=0)"
+        )
+    twice = sorted({v for v in args.version or () if args.version.count(v) > 1})
+    if twice:  # found here, not by the writer after --force has removed the earlier logs
+        raise ValueError(f"--version {twice[0]} is given twice: its logs would overwrite each other")
+    world = parse_params(args.world, "--world")
+    if args.param is not None or args.controller is not None:
+        if args.version is not None:
+            raise ValueError("give either --version or --param/--controller, not both")
+        params = parse_params(args.param, "--param")
+        spec = ControllerSpec(args.controller, params) if args.controller else load_system("car").controller_for(params)
+        if spec is None:
+            raise ValueError("the car system description declares no controller")
+        spec.build(n_state=2, n_action=2)  # fail on a bad controller before any work
+        logs = generate_car(spec, args.runs, args.steps, args.seed, **world)
+    else:
+        logs = generate_car_versions(args.runs, args.steps, args.seed, args.version, **world)
+    paths, note = _write(args, lambda: write_car_logs(logs, args.out))
+    return f"wrote {len(paths)} car twin logs to {args.out} (pattern car_{{kp_steer}}_{{kp_speed}}_{{run}}.csv{note})"
 
 
 def cmd_effects(args: argparse.Namespace) -> int:

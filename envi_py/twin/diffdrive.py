@@ -37,7 +37,7 @@ from envi_py.controllers import ControllerSpec
 from envi_py.logs import Log
 
 from .effects import EFFECTS, Effect, Param, colour_reading, effect_params, steering_command
-from .generate import lane_logs, sample_periods
+from .generate import drive, lane_logs, sample_periods
 
 SUBSTEPS = 4  # Euler sub-steps per control period: the motors' time constant is a few periods
 
@@ -222,6 +222,13 @@ class DiffDriveBatch:
         else:
             self.sensed = surface
 
+    def start_logging(self, elapsed_s: float) -> None:
+        """The first logged row: battery sag counts from here and the kick schedule, drawn from the
+        start of the warmup, moves back by the ``elapsed_s`` seconds the warmup took."""
+        self.t = 0.0
+        if self.next_kick is not None:
+            self.next_kick = self.next_kick - elapsed_s
+
     def patches_on(self) -> bool:
         return "patches" in self.fx and self.fx["patches"]["per_m"] > 0
 
@@ -251,21 +258,7 @@ def generate_diffdrive(
     logged, moving = sample_periods(active, profile.period_ms, (runs, total), rng)
     batch = DiffDriveBatch(profile, active, runs, rng)
     batch.horizon_s = max(float(moving[:, profile.warmup :].sum(1).mean()) / 1000, 1e-9)
-    ctrl = controller.build()
-    ctrl.reset(runs)
-    color, angle = np.empty((runs, steps)), np.empty((runs, steps))
-    for i in range(total):
-        if i == profile.warmup:
-            batch.t = 0.0  # battery sag counts from the first logged row
-            if batch.next_kick is not None:
-                batch.next_kick = batch.next_kick - float(moving[:, :i].sum(1).mean()) / 1000
-        c = batch.read()
-        a = np.asarray(ctrl(c[:, None]), dtype=np.float64).reshape(runs, -1)[:, 0]
-        if i >= profile.warmup:
-            color[:, i - profile.warmup], angle[:, i - profile.warmup] = c, a
-        batch.apply(a, moving[:, i] / 1000)
-    dt = logged[:, profile.warmup :]
-    time = np.concatenate([np.zeros((runs, 1)), np.cumsum(dt[:, :-1], axis=1)], axis=1)
+    time, color, angle = drive(batch, controller, profile.warmup, logged, moving)
     provenance = {"world": "diffdrive", "effects": active, "injected": sorted(active), "seed": seed}
     return lane_logs(
         controller, time, color, angle, profile.period_ms, f"diffdrive_{seed}", provenance, profile.to_json()

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -45,18 +45,42 @@ def simulate(
     horizon = float(moving[:, profile.warmup :].sum(1).mean()) / 1000
     dist = profile.speed * 1.5 * float(moving.sum(1).max()) / 1000
     batch = Batch(profile, effects, runs, rng, horizon, dist)
+    return drive(batch, controller, profile.warmup, logged, moving)
+
+
+class LoggedWorld(Protocol):
+    """What :func:`drive` needs of a batch of twin runs (both world families' batches have it)."""
+
+    def read(self) -> np.ndarray: ...
+
+    def apply(self, angle_deg: np.ndarray, dt_s: np.ndarray) -> None: ...
+
+    def start_logging(self, elapsed_s: float) -> None: ...
+
+
+def drive(
+    batch: LoggedWorld, controller: ControllerSpec, warmup: int, logged: np.ndarray, moving: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The closed loop of every twin world: ``batch`` driven by ``controller`` for the columns of
+    ``moving`` (R, warmup + T) (the periods the robot moves, ms), the first ``warmup`` ticks unlogged.
+    One function owns it so the steered and the diffdrive twins log the same way: the controller
+    reads the colour each tick, the world is told when logging starts (``start_logging`` with the
+    mean seconds moved so far), and time is the cumulative logged period from 0. Returns time (R, T)
+    ms, colour (R, T), angle (R, T)."""
+    runs, total = moving.shape
+    steps = total - warmup
     ctrl = controller.build()
     ctrl.reset(runs)
     color, angle = np.empty((runs, steps)), np.empty((runs, steps))
     for i in range(total):
-        if i == profile.warmup:
-            batch.t = 0.0  # battery sag counts from the first logged row
+        if i == warmup:
+            batch.start_logging(float(moving[:, :i].sum(1).mean()) / 1000)
         c = batch.read()
         a = np.asarray(ctrl(c[:, None]), dtype=np.float64).reshape(runs, -1)[:, 0]
-        if i >= profile.warmup:
-            color[:, i - profile.warmup], angle[:, i - profile.warmup] = c, a
+        if i >= warmup:
+            color[:, i - warmup], angle[:, i - warmup] = c, a
         batch.apply(a, moving[:, i] / 1000)
-    dt = logged[:, profile.warmup :]
+    dt = logged[:, warmup:]
     time = np.concatenate([np.zeros((runs, 1)), np.cumsum(dt[:, :-1], axis=1)], axis=1)
     return time, color, angle
 

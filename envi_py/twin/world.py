@@ -74,6 +74,10 @@ class Batch:
             blend = blend**self.p.gamma
         return self.p.black + (self.white_run - self.p.black) * blend
 
+    def start_logging(self, elapsed_s: float) -> None:
+        """The first logged row: battery sag counts from here (the warmup's ``elapsed_s`` is not needed)."""
+        self.t = 0.0
+
     def read(self) -> np.ndarray:
         """The colour readings now, shape (N,), after the sensor effects (unrounded unless quantised)."""
         return colour_reading(self, self.sensed, None)
