@@ -214,6 +214,8 @@ std::string py_float(double v) {
   return out + digits.substr(0, size_t(exp + 1)) + "." + digits.substr(size_t(exp + 1));
 }
 
+std::string json_number(double v) { return std::isfinite(v) ? py_float(v) : "null"; }
+
 Json Json::object_of(std::vector<std::pair<std::string, Json>> members) {
   Json j;
   j.type = Type::Object;
@@ -222,8 +224,10 @@ Json Json::object_of(std::vector<std::pair<std::string, Json>> members) {
 }
 
 namespace {
+// Python's json.dumps writes Infinity for an open channel range, and the readers on both sides
+// accept it there; NaN is never a value (both readers refuse it), so it is never written either.
 std::string dump_number(const Json& v) {
-  if (std::isnan(v.number)) return "NaN";
+  if (std::isnan(v.number)) throw std::invalid_argument("JSON: NaN is not a value and is not written");
   if (std::isinf(v.number)) return v.number > 0 ? "Infinity" : "-Infinity";
   if (v.integer) return std::to_string(static_cast<long long>(v.number));
   return py_float(v.number);
