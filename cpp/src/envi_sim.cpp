@@ -81,6 +81,7 @@ long to_long(const std::string& flag, const std::string& v, long lo, long hi) {
   long x = std::strtol(v.c_str(), &end, 10);
   if (v.empty() || *end || std::isspace(static_cast<unsigned char>(v[0])))
     throw std::invalid_argument(flag + ": not an integer: " + v);
+  if (errno != ERANGE && x < 0 && lo == 0) throw std::invalid_argument(flag + " must not be negative, not " + v);
   if (errno == ERANGE || x < lo || x > hi)
     throw std::invalid_argument(flag + " must be between " + std::to_string(lo) + " and " + std::to_string(hi) + ", not " + v);
   return x;
