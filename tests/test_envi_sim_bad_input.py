@@ -130,6 +130,13 @@ def test_the_uncorrupted_log_passes_both_readers(model, tmp_path):
     assert sorted(p.name for p in (tmp_path / "sim").iterdir()) == ["log_30_0-sim0.csv", "log_30_0-sim0.meta.json"]
 
 
+def test_an_out_folder_with_a_trailing_slash_is_created(model, init_log, tmp_path):
+    """The checks of --out before any work read 'sim/' as the folder sim, as the usage shows it."""
+    done = run_sim(model, [init_log], tmp_path, "--out", f"{tmp_path / 'sim'}/")
+    assert done.returncode == 0, done.stderr
+    assert (tmp_path / "sim" / "log_30_0-sim0.csv").is_file()
+
+
 def test_a_fifo_is_refused_without_hanging(model, tmp_path):
     path = tmp_path / "log_30_0.csv"
     os.mkfifo(path)

@@ -336,7 +336,9 @@ double free_bytes(const std::string& path) {
   return double(vfs.f_bavail) * double(vfs.f_frsize);
 }
 
-std::string parent_of(const std::string& path) {
+// The folder holding `path` ("sim/" and "sim" alike: the folder holding sim).
+std::string parent_of(std::string path) {
+  while (path.size() > 1 && path.back() == '/') path.pop_back();
   size_t slash = path.find_last_of('/');
   return slash == std::string::npos ? "." : slash == 0 ? "/" : path.substr(0, slash);
 }
