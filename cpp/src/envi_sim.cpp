@@ -45,15 +45,17 @@ const char* kUsage =
     "  --steps T            steps after the initial window (default: each log's length minus the history)\n"
     "  --runs N             runs per initial window (default 1)\n"
     "  --seed S             seed of a stochastic model's draws (default 0)\n"
-    "  --threads K          worker threads (default 0: one per core)\n"
-    "  --block B            runs per block of the batched engine (default 256)\n"
+    "  --threads K          worker threads (default 0: one per core; at most 1024)\n"
+    "  --block B            runs per block of the batched engine (default 256; 1 to 65536)\n"
     "  --out DIR            write every run as a log (CSV + .meta.json sidecar) into DIR\n"
     "  --metrics FILE|-     write the driving metrics as JSON (- for standard output)\n"
     "  --metrics-only       keep no traces, only the metrics (needs --metrics)\n"
     "  --centre X           lane centre of the metrics (default 40)\n"
     "  --band X             half-width of the steady band (default 10)\n"
     "  --skip N             rows left out of the metrics (default: the model's history)\n"
-    "Options take their value as --opt VALUE or --opt=VALUE. Errors: one line, exit code 2.\n";
+    "Options take their value as --opt VALUE or --opt=VALUE. Errors: one line, exit code 2.\n"
+    "Counts are refused before any work when their buffers, metrics or logs cannot fit this machine\n"
+    "(cpp/README.md, Limits of envi_sim).\n";
 
 struct Args {
   std::string model, controller, out, metrics;
