@@ -10,11 +10,14 @@ import json
 import os
 import re
 import subprocess
+import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from envi_py.export import export
 from envi_py.logs import Log, load_logs, sidecar_path, write_log
@@ -135,6 +138,46 @@ def test_an_out_folder_with_a_trailing_slash_is_created(model, init_log, tmp_pat
     done = run_sim(model, [init_log], tmp_path, "--out", f"{tmp_path / 'sim'}/")
     assert done.returncode == 0, done.stderr
     assert (tmp_path / "sim" / "log_30_0-sim0.csv").is_file()
+
+
+#: Bytes a damaged or hand-edited CSV tends to hold: digits, separators, signs, line ends, quotes,
+#: the letters of nan/inf/hex, a NUL and a byte that is not UTF-8.
+DAMAGE = b'0123456789,.-+eE\n\r "naifx\x00\xff'
+
+
+@settings(max_examples=60, deadline=None, database=None)
+@given(
+    edits=st.lists(
+        st.tuples(st.sampled_from(["set", "delete", "insert"]), st.integers(0, 10_000), st.sampled_from(DAMAGE)),
+        min_size=1,
+        max_size=3,
+    )
+)
+def test_both_readers_agree_on_a_damaged_log(model, edits):
+    """A valid log with a few bytes changed, deleted or inserted: envi_sim accepts it exactly when
+    the Python reader does, and never crashes (exit 0 or 2, one line when refused)."""
+    data = bytearray(("\n".join(LINES) + "\n").encode())
+    for op, where, byte in edits:
+        i = where % len(data)
+        if op == "set":
+            data[i] = byte
+        elif op == "delete":
+            del data[i]
+        else:
+            data.insert(i, byte)
+    with tempfile.TemporaryDirectory() as d:
+        path = Path(d) / "log_30_0.csv"
+        path.write_bytes(bytes(data))
+        try:
+            load_logs([path], min_length=HISTORY)
+            python_accepts = True
+        except ValueError:
+            python_accepts = False
+        done = run_sim(model, [path], Path(d), "--metrics-only", "--metrics", "-")
+    assert done.returncode in (0, 2), done.stderr
+    assert (done.returncode == 0) == python_accepts, (bytes(data), done.stderr)
+    if done.returncode == 2:
+        assert len(done.stderr.splitlines()) == 1 and str(path) in done.stderr
 
 
 def test_a_fifo_is_refused_without_hanging(model, tmp_path):
