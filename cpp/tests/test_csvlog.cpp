@@ -93,6 +93,11 @@ int main() {
 
   CHECK(is_run_id("log_30_0-sim1.x") && !is_run_id("") && !is_run_id(".hidden") && !is_run_id("a/b") && !is_run_id(std::string(121, 'a')));
 
+  // the JSON reader keeps to JSON's grammar, as Python's json does (a sidecar both must refuse)
+  for (const char* bad : {"01", "1.", ".5", "+1", "-", "1e", "\"a\nb\"", "[1,]"}) CHECK_THROWS(std::runtime_error, Json::parse(bad), "JSON");
+  CHECK(Json::parse("-0.5e+2").number == -50 && Json::parse("1e999").number == INFINITY && Json::parse("1e-999").number == 0);
+  CHECK(Json::parse("12").integer && !Json::parse("12.0").integer);
+
   // the JSON writer: null for a non-finite figure in strict output, Infinity kept, NaN never written
   CHECK(json_number(NAN) == "null" && json_number(INFINITY) == "null" && json_number(0.5) == "0.5");
   Json inf;
