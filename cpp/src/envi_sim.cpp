@@ -7,6 +7,10 @@
 // starts, so memory stays flat however many runs are asked for (with --metrics-only nothing but
 // the running metric sums outlives a block).
 #include <algorithm>
+#include <cctype>
+#include <cerrno>
+#include <cmath>
+#include <limits>
 #include <cstdio>
 #include <cstring>
 #include <fstream>
@@ -16,6 +20,8 @@
 #include <mutex>
 #include <sstream>
 #include <sys/stat.h>
+#include <sys/statvfs.h>
+#include <unistd.h>
 
 #include "envi/controller.hpp"
 #include "envi/csvlog.hpp"
@@ -39,15 +45,17 @@ const char* kUsage =
     "  --steps T            steps after the initial window (default: each log's length minus the history)\n"
     "  --runs N             runs per initial window (default 1)\n"
     "  --seed S             seed of a stochastic model's draws (default 0)\n"
-    "  --threads K          worker threads (default 0: one per core)\n"
-    "  --block B            runs per block of the batched engine (default 256)\n"
+    "  --threads K          worker threads (default 0: one per core; at most 1024)\n"
+    "  --block B            runs per block of the batched engine (default 256; 1 to 65536)\n"
     "  --out DIR            write every run as a log (CSV + .meta.json sidecar) into DIR\n"
     "  --metrics FILE|-     write the driving metrics as JSON (- for standard output)\n"
     "  --metrics-only       keep no traces, only the metrics (needs --metrics)\n"
     "  --centre X           lane centre of the metrics (default 40)\n"
     "  --band X             half-width of the steady band (default 10)\n"
     "  --skip N             rows left out of the metrics (default: the model's history)\n"
-    "Options take their value as --opt VALUE or --opt=VALUE. Errors: one line, exit code 2.\n";
+    "Options take their value as --opt VALUE or --opt=VALUE. Errors: one line, exit code 2.\n"
+    "Counts are refused before any work when their buffers, metrics or logs cannot fit this machine\n"
+    "(cpp/README.md, Limits of envi_sim).\n";
 
 struct Args {
   std::string model, controller, out, metrics;
@@ -59,18 +67,44 @@ struct Args {
   bool metrics_only = false;
 };
 
-long to_long(const std::string& flag, const std::string& v) {
+// Limits of the numeric options, each for a reason (cpp/README.md, "Limits of envi_sim"):
+// a worker thread beyond this many only time-slices the same cores and reserves its own stack;
+constexpr long kMaxThreads = 1024;
+// a block is one GEMM's columns and is held per thread: beyond this it stops paying and only grows
+// the per-thread buffers (the engine already caps it at the number of runs);
+constexpr long kMaxBlock = 65536;
+// the random draws are keyed by a 32-bit step counter (rng.hpp): past it a run would repeat draws.
+constexpr long kMaxLength = 0xFFFFFFFFL;
+
+// An integer option in [lo, hi]; anything else (a fraction, an overflow, a sign) names the option.
+long to_long(const std::string& flag, const std::string& v, long lo, long hi) {
   char* end = nullptr;
+  errno = 0;
   long x = std::strtol(v.c_str(), &end, 10);
-  if (v.empty() || *end) throw std::invalid_argument(flag + ": not an integer: " + v);
+  if (v.empty() || *end || std::isspace(static_cast<unsigned char>(v[0])))
+    throw std::invalid_argument(flag + ": not an integer: " + v);
+  if (errno != ERANGE && x < 0 && lo == 0) throw std::invalid_argument(flag + " must not be negative, not " + v);
+  if (errno == ERANGE || x < lo || x > hi)
+    throw std::invalid_argument(flag + " must be between " + std::to_string(lo) + " and " + std::to_string(hi) + ", not " + v);
   return x;
 }
 
+// A finite number: nan or inf on the command line would be written into the metrics as such.
 double to_double(const std::string& flag, const std::string& v) {
   char* end = nullptr;
   double x = std::strtod(v.c_str(), &end);
-  if (v.empty() || *end) throw std::invalid_argument(flag + ": not a number: " + v);
+  if (v.empty() || *end || std::isspace(static_cast<unsigned char>(v[0])))
+    throw std::invalid_argument(flag + ": not a number: " + v);
+  if (!std::isfinite(x)) throw std::invalid_argument(flag + " must be a finite number, not " + v);
   return x;
+}
+
+// Refuses a FIFO, device or folder before it is opened: reading one would hang or mean nothing.
+void require_regular_file(const std::string& flag, const std::string& path) {
+  struct stat st {};
+  if (::stat(path.c_str(), &st) != 0)
+    throw std::invalid_argument(flag + " " + path + ": cannot read (" + std::strerror(errno) + ")");
+  if (!S_ISREG(st.st_mode)) throw std::invalid_argument(flag + " " + path + ": not a regular file");
 }
 
 Args parse(int argc, char** argv) {
@@ -85,7 +119,7 @@ Args parse(int argc, char** argv) {
     }
     auto val = [&]() -> std::string {
       if (has_inline) return inline_value;
-      if (i + 1 >= argc) throw std::invalid_argument(f + " needs a value");
+      if (i + 1 >= argc || std::strncmp(argv[i + 1], "--", 2) == 0) throw std::invalid_argument(f + " needs a value");
       return argv[++i];
     };
     // the values of a list option run up to the next option
@@ -97,30 +131,31 @@ Args parse(int argc, char** argv) {
     else if (f == "--init") more(a.init);
     else if (f == "--controller") a.controller = val();
     else if (f == "--param") more(a.params);
-    else if (f == "--steps") {
-      a.steps = to_long(f, val());
-      if (a.steps < 0) throw std::invalid_argument("--steps must not be negative");
-    }
-    else if (f == "--runs") a.runs = to_long(f, val());
-    else if (f == "--seed") a.seed = uint64_t(to_long(f, val()));
-    else if (f == "--threads") a.threads = int(to_long(f, val()));
-    else if (f == "--block") a.block = int(to_long(f, val()));
+    else if (f == "--steps") a.steps = to_long(f, val(), 0, kMaxLength);
+    else if (f == "--runs") a.runs = to_long(f, val(), 1, std::numeric_limits<long>::max());
+    else if (f == "--seed") a.seed = uint64_t(to_long(f, val(), 0, std::numeric_limits<long>::max()));
+    else if (f == "--threads") a.threads = int(to_long(f, val(), 0, kMaxThreads));
+    else if (f == "--block") a.block = int(to_long(f, val(), 1, kMaxBlock));
     else if (f == "--out") a.out = val();
     else if (f == "--metrics") a.metrics = val();
     else if (f == "--metrics-only" && !has_inline) a.metrics_only = true;
     else if (f == "--centre") a.centre = to_double(f, val());
-    else if (f == "--band") a.band = to_double(f, val());
-    else if (f == "--skip") a.skip = to_long(f, val());
+    else if (f == "--band") {
+      const std::string v = val();
+      a.band = to_double(f, v);
+      if (a.band < 0) throw std::invalid_argument("--band must not be negative, not " + v);
+    }
+    else if (f == "--skip") a.skip = to_long(f, val(), 0, kMaxLength);
     else if (f == "-h" || f == "--help") { std::cout << kUsage; std::exit(0); }
     else throw std::invalid_argument("unknown option " + std::string(argv[i]) + " (see --help)");
   }
   if (a.model.empty() || a.init.empty()) throw std::invalid_argument("--model and --init are required (see --help)");
-  if (a.runs < 1) throw std::invalid_argument("--runs must be at least 1");
   if (a.metrics_only && a.metrics.empty()) throw std::invalid_argument("--metrics-only needs --metrics FILE (or -)");
   if (!a.metrics_only && a.out.empty() && a.metrics.empty()) throw std::invalid_argument("nothing to write: give --out and/or --metrics");
   if (!a.params.empty() && (a.controller.empty() || a.controller[0] == '{' || a.controller[0] == '@'))
     throw std::invalid_argument("--param goes with a controller given by name (--controller NAME)");
   if (!a.controller.empty() && a.controller[0] == '@') {
+    require_regular_file("--controller", a.controller.substr(1));
     std::ifstream in(a.controller.substr(1));
     if (!in) throw std::invalid_argument("cannot read controller file " + a.controller.substr(1));
     std::stringstream ss;
@@ -191,8 +226,32 @@ struct MetricRows {
   long chunk_first = 0;
 };
 
+bool all_finite(const Json& v) {
+  if (v.type == Json::Type::Number && !std::isfinite(v.number)) return false;
+  for (const Json& x : v.array)
+    if (!all_finite(x)) return false;
+  for (const auto& kv : v.object)
+    if (!all_finite(kv.second)) return false;
+  return true;
+}
+
+// A --param value as envi_py.controllers.parse_params reads it: float(value) where that parses
+// (surrounding spaces and a sign allowed), else the text. A non-finite number is refused, as the
+// Python CLI refuses it (finite_numbers): a NaN gain simulates NaN logs.
+Json param_value(const std::string& item, const std::string& value) {
+  std::string t = value;
+  t.erase(0, t.find_first_not_of(" \t\r\n\f\v") == std::string::npos ? t.size() : t.find_first_not_of(" \t\r\n\f\v"));
+  t.erase(t.find_last_not_of(" \t\r\n\f\v") + 1);
+  const bool hex = t.find_first_of("xX") != std::string::npos;  // strtod reads hex, float() does not
+  char* end = nullptr;
+  double v = std::strtod(t.c_str(), &end);
+  if (t.empty() || hex || end != t.c_str() + t.size()) return str(value);
+  if (!std::isfinite(v)) throw std::invalid_argument("--param " + item + ": not a finite number");
+  return num(v);
+}
+
 // The controller to run: a JSON spec as given, a registered name with its --param values, or the
-// model's only training controller (its envi.controllers metadata).
+// model's only training controller (its envi.controllers metadata). Its numbers must be finite.
 Json controller_spec(const Args& a, const Model& m) {
   if (a.controller.empty()) {
     Json list = Json::parse(metadata(m, "envi.controllers"));
@@ -200,25 +259,32 @@ Json controller_spec(const Args& a, const Model& m) {
     if (n != 1)
       throw std::invalid_argument(a.model + ": the model records " + std::to_string(n) +
                                   " training controller(s); choose one with --controller");
+    if (!all_finite(list.array[0])) throw std::invalid_argument(a.model + ": the model's training controller holds a non-finite number");
     return list.array[0];
   }
   size_t first = a.controller.find_first_not_of(" \t\r\n");
   if (first != std::string::npos && a.controller[first] == '{') {
+    Json spec;
     try {
-      return Json::parse(a.controller);
+      spec = Json::parse(a.controller);
     } catch (const std::exception& e) {
       throw std::invalid_argument(std::string("--controller: ") + e.what());
     }
+    if (!all_finite(spec)) throw std::invalid_argument("--controller: the spec holds a non-finite number (NaN or Infinity)");
+    return spec;
   }
-  std::vector<std::pair<std::string, Json>> params;  // as envi_py.controllers.parse_params
+  std::vector<std::pair<std::string, Json>> params;  // as envi_py.controllers.parse_params: the last of a name wins
   for (const std::string& item : a.params) {
     size_t eq = item.find('=');
     if (eq == std::string::npos || eq == 0) throw std::invalid_argument("--param " + item + ": expected name=value");
-    std::string value = item.substr(eq + 1);
-    char* end = nullptr;
-    double v = std::strtod(value.c_str(), &end);
-    bool numeric = !value.empty() && end == value.c_str() + value.size();
-    params.emplace_back(item.substr(0, eq), numeric ? num(v) : str(value));
+    std::string key = item.substr(0, eq);
+    key.erase(0, key.find_first_not_of(" \t"));
+    key.erase(key.find_last_not_of(" \t") + 1);
+    if (key.empty()) throw std::invalid_argument("--param " + item + ": expected name=value");
+    Json v = param_value(item, item.substr(eq + 1));
+    auto same = std::find_if(params.begin(), params.end(), [&](const auto& kv) { return kv.first == key; });
+    if (same != params.end()) same->second = v;
+    else params.emplace_back(key, v);
   }
   return obj({{"name", str(a.controller)}, {"params", obj(std::move(params))}});
 }
@@ -243,7 +309,116 @@ void check_metrics_apply(const Model& m, const std::string& path) {
                               "' declares other goals: write traces with --out and score them with envi verify or envi check");
 }
 
+// Runs per chunk of a length group: a whole number of blocks (so block boundaries, hence results,
+// do not depend on it), enough to keep every thread busy; logs bound it by memory (~64 MB of traces).
+long chunk_runs(long length, long channels, const Plan& full, bool want_logs) {
+  long blocks_per_chunk = 16;
+  if (want_logs) blocks_per_chunk = std::max<long>(1, std::min<long>(16, (long(8) << 20) / std::max<long>(1, length * channels * full.block)));
+  return blocks_per_chunk * full.block;
+}
+
+double gib(double bytes) { return bytes / double(1L << 30); }
+
+std::string gib_text(double bytes) {
+  char buf[32];
+  std::snprintf(buf, sizeof buf, "%.1f GiB", gib(bytes));
+  return buf;
+}
+
+// Free bytes of the file system holding `path` (a folder) or, for "-", standard output when it is
+// a file; -1 when that cannot be known (a pipe or terminal).
+double free_bytes(const std::string& path) {
+  struct statvfs vfs {};
+  if (path == "-") {
+    struct stat st {};
+    if (::fstat(STDOUT_FILENO, &st) != 0 || !S_ISREG(st.st_mode) || ::fstatvfs(STDOUT_FILENO, &vfs) != 0) return -1;
+  } else if (::statvfs(path.c_str(), &vfs) != 0) {
+    return -1;
+  }
+  return double(vfs.f_bavail) * double(vfs.f_frsize);
+}
+
+// The folder holding `path` ("sim/" and "sim" alike: the folder holding sim).
+std::string parent_of(std::string path) {
+  while (path.size() > 1 && path.back() == '/') path.pop_back();
+  size_t slash = path.find_last_of('/');
+  return slash == std::string::npos ? "." : slash == 0 ? "/" : path.substr(0, slash);
+}
+
+// Refuses, before any work, a run count (with the steps) that this machine cannot hold or whose
+// results cannot be written (cpp/README.md, "Limits of envi_sim"): the index arithmetic must fit
+// 64 bits, the buffers envi_sim keeps at once must fit in physical memory, so must the metrics
+// document's rows in the reader that loads it, and what envi_sim must at least write (a log per
+// run, a metrics row per run) must fit in the destination's free space.
+void check_capacity(const Args& a, const Model& m, const std::vector<Group>& groups, bool want_logs, bool want_metrics) {
+  const long l = m.history, c = m.channels();
+  long windows = 0, total = 0;
+  for (const Group& g : groups) windows += long(g.windows.size());
+  const std::string runs = "--runs " + std::to_string(a.runs);
+  if (__builtin_mul_overflow(windows, a.runs, &total))
+    throw std::invalid_argument(runs + ": " + std::to_string(windows) + " initial logs x that many runs do not fit a 64-bit count");
+  double held = 0, logs_bytes = 0;
+  for (const Group& g : groups) {
+    const long length = l + g.steps, group_runs = long(g.windows.size()) * a.runs;
+    long cells = 0;
+    if (__builtin_mul_overflow(group_runs, length * c, &cells))
+      throw std::invalid_argument(runs + " x " + std::to_string(length) + " rows x " + std::to_string(c) + " channels do not fit a 64-bit index");
+    Job job;
+    job.windows = long(g.windows.size());
+    job.runs = a.runs;
+    job.threads = a.threads;
+    job.block = a.block;
+    const Plan full = plan(job);
+    const double chunk = double(std::min(chunk_runs(length, c, full, want_logs), group_runs));
+    // the engine's per-thread block buffers (engine.cpp: hidden activations, window ring, rows)
+    const double engine = double(full.threads) * full.block * (16.0 * m.max_width() + 8.0 * m.in_features() + 24.0 * c);
+    double group = engine + chunk * 8 * 8;  // a chunk's metric rows
+    if (want_logs) group += chunk * double(length) * double(c) * 8 + double(length) * 8;  // traces, times
+    held = std::max(held, group);
+    logs_bytes += double(group_runs) * (double(length) * double(c + 1) * 2 + 200);  // >= 1 digit and 1 separator a cell
+  }
+  if (want_metrics && groups.size() > 1) held += double(total) * 8 * 8;  // kept in window order until the end
+  const double memory = double(::sysconf(_SC_PHYS_PAGES)) * double(::sysconf(_SC_PAGE_SIZE));
+  if (memory > 0 && held > memory)
+    throw std::invalid_argument(runs + (a.steps >= 0 ? " --steps " + std::to_string(a.steps) : std::string()) + " needs " +
+                                gib_text(held) + " of buffers, more than this machine's " + gib_text(memory) +
+                                " of memory (fewer runs or steps, or fewer lengths of initial log at once)");
+  // The metrics are one JSON document with a row per run: whoever reads it (json.load, envi_py)
+  // holds at least its eight doubles a run, on standard output as much as in a file.
+  if (want_metrics && memory > 0 && double(total) * 64 > memory)
+    throw std::invalid_argument(runs + ": a metrics document of " + std::to_string(total) + " rows needs at least " +
+                                gib_text(double(total) * 64) + " in the reader that loads it, more than this machine's " +
+                                gib_text(memory) + " of memory (fewer runs, or several documents)");
+  auto fits = [&](const std::string& where, const std::string& what, double bytes) {
+    const double space = free_bytes(where);
+    if (space >= 0 && bytes > space)
+      throw std::invalid_argument(runs + ": " + what + " would take at least " + gib_text(bytes) + ", and " +
+                                  (where == "-" ? std::string("standard output's file system") : where) + " has " +
+                                  gib_text(space) + " free");
+  };
+  struct stat st {};
+  if (want_logs) fits(::stat(a.out.c_str(), &st) == 0 ? a.out : parent_of(a.out), "the logs in --out " + a.out, logs_bytes);
+  if (want_metrics)  // a row of eight numbers a run, each at least "0.0" and its separator
+    fits(a.metrics == "-" ? "-" : parent_of(a.metrics), "the metrics in --metrics " + a.metrics, double(total) * 42);
+}
+
+// The output folder, checked before any work and created only after every check has passed.
+void check_out_folder(const std::string& out) {
+  struct stat st {};
+  if (::stat(out.c_str(), &st) == 0) {
+    if (!S_ISDIR(st.st_mode)) throw std::invalid_argument("--out " + out + ": exists and is not a folder");
+    if (::access(out.c_str(), W_OK) != 0) throw std::invalid_argument("--out " + out + ": cannot write (" + std::strerror(errno) + ")");
+    return;
+  }
+  const std::string parent = parent_of(out);
+  if (::stat(parent.c_str(), &st) != 0 || !S_ISDIR(st.st_mode))
+    throw std::invalid_argument("--out " + out + ": its parent folder " + parent + " does not exist");
+  if (::access(parent.c_str(), W_OK) != 0) throw std::invalid_argument("--out " + out + ": cannot create (" + std::strerror(errno) + ")");
+}
+
 int run(const Args& a) {
+  require_regular_file("--model", a.model);
+  for (const auto& p : a.init) require_regular_file("--init", p);
   Model m = load_model_file(a.model);
   if (!a.metrics.empty()) check_metrics_apply(m, a.model);
   Json spec = controller_spec(a, m);
@@ -261,12 +436,26 @@ int run(const Args& a) {
     if (g == groups.end()) groups.push_back({steps, {}}), g = groups.end() - 1;
     g->windows.push_back(long(windows.size()) - 1);
   }
-  const long K = long(windows.size()), R = K * a.runs;
   MetricConfig mcfg{a.centre, a.band, a.skip >= 0 ? a.skip : l, 0};
   const bool want_logs = !a.metrics_only && !a.out.empty(), want_metrics = !a.metrics.empty();
-  for (const Group& g : groups)
-    if (want_metrics && l + g.steps - mcfg.skip <= 0) throw std::invalid_argument("nothing left to score after --skip rows");
-  if (want_logs) ::mkdir(a.out.c_str(), 0777);
+  for (const Group& g : groups) {
+    if (l + g.steps > kMaxLength)
+      throw std::invalid_argument((a.steps >= 0 ? "--steps " + std::to_string(a.steps) : "an initial log's length") +
+                                  ": runs longer than " + std::to_string(kMaxLength) + " rows would repeat their random draws");
+    if (want_metrics && l + g.steps - mcfg.skip <= 0)
+      throw std::invalid_argument("--skip " + std::to_string(mcfg.skip) + ": runs of " + std::to_string(l + g.steps) +
+                                  " rows leave nothing to score");
+  }
+  if (want_logs) {  // every run's files are named by its initial log's run id: two alike would overwrite
+    for (size_t i = 0; i < windows.size(); ++i)
+      for (size_t j = 0; j < i; ++j)
+        if (windows[i].run_id == windows[j].run_id)
+          throw std::invalid_argument("--init " + a.init[i] + ": run id '" + windows[i].run_id + "' is also " + a.init[j] +
+                                      "'s; their simulated logs in --out would overwrite each other");
+    check_out_folder(a.out);
+  }
+  check_capacity(a, m, groups, want_logs, want_metrics);
+  const long K = long(windows.size()), R = K * a.runs;
 
   std::ofstream metrics_file;
   std::ostream* mout = nullptr;
@@ -277,7 +466,7 @@ int run(const Args& a) {
     if (a.metrics == "-") mout = &std::cout;
     else {
       metrics_file.open(a.metrics);
-      if (!metrics_file) throw std::runtime_error(a.metrics + ": cannot write");
+      if (!metrics_file) throw std::runtime_error("--metrics " + a.metrics + ": cannot write");
       mout = &metrics_file;
     }
     std::string steps;
@@ -287,12 +476,14 @@ int run(const Args& a) {
     if (!streamed) steps += "]";
     *mout << "{\"metrics\": [";
     for (int k = 0; k < 8; ++k) *mout << (k ? ", " : "") << '"' << kMetricNames[k] << '"';
-    *mout << "], \"config\": {\"centre\": " << py_float(mcfg.centre) << ", \"band\": " << py_float(mcfg.band)
+    *mout << "], \"config\": {\"centre\": " << json_number(mcfg.centre) << ", \"band\": " << json_number(mcfg.band)
           << ", \"skip\": " << mcfg.skip << ", \"channel\": " << mcfg.channel << "}, \"model\": " << json_quote(a.model)
           << ", \"controller\": " << ctrl.to_json() << ", \"windows\": " << K << ", \"runs_per_window\": " << a.runs
           << ", \"steps\": " << steps << ", \"seed\": " << a.seed << ",\n\"per_run\": [";
     if (!streamed) all_metrics.assign(size_t(R) * 8, 0.0);
   }
+  if (want_logs && ::mkdir(a.out.c_str(), 0777) != 0 && errno != EEXIST)
+    throw std::runtime_error("--out " + a.out + ": cannot create (" + std::strerror(errno) + ")");
   std::vector<double> sums(8, 0.0), traces;
   MetricRows mrows;
   const std::string schema = metadata(m, "envi.schema");
@@ -313,11 +504,7 @@ int run(const Args& a) {
     job.block = a.block;
     const Plan full = plan(job);
     threads_used = std::max(threads_used, full.threads);
-    // Chunk: a whole number of blocks (so block boundaries, hence results, do not depend on it),
-    // enough to keep every thread busy; logs bound it by memory (~64 MB of traces).
-    long blocks_per_chunk = 16;
-    if (want_logs) blocks_per_chunk = std::max<long>(1, std::min<long>(16, (long(8) << 20) / std::max<long>(1, length * c * full.block)));
-    const long chunk = blocks_per_chunk * full.block;
+    const long chunk = chunk_runs(length, c, full, want_logs);
     for (long first = 0; first < RG; first += chunk) {
       Job part = job;
       part.first_run = first;
@@ -341,7 +528,7 @@ int run(const Args& a) {
           for (int j = 0; j < 8; ++j) sums[size_t(j)] += row[j];
           if (streamed) {
             *mout << (written++ ? ",\n[" : "\n[");
-            for (int j = 0; j < 8; ++j) *mout << (j ? ", " : "") << py_float(row[j]);
+            for (int j = 0; j < 8; ++j) *mout << (j ? ", " : "") << json_number(row[j]);
             *mout << "]";
           } else {
             std::copy_n(row, 8, all_metrics.data() + size_t(k * a.runs + r) * 8);
@@ -373,11 +560,11 @@ int run(const Args& a) {
     if (!streamed)
       for (long g = 0; g < R; ++g) {
         *mout << (g ? ",\n[" : "\n[");
-        for (int j = 0; j < 8; ++j) *mout << (j ? ", " : "") << py_float(all_metrics[size_t(g) * 8 + size_t(j)]);
+        for (int j = 0; j < 8; ++j) *mout << (j ? ", " : "") << json_number(all_metrics[size_t(g) * 8 + size_t(j)]);
         *mout << "]";
       }
     *mout << "],\n\"mean\": [";
-    for (int j = 0; j < 8; ++j) *mout << (j ? ", " : "") << py_float(sums[size_t(j)] / double(R));
+    for (int j = 0; j < 8; ++j) *mout << (j ? ", " : "") << json_number(sums[size_t(j)] / double(R));
     *mout << "]}\n";
     mout->flush();
     if (!*mout) throw std::runtime_error(a.metrics + ": write failed");

@@ -73,11 +73,39 @@ struct Parser {
     if (lit("Infinity")) { v.number = std::numeric_limits<double>::infinity(); return v; }
     if (lit("-Infinity")) { v.number = -std::numeric_limits<double>::infinity(); return v; }
     const char* b = s.data() + i;
-    auto [end, ec] = std::from_chars(b, s.data() + s.size(), v.number);
-    if (ec != std::errc() || end == b) fail("invalid value");
-    v.integer = std::string(b, end).find_first_of(".eE") == std::string::npos;
-    i += static_cast<size_t>(end - b);
+    const size_t n = number_length();  // JSON's grammar, stricter than from_chars ("01", "1.", ".5")
+    if (n == 0) fail("invalid value");
+    auto [end, ec] = std::from_chars(b, b + n, v.number);
+    if (ec == std::errc::result_out_of_range)  // as Python's float(): 1e999 is inf, 1e-999 is 0
+      v.number = std::strtod(std::string(b, n).c_str(), nullptr);
+    else if (ec != std::errc() || end != b + n)
+      fail("invalid value");
+    v.integer = std::string(b, n).find_first_of(".eE") == std::string::npos;
+    i += n;
     return v;
+  }
+  // Length of the number at i by JSON's grammar: -?(0|[1-9][0-9]*)(.[0-9]+)?([eE][+-]?[0-9]+)?;
+  // 0 when there is none. Python's json refuses the rest, and so must every reader of a sidecar.
+  size_t number_length() const {
+    size_t k = i;
+    auto digits = [&]() {
+      size_t from = k;
+      while (k < s.size() && s[k] >= '0' && s[k] <= '9') ++k;
+      return k - from;
+    };
+    if (k < s.size() && s[k] == '-') ++k;
+    if (k < s.size() && s[k] == '0') ++k;
+    else if (digits() == 0) return 0;
+    if (k < s.size() && s[k] == '.') {
+      ++k;
+      if (digits() == 0) return 0;
+    }
+    if (k < s.size() && (s[k] == 'e' || s[k] == 'E')) {
+      ++k;
+      if (k < s.size() && (s[k] == '+' || s[k] == '-')) ++k;
+      if (digits() == 0) return 0;
+    }
+    return k - i;
   }
   static void utf8(std::string& out, unsigned cp) {
     if (cp < 0x80) out += char(cp);
@@ -108,6 +136,7 @@ struct Parser {
     while (i < s.size()) {
       char c = s[i++];
       if (c == '"') return out;
+      if (static_cast<unsigned char>(c) < 0x20) fail("control character in a string");  // as Python's strict json
       if (c != '\\') { out += c; continue; }
       if (i >= s.size()) break;
       char e = s[i++];
@@ -214,6 +243,8 @@ std::string py_float(double v) {
   return out + digits.substr(0, size_t(exp + 1)) + "." + digits.substr(size_t(exp + 1));
 }
 
+std::string json_number(double v) { return std::isfinite(v) ? py_float(v) : "null"; }
+
 Json Json::object_of(std::vector<std::pair<std::string, Json>> members) {
   Json j;
   j.type = Type::Object;
@@ -222,10 +253,12 @@ Json Json::object_of(std::vector<std::pair<std::string, Json>> members) {
 }
 
 namespace {
+// Python's json.dumps writes Infinity for an open channel range, and the readers on both sides
+// accept it there; NaN is never a value (both readers refuse it), so it is never written either.
 std::string dump_number(const Json& v) {
-  if (std::isnan(v.number)) return "NaN";
+  if (std::isnan(v.number)) throw std::invalid_argument("JSON: NaN is not a value and is not written");
   if (std::isinf(v.number)) return v.number > 0 ? "Infinity" : "-Infinity";
-  if (v.integer) return std::to_string(static_cast<long long>(v.number));
+  if (v.integer && std::fabs(v.number) < 9.2e18) return std::to_string(static_cast<long long>(v.number));
   return py_float(v.number);
 }
 }  // namespace

@@ -1,5 +1,12 @@
 // The project's log format (envi_py/logs.py) on the C++ side: read the initial window of a real
 // log, write a simulated run as CSV plus its `.meta.json` sidecar exactly as write_log does.
+//
+// The reader refuses what envi_py.logs.read_log refuses, with the same kind of one-line message
+// naming the file (and row and column): a file that is not a regular UTF-8 text file, a bad
+// header, a short or non-numeric row anywhere in the file, a time that does not increase, a value
+// outside its channel's declared range (a saturating sensor's is clipped), a run id that is not a
+// plain file name, and a sidecar that is not what LogMeta.from_json accepts.
+// tests/test_envi_sim_bad_input.py keeps the two readers from drifting apart.
 #pragma once
 #include <string>
 #include <vector>
@@ -17,7 +24,27 @@ struct InitialWindow {
   long rows = 0;               // data rows in the whole log (its length)
 };
 
-// First `model.history` data rows of a CSV log whose header holds the model's columns (any order).
+// One column a log declares: its name, valid range and whether the sensor saturates there.
+struct LogChannel {
+  std::string name;
+  double low, high;
+  bool saturates = false;
+};
+
+// What a `.meta.json` sidecar declares, checked field by field as LogMeta.from_json checks it.
+struct Sidecar {
+  std::string run_id;  // empty when the sidecar names none
+  std::vector<LogChannel> states, actions, logged;
+};
+
+// A sidecar file's content; throws std::runtime_error naming the file.
+Sidecar read_sidecar(const std::string& path);
+
+// Whether a run id is a plain file name (envi_py.logs.RUN_ID): it names the simulated log files.
+bool is_run_id(const std::string& id);
+
+// First `model.history` data rows of a CSV log that holds the model's columns (any order); every
+// row of the file is checked. Throws std::runtime_error naming the file.
 InitialWindow read_initial_window(const std::string& path, const Model& model);
 
 // Python's _fmt: integers without a decimal point, other values as repr(float).

@@ -31,7 +31,8 @@ struct Json {
   std::vector<double> as_numbers() const;
 };
 
-// json.dumps(value, indent=1) of Python, byte for byte (ints stay ints, floats as repr).
+// json.dumps(value, indent=1) of Python, byte for byte (ints stay ints, floats as repr, an infinity
+// as Infinity); a NaN anywhere throws std::invalid_argument: no reader of the project accepts one.
 std::string dump_indent1(const Json& v, int depth = 0);
 
 // json.dumps(value) of Python: one line, ", " and ": " separators.
@@ -39,6 +40,9 @@ std::string dump(const Json& v);
 
 // Python's repr(float): shortest round-trip digits, exponent form outside 1e-4 <= |v| < 1e16.
 std::string py_float(double v);
+// A number for strict JSON output (envi_sim's metrics): repr(float) when finite, else null, as
+// envi_py.report.files.strict writes a non-finite figure.
+std::string json_number(double v);
 // JSON string literal with Python json.dumps escaping (ensure_ascii=True).
 std::string json_quote(const std::string& s);
 
