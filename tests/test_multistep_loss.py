@@ -37,9 +37,7 @@ def _unrolled(ckpt, logs, horizon, stride):
 def test_one_step_is_behaviour_cloning(car_ckpt, car_logs):
     data, events, loss = _unrolled(car_ckpt, car_logs, horizon=1, stride=1)
     for i in range(len(car_logs)):
-        want = bc_loss(
-            car_ckpt.model, torch.from_numpy(data.X[i]), torch.from_numpy(data.Y[i]), torch.from_numpy(events[i])
-        )
+        want = bc_loss(car_ckpt.model, torch.tensor(data.X[i]), torch.tensor(data.Y[i]), torch.tensor(events[i]))
         torch.testing.assert_close(loss(car_ckpt.model, i, head_loss), want)
 
 
@@ -72,9 +70,9 @@ def test_later_steps_see_the_models_own_predictions(car_ckpt, car_logs):
         # teacher forcing every step (windows of logged rows) would be the mean one-step loss instead
         forced = bc_loss(
             car_ckpt.model,
-            torch.from_numpy(data.X[i][:horizon]),
-            torch.from_numpy(data.Y[i][:horizon]),
-            torch.from_numpy(events[i][:horizon]),
+            torch.tensor(data.X[i][:horizon]),
+            torch.tensor(data.Y[i][:horizon]),
+            torch.tensor(events[i][:horizon]),
         )
         assert not torch.allclose(got, forced)
         assert len(z) >= hist + horizon
