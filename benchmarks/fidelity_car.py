@@ -60,11 +60,11 @@ runs became 12 and 30, but seed 0 lost its good epoch: worst 6.48).
 
 Measured with 20 test sets (2026-11-24; ``--configs bc-res-noise05 --test-sets 20 --load-dir``
 the seed's saved models, and ``--configs twin --test-sets 20``), pooled ratio, worst cell: the twin
-itself 1.33 (no cell above 1.5; a single set's worst reaches 2.56); the default training at seeds
-0-3: 2.20, 1.33, 2.52, 1.64 (7, 0, 5, 2 cells above 1.5; 0, 0, 8, 6 of 4,000 simulated runs run
-away, against 2 of 2,000 real runs by the same rule); the four as a run-level mixture (``--mixture``
-of the four folders, ``--sims 1``): 1.496, 7 of 8,000 run away. The seeds' selection scores (0.034,
-0.026, 0.024, 0.026) do not rank their test ratios.
+itself 1.33 (no cell above 1.5; its worst cell's single-set ratios average 2.56 and reach 12.4);
+the default training at seeds 0-3: 2.20, 1.33, 2.52, 1.64 (7, 0, 5, 2 cells above 1.5; 0, 0, 8, 6
+of 4,000 simulated runs run away, against 2 of 2,000 real runs by the same rule); the four as a
+run-level mixture (``--mixture`` of the four folders, ``--sims 1``): 1.496, 7 of 8,000 run away.
+The seeds' selection scores (0.034, 0.026, 0.024, 0.026) do not rank their test ratios.
 """
 
 from __future__ import annotations
