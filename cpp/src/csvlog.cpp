@@ -168,15 +168,6 @@ bool has_nan(const Json& v) {
   return false;
 }
 
-bool all_finite(const Json& v) {
-  if (v.type == Json::Type::Number && !std::isfinite(v.number)) return false;
-  for (const Json& x : v.array)
-    if (!all_finite(x)) return false;
-  for (const auto& kv : v.object)
-    if (!all_finite(kv.second)) return false;
-  return true;
-}
-
 const char* type_name(const Json& v) {  // Python's type names, as the Python reader's messages say
   switch (v.type) {
     case Json::Type::Null: return "NoneType";

@@ -226,15 +226,6 @@ struct MetricRows {
   long chunk_first = 0;
 };
 
-bool all_finite(const Json& v) {
-  if (v.type == Json::Type::Number && !std::isfinite(v.number)) return false;
-  for (const Json& x : v.array)
-    if (!all_finite(x)) return false;
-  for (const auto& kv : v.object)
-    if (!all_finite(kv.second)) return false;
-  return true;
-}
-
 // A --param value as envi_py.controllers.parse_params reads it: float(value) where that parses
 // (surrounding spaces and a sign allowed), else the text. A non-finite number is refused, as the
 // Python CLI refuses it (finite_numbers): a NaN gain simulates NaN logs.

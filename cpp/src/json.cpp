@@ -245,6 +245,15 @@ std::string py_float(double v) {
 
 std::string json_number(double v) { return std::isfinite(v) ? py_float(v) : "null"; }
 
+bool all_finite(const Json& v) {
+  if (v.type == Json::Type::Number && !std::isfinite(v.number)) return false;
+  for (const Json& x : v.array)
+    if (!all_finite(x)) return false;
+  for (const auto& kv : v.object)
+    if (!all_finite(kv.second)) return false;
+  return true;
+}
+
 Json Json::object_of(std::vector<std::pair<std::string, Json>> members) {
   Json j;
   j.type = Type::Object;

@@ -45,5 +45,8 @@ std::string py_float(double v);
 std::string json_number(double v);
 // JSON string literal with Python json.dumps escaping (ensure_ascii=True).
 std::string json_quote(const std::string& s);
+// True when no number anywhere in v is NaN or infinite: a controller spec or its params holding
+// one would run a controller on non-finite gains (envi_py refuses them too).
+bool all_finite(const Json& v);
 
 }  // namespace envi
