@@ -284,6 +284,7 @@ def cmd_train(args: argparse.Namespace) -> int:
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
+    from .effect_layers import describe, read_layers
     from .logs import group_by_controller
     from .model import Checkpoint
     from .simulate import choose_engine, iter_simulate, versions_to_simulate
@@ -298,6 +299,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     refuse_earlier_logs(out, args.force)  # before any work: new runs among old ones read back as one set
     params = parse_params(args.param, "--param")  # a NaN gain once simulated NaN logs
     ckpt = Checkpoint.load(args.model)
+    if args.layers:
+        ckpt = ckpt.with_layers(read_layers(args.layers))
     init = require_signals(read_logs(args, "init_logs", min_length=ckpt.config.history), ckpt.schema, args.model)
     inside = [lg.path for lg in init if lg.path is not None and lg.path.resolve().parent == out.resolve()]
     if inside:  # --force would delete the very logs the simulation starts from
@@ -336,6 +339,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
             write_log(lg, out / f"{lg.meta.run_id}.csv")  # run ids are checked plain names: no path escapes
             n += 1
     note = f" (replaced {replaced} earlier logs)" if replaced else ""
+    note += f"; effect layers: {describe(ckpt.layers)}" if ckpt.layers else ""
     print(f"simulated {n} runs in {time.perf_counter() - t0:.2f} s ({'+'.join(sorted(engines))} engine) -> {out}{note}")
     return 0
 
@@ -614,6 +618,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--mean",
         action="store_true",
         help="simulate a stochastic model by its mean (no sampling): one deterministic run per window",
+    )
+    p.add_argument(
+        "--layers",
+        default=None,
+        help="effect layers file (as envi diagnose writes it): simulate the model with these effects added "
+        "(a delay, a lag, play, noise, ...), on either engine",
     )
     p.add_argument(
         "--out",

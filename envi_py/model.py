@@ -20,7 +20,7 @@ import hashlib
 import json
 import platform
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -30,6 +30,7 @@ from torch import nn
 
 from . import __version__
 from .dataset import Dataset, Normaliser, actuator_position, context_of, extra_channels, play_offsets
+from .effect_layers import Layer
 from .logs import Log, LogError, LogMeta, read_log, sidecar_path
 from .system import LogSchema, SystemDescription
 
@@ -267,6 +268,9 @@ class Checkpoint:
     physical states after the declared post-processing, :meth:`next_state` steps it. Every engine
     (simulation, GAIL rollouts, the diagnosis, hardware-in-the-loop) goes through these, so what
     one engine feeds the model is what every other feeds it.
+
+    ``layers`` are effect layers simulated around the learnt model (:mod:`envi_py.effect_layers`):
+    they are not saved with it (a layers file travels beside it, and the export embeds them).
     """
 
     model: EnvModel
@@ -274,10 +278,15 @@ class Checkpoint:
     schema: LogSchema
     record: TrainingRecord
     system: SystemDescription | None = None
+    layers: tuple[Layer, ...] = ()
 
     @property
     def config(self) -> ModelConfig:
         return self.model.config
+
+    def with_layers(self, layers: Sequence[Layer]) -> Checkpoint:
+        """The same learnt model (shared, not copied) simulated with ``layers`` around it."""
+        return replace(self, layers=tuple(layers))
 
     @property
     def period_ms(self) -> float:

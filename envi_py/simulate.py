@@ -15,6 +15,7 @@ import numpy as np
 import torch
 
 from .controllers import ControllerSpec
+from .effect_layers import LayerStack
 from .logs import Log, LogMeta, group_by_controller
 from .model import Checkpoint
 from .system import LogSchema
@@ -77,6 +78,8 @@ def rollout(
     Stochastic models draw from a generator seeded with ``seed``, so a call repeats exactly;
     ``mean`` simulates a stochastic model by its mean instead (no draws, limit events where likelier
     than not): one deterministic trajectory per window, what the model expects rather than what it samples.
+    The checkpoint's effect layers (:mod:`envi_py.effect_layers`) act at every step, their draws
+    seeded apart from the model's.
     """
     cfg = ckpt.config
     k, hist, chans = window_shape(ckpt, init)
@@ -93,12 +96,18 @@ def rollout(
     ctrl.warmup(*initial_rows(out[:, :hist], ckpt))
     gen = torch.Generator().manual_seed(int(seed)) if cfg.stochastic and not mean else None
     intervals = np.random.default_rng([int(seed), 1])  # the draws of the 'dt' channel, if the model has one
-    window = ModelWindow(ckpt, out[:, :hist], intervals)
+    # effect layers: the log holds what the controller saw and said, the model's window what it sees
+    layers = LayerStack(ckpt.layers, out[:, :hist, ns:], steps, np.random.default_rng([int(seed), 2]))
+    view = out.copy() if ckpt.layers else out
+    window = ModelWindow(ckpt, view[:, :hist], intervals)
     for t in range(steps):
         s = window.next_state(gen)
-        out[:, hist + t, :ns] = s
-        out[:, hist + t, ns:] = ctrl(s)
-        window.push(out[:, hist + t : hist + t + 1], hist + t)
+        seen = layers.states(s)
+        out[:, hist + t, :ns] = seen
+        out[:, hist + t, ns:] = ctrl(seen)
+        if view is not out:
+            view[:, hist + t, :ns], view[:, hist + t, ns:] = s, layers.commands(out[:, hist + t, ns:])
+        window.push(view[:, hist + t : hist + t + 1], hist + t)
     return out
 
 
@@ -198,6 +207,7 @@ def iter_simulate(
                             "replicate": r,
                             "engine": engine,
                             **({"mean": True} if mean else {}),
+                            **({"layers": [layer.to_json() for layer in ckpt.layers]} if ckpt.layers else {}),
                         },
                     )
                     yield i, r, Log(None, time.copy(), tr[:, :ns].copy(), tr[:, ns:].copy(), meta)

@@ -8,11 +8,8 @@ import pytest
 import torch
 
 from envi_py.diagnose.layers import (
-    Layer,
     confirm,
     fit_layer,
-    layered_commands,
-    layered_rollout,
     layers_path,
     load_layers,
     save_layers,
@@ -20,6 +17,7 @@ from envi_py.diagnose.layers import (
 )
 from envi_py.diagnose.gap import cut_logs
 from envi_py.diagnose.validate import LANE, validation_training, world_logs
+from envi_py.effect_layers import Layer, layered_commands
 from envi_py.simulate import initial_windows, rollout
 from envi_py.train import train
 
@@ -36,13 +34,13 @@ def clean_model():
 
 def test_action_layers_do_what_they_say():
     a = np.array([0.0, 10, 10, 10, -10, -10, 10])[:, None]
-    assert layered_commands(Layer("delay", 2), a)[:, 0].tolist() == [0, 0, 0, 10, 10, 10, -10]
-    play = layered_commands(Layer("play", 8), a)[:, 0]
+    assert layered_commands((Layer("delay", 2),), a)[:, 0].tolist() == [0, 0, 0, 10, 10, 10, -10]
+    play = layered_commands((Layer("play", 8),), a)[:, 0]
     assert play.tolist() == [0, 6, 6, 6, -6, -6, 6]  # the output lags the command by half the play
-    lag = layered_commands(Layer("lag", 1), a)[:, 0]
+    lag = layered_commands((Layer("lag", 1),), a)[:, 0]
     assert lag[1] == pytest.approx(10 * (1 - np.exp(-1))) and np.all(np.diff(lag[1:4]) > 0)
-    assert layered_commands(Layer("gain_drift", 0.5), a)[-1, 0] == pytest.approx(10 * (1 + 0.5 * 6 / 7))
-    assert np.array_equal(layered_commands(Layer("delay", 0), a), a)
+    assert layered_commands((Layer("gain_drift", 0.5),), a)[-1, 0] == pytest.approx(10 * (1 + 0.5 * 6 / 7))
+    assert np.array_equal(layered_commands((Layer("delay", 0),), a), a)
 
 
 def test_bad_layers_are_refused():
@@ -59,8 +57,8 @@ def test_the_identity_layer_rolls_out_as_the_model_alone(clean_model):
     init = initial_windows(logs, clean_model.config.history)
     plain = rollout(clean_model, LANE, init, 30, runs=2, seed=3)
     for kind in ("delay", "noise", "play"):
-        assert np.array_equal(layered_rollout(clean_model, LANE, init, 30, Layer(kind), runs=2, seed=3), plain)
-    delayed = layered_rollout(clean_model, LANE, init, 30, Layer("delay", 1), runs=2, seed=3)
+        assert np.array_equal(rollout(clean_model.with_layers([Layer(kind)]), LANE, init, 30, runs=2, seed=3), plain)
+    delayed = rollout(clean_model.with_layers([Layer("delay", 1)]), LANE, init, 30, runs=2, seed=3)
     assert not np.array_equal(delayed, plain)
     sims = simulate_layered(clean_model, LANE, logs, Layer("delay", 1), runs=2, seed=3)
     assert len(sims) == 6 and np.array_equal(sims[1].states, delayed[1, :, :1])
@@ -93,12 +91,12 @@ def test_fitted_layers_are_saved_beside_the_model_and_read_back(tmp_path):
     fits = [Fit(Layer("delay", 2), [2.0, 2.0], []), Fit(Layer("saturation", 0, 29.0, 51.0), [50.0, 51.0], [])]
     path = save_layers(model, fits)
     assert path == layers_path(model) == tmp_path / "m.pt.layers.json"
-    assert load_layers(model) == [Layer("delay", 2), Layer("saturation", 0, 29.0, 51.0)]
+    assert load_layers(model) == (Layer("delay", 2), Layer("saturation", 0, 29.0, 51.0))
     assert fits[0].text() == "delay 2 ticks [2, 2]"
     path.write_text("{not json")
     with pytest.raises(ValueError, match="m.pt.layers.json: not a layers file"):
         load_layers(model)
-    assert load_layers(tmp_path / "other.pt") == []
+    assert load_layers(tmp_path / "other.pt") == ()
 
 
 def test_a_fix_the_model_already_has_is_not_a_change(clean_model):

@@ -64,8 +64,9 @@ struct Workspace {
   std::vector<unsigned char> events;  // limit events x block: which happen this step
   std::vector<float> scratch;      // the packed layers' input panel
   std::vector<double> rows, states, actions, memory;
+  std::vector<double> seen, view, layer_memory;  // effect layers: see Runner::layer_states / layer_commands
 
-  Workspace(const Model& m, const Controller& ctrl, int block) {
+  Workspace(const Model& m, const Controller& ctrl, int block, long layer_memory_per_run) {
     long c = m.channels();
     long panel = 1;
     for (const auto* layers : {&m.trunk, &m.mean, &m.log_std, &m.event})
@@ -80,8 +81,19 @@ struct Workspace {
     states.resize(size_t(block) * size_t(m.n_state()));
     actions.resize(size_t(block) * size_t(m.n_action()));
     memory.resize(size_t(block) * size_t(ctrl.memory_per_run()));
+    if (!m.layers.empty()) {
+      seen.resize(states.size());
+      view.resize(rows.size());
+      layer_memory.resize(size_t(block) * size_t(layer_memory_per_run));
+    }
   }
 };
+
+// Keys of the effect layers' draws, apart from the Gaussian head's (channel < number of states) and
+// the limit events' (uniform streams from 0x80000000): layer `k`'s noise on state i at step t uses
+// channel kLayerStream | k << 16 | i, its per-run gain step kRunGainStep.
+constexpr uint32_t kLayerStream = 0x40000000u;
+constexpr uint32_t kRunGainStep = 0xFFFFFFFFu;
 
 struct Runner {
   const Model& m;
@@ -92,9 +104,21 @@ struct Runner {
   long trunk_out;  // width of the trunk's output (the window itself without a trunk)
   // A residual head's limit level per state; +inf for a state without one, whose every reading is in range.
   std::vector<float> level;
+  // Each effect layer's offset in a run's layer memory (a delay's ring of k+1 commands and sigma_0's
+  // first command, a lag's or a play's position, a run's gain), and the memory a run needs in all.
+  std::vector<long> layer_offset;
+  long layer_memory = 0;
 
   Runner(const Model& model, const Controller& c, const Job& j, Sink& s)
       : m(model), ctrl(c), job(j), sink(s) {
+    using K = Model::EffectLayer::Kind;
+    const long na = m.n_action();
+    for (const auto& layer : m.layers) {
+      layer_offset.push_back(layer_memory);
+      if (layer.kind == K::Delay) layer_memory += (long(layer.value) + 2) * na;
+      else if (layer.kind == K::Lag || layer.kind == K::Play) layer_memory += na;
+      else if (layer.kind == K::RunGain) layer_memory += 1;
+    }
     trunk_out = m.in_features();
     for (const Dense& d : m.trunk)
       if (d.W.size()) trunk_out = d.W.rows();
@@ -137,6 +161,74 @@ struct Runner {
     }
   }
 
+  // Sets up run b's (global run `run`) layer memory from sigma_0's commands `window` (l rows of C
+  // channels, the actions from channel n_state on), as LayerStack does from the window's actions.
+  void layer_start(Workspace& w, int b, long run, const double* window) const {
+    using K = Model::EffectLayer::Kind;
+    const long na = m.n_action(), ns = m.n_state(), c = m.channels(), l = m.history;
+    double* mem = w.layer_memory.data() + size_t(b) * size_t(layer_memory);
+    for (size_t k = 0; k < m.layers.size(); ++k) {
+      const auto& layer = m.layers[k];
+      double* own = mem + layer_offset[k];
+      if (layer.kind == K::Delay) {  // a ring of the last k+1 commands H_j at slot j mod (k+1), then H_0
+        const long ring = long(layer.value) + 1;
+        for (long j = std::max(0L, l - ring); j < l; ++j) std::copy_n(window + j * c + ns, na, own + (j % ring) * na);
+        std::copy_n(window + ns, na, own + ring * na);
+      } else if (layer.kind == K::Lag || layer.kind == K::Play) {
+        std::copy_n(window + (l - 1) * c + ns, na, own);
+      } else if (layer.kind == K::RunGain) {
+        own[0] = 1 + layer.value * normal(job.seed, uint64_t(run), kRunGainStep, kLayerStream | uint32_t(k) << 16);
+      }
+    }
+  }
+
+  // What the controller and the log see of run b's predicted states `s` (written to `out`) at step t.
+  void layer_states(const double* s, double* out, long run, long t) const {
+    using K = Model::EffectLayer::Kind;
+    const int ns = m.n_state();
+    std::copy_n(s, ns, out);
+    for (size_t k = 0; k < m.layers.size(); ++k) {
+      const auto& layer = m.layers[k];
+      const double v = layer.value;
+      for (int i = 0; i < ns; ++i) {
+        if (layer.kind == K::Noise)
+          out[i] += v * normal(job.seed, uint64_t(run), uint32_t(t), kLayerStream | uint32_t(k) << 16 | uint32_t(i));
+        else if (layer.kind == K::Quantise && v > 0)
+          out[i] = std::nearbyint(out[i] / v) * v;
+        else if (layer.kind == K::Saturation)
+          out[i] = std::min(std::max(out[i], layer.low), layer.high);
+      }
+    }
+  }
+
+  // What the model sees of run b's commands `a` (written to `out`) at step t (0-based).
+  void layer_commands(Workspace& w, int b, const double* a, double* out, long t) const {
+    using K = Model::EffectLayer::Kind;
+    const long na = m.n_action(), l = m.history;
+    double* mem = w.layer_memory.data() + size_t(b) * size_t(layer_memory);
+    std::copy_n(a, na, out);
+    for (size_t k = 0; k < m.layers.size(); ++k) {
+      const auto& layer = m.layers[k];
+      double* own = mem + layer_offset[k];
+      const double v = layer.value;
+      if (layer.kind == K::Delay) {
+        const long ring = long(v) + 1, j = l + t, back = j - long(v);
+        std::copy_n(out, na, own + (j % ring) * na);
+        std::copy_n(back >= 0 ? own + (back % ring) * na : own + ring * na, na, out);
+      } else if (layer.kind == K::Lag) {
+        const double alpha = v <= 0 ? 1.0 : 1 - std::exp(-1 / v);
+        for (long i = 0; i < na; ++i) out[i] = own[i] = own[i] + (out[i] - own[i]) * alpha;
+      } else if (layer.kind == K::Play) {
+        for (long i = 0; i < na; ++i) out[i] = own[i] = std::min(std::max(own[i], out[i] - v / 2), out[i] + v / 2);
+      } else if (layer.kind == K::GainDrift) {
+        const double gain = 1 + v * double(t + 1) / double(std::max(job.steps, 1L));
+        for (long i = 0; i < na; ++i) out[i] *= gain;
+      } else if (layer.kind == K::RunGain) {
+        for (long i = 0; i < na; ++i) out[i] *= own[0];
+      }
+    }
+  }
+
   void block(int thread, Workspace& w, long first, int count) {
     const int ns = m.n_state(), na = m.n_action(), c = m.channels();
     const long l = m.history;
@@ -153,6 +245,10 @@ struct Runner {
       ctrl.act(w.rows.data(), c, w.actions.data(), count, w.memory.data());
       sink.rows(thread, t, w.rows.data());
     }
+    const bool layered = !m.layers.empty();
+    if (layered)
+      for (int b = 0; b < count; ++b)
+        layer_start(w, b, first + b, job.init + size_t((first + b) / job.runs) * size_t(l) * size_t(c));
     const long in = m.in_features(), stride = w.ring.rows();
     long p = 0;
     for (long t = 0; t < job.steps; ++t) {
@@ -199,12 +295,27 @@ struct Runner {
         for (size_t e = 0; e < ne; ++e)
           if (w.events[size_t(b) * ne + e])
             w.states[size_t(b) * size_t(ns) + size_t(m.limit_events[e].state)] = m.limit_events[e].value;
-      ctrl.act(w.states.data(), ns, w.actions.data(), count, w.memory.data());
+      // with effect layers the controller and the log get the layered states, the model's window its
+      // own prediction and the layered commands
+      const double* seen = w.states.data();
+      if (layered) {
+        for (int b = 0; b < count; ++b)
+          layer_states(w.states.data() + size_t(b) * size_t(ns), w.seen.data() + size_t(b) * size_t(ns), first + b, t);
+        seen = w.seen.data();
+      }
+      ctrl.act(seen, ns, w.actions.data(), count, w.memory.data());
       for (int b = 0; b < count; ++b) {
         double* row = w.rows.data() + size_t(b) * size_t(c);
-        std::copy_n(w.states.data() + size_t(b) * size_t(ns), ns, row);
+        std::copy_n(seen + size_t(b) * size_t(ns), ns, row);
         std::copy_n(w.actions.data() + size_t(b) * size_t(na), na, row + ns);
-        put_row(w, b, p, row);
+        if (layered) {
+          double* view = w.view.data() + size_t(b) * size_t(c);
+          std::copy_n(w.states.data() + size_t(b) * size_t(ns), ns, view);
+          layer_commands(w, b, row + ns, view + ns, t);
+          put_row(w, b, p, view);
+        } else {
+          put_row(w, b, p, row);
+        }
       }
       sink.rows(thread, l + t, w.rows.data());
       p = (p + 1 == l) ? 0 : p + 1;
@@ -248,7 +359,7 @@ void simulate(const Model& model, const Controller& controller, const Job& job, 
   std::mutex error_mutex;
   auto work = [&](int thread) {
     try {
-      Workspace w(model, controller, block);  // every buffer of this thread, allocated once
+      Workspace w(model, controller, block, runner.layer_memory);  // every buffer of this thread, allocated once
       for (long k; (k = next.fetch_add(1)) < blocks;) {
         long first = job.first_run + k * block;
         runner.block(thread, w, first, int(std::min<long>(block, job.first_run + n - first)));

@@ -479,6 +479,16 @@ int run(const Args& a) {
   MetricRows mrows;
   const std::string schema = metadata(m, "envi.schema");
   Json schema_json = Json::parse(schema);
+  // a simulated log's provenance, as envi_py.simulate.iter_simulate writes it (without its 'engine')
+  const Json layers = Json::parse(metadata(m, "envi.layers"));
+  auto provenance = [&](const std::string& init_log, long replicate) {
+    Json p = obj({{"init_log", str(init_log)},
+                  {"model_algorithm", str(m.algorithm)},
+                  {"seed", num(double(a.seed), true)},
+                  {"replicate", num(double(replicate), true)}});
+    if (!m.layers.empty()) p.object.emplace_back("layers", layers);
+    return p;
+  };
   int threads_used = 1;
   long written = 0;  // metric rows written so far (streamed)
   for (const Group& grp : groups) {
@@ -538,10 +548,7 @@ int run(const Args& a) {
                            {"period_ms", num(period)},
                            {"run_id", str(run_id)},
                            {"source", str("sim")},
-                           {"provenance", obj({{"init_log", str(w.name)},
-                                               {"model_algorithm", str(m.algorithm)},
-                                               {"seed", num(double(a.seed), true)},
-                                               {"replicate", num(double(r), true)}})}});
+                           {"provenance", provenance(w.name, r)}});
           write_log(a.out, run_id, m, meta, time, traces.data() + size_t(i) * size_t(length) * size_t(c), length);
         }
       }

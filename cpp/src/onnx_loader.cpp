@@ -582,6 +582,37 @@ std::vector<ChannelInfo> channels(const Json& list) {
   return out;
 }
 
+// One entry of metadata 'envi.layers', checked as envi_py.effect_layers.Layer checks it.
+Model::EffectLayer effect_layer(const Json& e) {
+  using K = Model::EffectLayer::Kind;
+  static const std::pair<const char*, K> kinds[] = {
+      {"delay", K::Delay}, {"lag", K::Lag}, {"play", K::Play}, {"gain_drift", K::GainDrift}, {"run_gain", K::RunGain},
+      {"noise", K::Noise}, {"quantise", K::Quantise}, {"saturation", K::Saturation}};
+  const std::string what = "metadata 'envi.layers': ";
+  const Json* kind = e.type == Json::Type::Object ? e.find("kind") : nullptr;
+  if (!kind || kind->type != Json::Type::String) throw ModelError(what + "each layer is an object with a 'kind'");
+  Model::EffectLayer layer;
+  bool known = false;
+  for (const auto& [name, k] : kinds)
+    if (kind->string == name) layer.kind = k, known = true;
+  if (!known) throw ModelError(what + "unknown effect layer '" + kind->string + "'");
+  auto number = [&](const char* key, double missing) {
+    const Json* v = e.find(key);
+    if (!v || v->is_null()) return missing;
+    if (v->type != Json::Type::Number) throw ModelError(what + kind->string + ": '" + key + "' must be a number or null");
+    return v->number;
+  };
+  layer.value = number("value", 0.0);
+  layer.low = number("low", -INFINITY);
+  layer.high = number("high", INFINITY);
+  if (!std::isfinite(layer.value) || (layer.value < 0 && layer.kind != K::GainDrift))
+    throw ModelError(what + kind->string + ": parameter must be finite and not negative");
+  if (layer.kind == K::Delay && (layer.value != std::floor(layer.value) || layer.value > 1000))
+    throw ModelError(what + "delay: a whole number of ticks up to 1000");
+  if (!(layer.low <= layer.high)) throw ModelError(what + kind->string + ": limits must be ordered numbers");
+  return layer;
+}
+
 void read_metadata(Model& m) {
   std::map<std::string, Json> md;
   for (const auto& kv : m.metadata) {
@@ -639,6 +670,8 @@ void read_metadata(Model& m) {
         m.residual.limits.push_back({int(iv[0]), float(iv[1])});
       }
     }
+    if (md.count("envi.layers") && !md["envi.layers"].is_null())
+      for (const auto& e : md["envi.layers"].as_array()) m.layers.push_back(effect_layer(e));
     if (const Json* alg = md.count("envi.algorithm") ? &md["envi.algorithm"] : nullptr)
       if (alg->type == Json::Type::String) m.algorithm = alg->string;
   } catch (const ModelError&) {

@@ -58,7 +58,8 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
         fixed.save(path)
         print(f"model with {effect}: {path}")
     if d.layer:
-        print(f"fitted layer: {save_layers(Path(args.out) / Path(args.model).name, [d.layer['fit']])}")
+        path = save_layers(Path(args.out) / Path(args.model).name, [d.layer["fit"]])
+        print(f"fitted layer: {path} (simulate it: envi simulate --model {args.model} --layers {path} ...)")
     return 0
 
 

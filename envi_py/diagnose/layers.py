@@ -1,15 +1,9 @@
-"""Effect layers: a diagnosed effect added as a small parametric layer around the learnt model.
+"""Fitting effect layers: a diagnosed effect added as a small parametric layer around the learnt model.
 
 Retraining cannot add an effect the training logs do not show (verification mode: the model was
-trained on a clean robot, the gap is in other logs). A layer can: it sits between the model and the
-controller, with one or two physical parameters that are *fitted on the logs that show the gap*.
-
-Action layers change what the model sees of the controller's commands (the log keeps the commands
-themselves): ``delay`` (k ticks), ``lag`` (first order, tau in rows), ``play`` (backlash of a full
-width), ``gain_drift`` (gain changing linearly over the run) and ``run_gain`` (a gain per run, its
-sd). State layers change what the controller and the log see of the model's predicted states (the
-model keeps its own prediction): ``noise`` (Gaussian sd), ``quantise`` (step) and ``saturation``
-(clipping limits).
+trained on a clean robot, the gap is in other logs). A layer can (:mod:`envi_py.effect_layers`
+says what each kind does): it sits between the model and the controller, with one or two physical
+parameters that are *fitted on the logs that show the gap*.
 
 Fitting chooses the value of a small grid (which always holds the identity, "no effect") whose
 model is closest to the logs that show the gap, by one of two criteria:
@@ -33,15 +27,14 @@ logs used neither for fitting nor for choosing the effect: the matched W1 and th
 :func:`envi_py.verify.fair_reference` before and after, and a bootstrap interval of the shrink over
 confirmation logs (:func:`scipy.stats.bootstrap`).
 
-A fitted layer is saved as JSON beside the model (``<model>.layers.json``) and simulated by
-:func:`layered_rollout`, the PyTorch rollout with the layer applied at each step.
+A fitted layer is saved as JSON beside the model (``<model>.layers.json``); ``envi simulate
+--layers`` and ``envi-export --layers`` carry it into simulation, on either engine.
 """
 
 from __future__ import annotations
 
 import json
-import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -50,18 +43,16 @@ import torch
 from scipy import stats
 
 from ..controllers import ControllerSpec
+from ..effect_layers import LAYERS, Layer, layered_commands, read_layers
 from ..logs import Log, group_by_controller
 from ..model import Checkpoint
-from ..simulate import ModelWindow, initial_rows, initial_windows, window_shape
+from ..simulate import initial_windows, rollout
 from ..verify import Scoring, fair_reference
 from .gap import cut_logs
 from .shrink import scoring_of
 
-ACTION_LAYERS = ("delay", "lag", "play", "gain_drift", "run_gain")
 #: Fitted on one-step residuals (the rest by simulation; see the module's docstring).
 RESIDUAL_FIT = ("delay", "lag", "play", "gain_drift")
-STATE_LAYERS = ("noise", "quantise", "saturation")
-LAYERS = ACTION_LAYERS + STATE_LAYERS
 
 #: Which layers stand for each diagnosis candidate (``jitter`` has none: an interval-dependent step
 #: needs the model to take the interval, which only retraining gives).
@@ -74,137 +65,6 @@ FOR_CANDIDATE: dict[str, tuple[str, ...]] = {
     "run_to_run": ("run_gain",),
     "backlash": ("play",),
 }
-
-UNITS = {
-    "delay": "ticks",
-    "lag": "rows",
-    "play": "action units",
-    "gain_drift": "fraction",
-    "run_gain": "fraction",
-    "noise": "state units",
-    "quantise": "state units",
-    "saturation": "state units",
-}
-
-
-@dataclass(frozen=True)
-class Layer:
-    """One effect layer: its kind and parameters (``value``; ``low``/``high`` for saturation)."""
-
-    kind: str
-    value: float = 0.0
-    low: float = -math.inf
-    high: float = math.inf
-
-    def __post_init__(self) -> None:
-        if self.kind not in LAYERS:
-            raise ValueError(f"unknown effect layer {self.kind!r}; known: {', '.join(LAYERS)}")
-        if not math.isfinite(self.value) or self.value < 0 and self.kind not in ("gain_drift",):
-            raise ValueError(f"effect layer {self.kind}: parameter must be finite and not negative, got {self.value}")
-
-    @property
-    def identity(self) -> bool:
-        """Does the layer change nothing (the grid's 'no effect' point)?"""
-        if self.kind == "saturation":
-            return self.low == -math.inf and self.high == math.inf
-        return self.value == 0
-
-    def to_json(self) -> dict[str, Any]:
-        """Plain JSON (an open clipping limit is null)."""
-        return {k: (None if isinstance(v, float) and math.isinf(v) else v) for k, v in asdict(self).items()}
-
-    @staticmethod
-    def from_json(d: dict[str, Any]) -> "Layer":
-        return Layer(
-            d["kind"],
-            float(d.get("value", 0.0)),
-            -math.inf if d.get("low") is None else float(d["low"]),
-            math.inf if d.get("high") is None else float(d["high"]),
-        )
-
-    def text(self) -> str:
-        if self.kind == "saturation":
-            return f"saturation [{self.low:g}, {self.high:g}]"
-        return f"{self.kind} {self.value:g} {UNITS[self.kind]}"
-
-
-class _ActionState:
-    """The per-run memory of an action layer over one rollout."""
-
-    def __init__(self, layer: Layer, window_actions: np.ndarray, steps: int, rng: np.random.Generator) -> None:
-        self.layer, self.steps, self.t = layer, max(steps, 1), 0
-        self.history = [a for a in np.moveaxis(window_actions, 1, 0)]  # commands so far, each (B, |a|)
-        self.state = window_actions[:, -1].copy()
-        self.gain = 1 + (
-            layer.value * rng.standard_normal((window_actions.shape[0], 1)) if layer.kind == "run_gain" else 0
-        )
-
-    def __call__(self, command: np.ndarray) -> np.ndarray:
-        """What the model sees of this step's command."""
-        kind, v = self.layer.kind, self.layer.value
-        self.history.append(command)
-        self.t += 1
-        if kind == "delay":
-            k = int(round(v))
-            return self.history[-1 - k] if k < len(self.history) else self.history[0]
-        if kind == "lag":
-            a = 1.0 if v <= 0 else 1 - math.exp(-1 / v)
-            self.state = self.state + (command - self.state) * a
-            return self.state
-        if kind == "play":
-            self.state = np.clip(self.state, command - v / 2, command + v / 2)
-            return self.state
-        if kind == "gain_drift":
-            return command * (1 + v * self.t / self.steps)
-        return command * self.gain
-
-
-def _state_layer(layer: Layer, s: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """What the controller and the log see of the model's predicted states."""
-    if layer.kind == "noise":
-        return s + layer.value * rng.standard_normal(s.shape)
-    if layer.kind == "quantise":
-        return np.round(s / layer.value) * layer.value if layer.value > 0 else s
-    if layer.kind == "saturation":
-        return np.clip(s, layer.low, layer.high)
-    return s
-
-
-@torch.no_grad()
-def layered_rollout(
-    ckpt: Checkpoint,
-    controller: ControllerSpec,
-    init: np.ndarray,
-    steps: int,
-    layer: Layer,
-    runs: int = 1,
-    seed: int = 0,
-) -> np.ndarray:
-    """:func:`envi_py.simulate.rollout` with ``layer`` around the model: returns the logged rows
-    (K*runs, l+steps, |s|+|a|): the states the controller saw and the commands it gave."""
-    cfg = ckpt.config
-    k, hist, chans = window_shape(ckpt, init)
-    ns = cfg.n_state
-    ctrl = controller.build(ns, cfg.n_action, ckpt.period_ms)
-    batch = k * runs
-    out = np.empty((batch, hist + steps, chans))
-    out[:, :hist] = np.repeat(init, runs, axis=0)
-    view = out.copy()  # the rows the model sees
-    ctrl.reset(batch)
-    ctrl.warmup(*initial_rows(out[:, :hist], ckpt))
-    gen = torch.Generator().manual_seed(int(seed)) if cfg.stochastic else None
-    intervals = np.random.default_rng([int(seed), 1])
-    rng = np.random.default_rng([int(seed), 2])
-    acts = _ActionState(layer, out[:, :hist, ns:], steps, rng) if layer.kind in ACTION_LAYERS else None
-    window = ModelWindow(ckpt, view[:, :hist], intervals)
-    for t in range(steps):
-        s = window.next_state(gen)
-        seen = _state_layer(layer, s, rng)
-        command = np.asarray(ctrl(seen), dtype=np.float64).reshape(batch, -1)
-        out[:, hist + t, :ns], out[:, hist + t, ns:] = seen, command
-        view[:, hist + t, :ns], view[:, hist + t, ns:] = s, command if acts is None else acts(command)
-        window.push(view[:, hist + t : hist + t + 1], hist + t)
-    return out
 
 
 @dataclass
@@ -229,14 +89,14 @@ def _versions(scoring: Scoring, logs: Sequence[Log]) -> list[_Version]:
 def simulate_layered(
     ckpt: Checkpoint, controller: ControllerSpec, init_logs: Sequence[Log], layer: Layer, runs: int = 1, seed: int = 0
 ) -> list[Log]:
-    """``runs`` layered simulations from each log's initial window, as logs (initial log, then
-    replicate), each as long as its initial log and with its time stamps and metadata (all logs must
-    have one length: cut them first)."""
+    """``runs`` simulations of the model with ``layer`` from each log's initial window, as logs
+    (initial log, then replicate), each as long as its initial log and with its time stamps and
+    metadata (all logs must have one length: cut them first)."""
     hist, ns = ckpt.config.history, ckpt.config.n_state
     if len({len(lg) for lg in init_logs}) != 1:
         raise ValueError("simulate_layered: the initial logs must have one length (cut them first)")
-    rows = layered_rollout(
-        ckpt, controller, initial_windows(init_logs, hist), len(init_logs[0]) - hist, layer, runs, seed
+    rows = rollout(
+        ckpt.with_layers((layer,)), controller, initial_windows(init_logs, hist), len(init_logs[0]) - hist, runs, seed
     )
     out = []
     for i, tr in enumerate(rows):
@@ -250,16 +110,10 @@ def _simulate_table(ckpt: Checkpoint, scoring: Scoring, v: _Version, layer: Laye
     return scoring.table(scoring.runs(simulate_layered(ckpt, v.spec, v.logs, layer, runs, seed)))
 
 
-def layered_commands(layer: Layer, actions: np.ndarray) -> np.ndarray:
-    """What the model sees of a log's commands (T, |a|) through an action layer."""
-    state = _ActionState(layer, actions[None, :1], len(actions), np.random.default_rng(0))
-    return np.concatenate([actions[:1], *[state(a[None])[:1] for a in actions[1:]]])
-
-
 def _one_step_sse(ckpt: Checkpoint, logs: Sequence[Log], layer: Layer) -> np.ndarray:
     """Per log: the sum of squared one-step errors (each state over its normalising half range) of
     the model fed the real windows with the commands through ``layer``."""
-    seen = [Log(None, lg.time, lg.states, layered_commands(layer, lg.actions), lg.meta) for lg in logs]
+    seen = [Log(None, lg.time, lg.states, layered_commands((layer,), lg.actions), lg.meta) for lg in logs]
     hist, ns = ckpt.config.history, ckpt.config.n_state
     half = ckpt.norm.half[:ns]
     out = []
@@ -489,13 +343,7 @@ def save_layers(model_path: str | Path, fits: Sequence[Fit | dict[str, Any]]) ->
     return path
 
 
-def load_layers(model_path: str | Path) -> list[Layer]:
+def load_layers(model_path: str | Path) -> tuple[Layer, ...]:
     """The layers saved beside a model (none when there is no file); a malformed file is one ValueError."""
     path = layers_path(model_path)
-    if not path.exists():
-        return []
-    try:
-        data = json.loads(path.read_text())
-        return [Layer.from_json(entry["layer"]) for entry in data["layers"]]
-    except (ValueError, KeyError, TypeError) as exc:
-        raise ValueError(f"{path}: not a layers file ({exc})") from None
+    return read_layers(path) if path.exists() else ()

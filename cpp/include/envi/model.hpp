@@ -2,6 +2,7 @@
 // from the file's metadata (normalisation, history, post-processing, schema).
 #pragma once
 #include <Eigen/Core>
+#include <cmath>
 #include <cstdint>
 #include <memory>
 #include <stdexcept>
@@ -61,6 +62,21 @@ struct Model {
     std::vector<Limit> limits;
   };
   Residual residual;
+
+  // Effect layers around the learnt model (metadata 'envi.layers'; the Python twin is
+  // envi_py.effect_layers.LayerStack), applied in order. Action layers change what the model sees of
+  // the commands (delay of k ticks, first-order lag of tau rows, play of a full width, a gain drifting
+  // linearly over the run, a gain per run of sd `value`); state layers change what the controller and
+  // the log see of the predicted states (Gaussian noise of sd `value`, a quantisation step, clipping
+  // to [low, high]). The model's own window keeps its prediction and sees the layered commands.
+  struct EffectLayer {
+    enum class Kind { Delay, Lag, Play, GainDrift, RunGain, Noise, Quantise, Saturation };
+    Kind kind = Kind::Delay;
+    double value = 0.0;
+    double low = -INFINITY, high = INFINITY;
+    bool on_commands() const { return kind <= Kind::RunGain; }
+  };
+  std::vector<EffectLayer> layers;
 
   // From metadata_props.
   std::vector<ChannelInfo> states, actions;
