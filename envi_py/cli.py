@@ -243,6 +243,10 @@ def cmd_train(args: argparse.Namespace) -> int:
             raise ValueError(f"--head deterministic: {args.algorithm} trains a Gaussian policy (PPO needs one)")
         if args.residual is not None:  # else the system description's [training] default
             kwargs["residual"] = args.residual
+        if args.step_noise is not None:  # else the system description's [training] default
+            if args.head == "deterministic" and args.step_noise != "gaussian":
+                raise ValueError("--step-noise student-t shapes a Gaussian head's draws; --head deterministic has none")
+            kwargs["step_noise"] = args.step_noise
         if args.lr is not None:
             kwargs["lr"] = args.lr
     if args.algorithm != "random":
@@ -548,6 +552,14 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="the model predicts the change from the window's last state (default: the system "
         "description's [training] residual: on for the car, off for lane keeping, as measured)",
+    )
+    p.add_argument(
+        "--step-noise",
+        choices=("gaussian", "student-t"),
+        default=None,
+        help="a Gaussian head's draws: normal, or a Student-t of the same variance whose tails are fitted "
+        "on the validation logs after training (default: the system description's [training] step_noise: "
+        "student-t for lane keeping, as measured; else gaussian)",
     )
     p.add_argument(
         "--multistep",

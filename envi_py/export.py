@@ -85,6 +85,7 @@ def metadata(ckpt: Checkpoint) -> dict[str, str]:
         "envi.limit_events": [[i, v] for i, v in cfg.limit_events],
         RESIDUAL_KEY: residual_metadata(ckpt),
         "envi.layers": [layer.to_json() for layer in ckpt.layers],
+        "envi.noise_dof": list(cfg.noise_dof),
         "envi.config": asdict(cfg),
         "envi.algorithm": rec.algorithm,
         "envi.seed": rec.seed,

@@ -42,6 +42,9 @@ LOG_STD_MIN, LOG_STD_MAX = -7.0, 1.0
 #: exported graph and the C++ engine use the same two numbers (``envi.residual`` metadata)
 RESIDUAL_SCALE = 2.0
 LIMIT_LEVEL_TOL = 1e-5
+#: the Student-t step noise's degrees of freedom (a variance needs more than 2; beyond 30 it is normal to
+#: within what a few hundred windows can tell, and the native engine draws one normal per degree)
+MIN_DOF, MAX_DOF = 3, 30
 
 
 @dataclass
@@ -73,6 +76,10 @@ class ModelConfig:
     # sensor step of its normalised range (on the car twin 1 cm is 0.008 of it; the plain head's bias
     # of that size made a stopped car creep toward the lead in closed loop)
     residual: bool = False
+    # the shape of a Gaussian head's step noise, per state: 0 draws it from a normal distribution, a
+    # whole nu >= 3 from a Student-t with nu degrees of freedom scaled to unit variance (the same
+    # spread, heavier tails; fitted after training by :mod:`envi_py.train.step_noise`). Empty: all normal.
+    noise_dof: tuple[int, ...] = ()
 
     def __post_init__(self) -> None:
         self.hidden = tuple(int(h) for h in self.hidden)
@@ -84,6 +91,13 @@ class ModelConfig:
         if self.intervals is not None:
             self.intervals = tuple(float(q) for q in self.intervals)
         self.limit_events = tuple((int(i), float(v)) for i, v in self.limit_events)
+        self.noise_dof = tuple(self.noise_dof)
+        valid = [type(d) is int and (d == 0 or MIN_DOF <= d <= MAX_DOF) for d in self.noise_dof]
+        if self.noise_dof and (len(self.noise_dof) != self.n_state or not all(valid)):
+            raise ValueError(
+                f"noise_dof must give each of the {self.n_state} states 0 (normal) or a whole number of "
+                f"degrees of freedom in {MIN_DOF}..{MAX_DOF}, not {self.noise_dof}"
+            )
         if any(not 0 <= i < self.n_state for i, _ in self.limit_events):
             raise ValueError(f"limit events name states outside 0..{self.n_state - 1}: {self.limit_events}")
         if self.head not in ("deterministic", "gaussian"):
@@ -195,6 +209,18 @@ class EnvModel(nn.Module):
         mean, log_std, _ = self.heads(x)
         return mean, log_std
 
+    def step_noise(self, shape: torch.Size, generator: torch.Generator) -> torch.Tensor:
+        """Unit-variance draws (B, |s|) of each state's step-noise shape (``config.noise_dof``): a
+        normal one, or a Student-t as a normal over the root of a chi-square of nu normals, scaled by
+        sqrt((nu - 2) / nu). Heavy tails, not more spread: on the real lane-keeping logs the
+        largest jerk of a run (the comfort metric) has a tail a normal step noise never draws."""
+        z = torch.randn(shape, generator=generator)
+        for i, nu in enumerate(self.config.noise_dof):
+            if nu:
+                chi2 = (torch.randn(shape[0], nu, generator=generator) ** 2).sum(dim=1)
+                z[:, i] = z[:, i] * torch.sqrt((nu - 2) / chi2)
+        return z
+
     def step(self, x: torch.Tensor, generator: torch.Generator | None) -> tuple[torch.Tensor, torch.Tensor | None]:
         """The next normalised state (the mean, or a sample when Gaussian and a generator is given)
         and which limit events happen (B, events): drawn with the event probability when sampling,
@@ -205,7 +231,7 @@ class EnvModel(nn.Module):
         z = (
             mean
             if log_std is None or generator is None
-            else mean + log_std.exp() * torch.randn(mean.shape, generator=generator)
+            else mean + log_std.exp() * self.step_noise(mean.shape, generator)
         )
         if logit is None:
             return z, None

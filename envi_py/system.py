@@ -18,8 +18,9 @@ model can always say which signals it reads and writes. It declares
   probability they must hold with (``envi_py.goals``); ``preset`` names a shipped set of goals;
 - ``[training]``: the model settings measured best for this system, which ``envi train`` (and
   everything that trains: demo, experiment) uses unless told otherwise: ``residual`` (the mean head
-  predicts the change from the last reading) and ``input_noise`` (behaviour cloning's window
-  perturbation, in typical logged steps).
+  predicts the change from the last reading), ``input_noise`` (behaviour cloning's window
+  perturbation, in typical logged steps) and ``step_noise`` (a Gaussian head's draws: ``gaussian``,
+  or ``student-t`` with tails fitted after training).
 
 The lane-keeping robot and the car following a lead vehicle are shipped descriptions
 (``envi_py/systems/*.toml``); ``envi init --logs DIR`` drafts one from a folder of logs.
@@ -167,6 +168,10 @@ class Versions:
         return {"pattern": self.pattern, "params": list(self.params), "map": dict(self.map)}
 
 
+#: the shapes a Gaussian head's step noise may take (:mod:`envi_py.train.step_noise`)
+STEP_NOISES = ("gaussian", "student-t")
+
+
 @dataclass(frozen=True)
 class TrainingDefaults:
     """Model settings a system's description recommends (``[training]``): the defaults of a training
@@ -174,6 +179,7 @@ class TrainingDefaults:
 
     residual: bool = False
     input_noise: float = 0.0
+    step_noise: str = "gaussian"
 
     def for_algorithm(self, algorithm: str) -> dict[str, Any]:
         """The keyword arguments ``algorithm``'s trainer takes from these defaults: the residual head
@@ -183,10 +189,12 @@ class TrainingDefaults:
             out["residual"] = True
         if algorithm == "bc" and self.input_noise:
             out["input_noise"] = self.input_noise
+        if algorithm in ("bc", "gail", "bcxgail") and self.step_noise != "gaussian":
+            out["step_noise"] = self.step_noise
         return out
 
     def to_json(self) -> dict[str, Any]:
-        return {"residual": self.residual, "input_noise": self.input_noise}
+        return {"residual": self.residual, "input_noise": self.input_noise, "step_noise": self.step_noise}
 
 
 def _training(d: Any) -> TrainingDefaults:
@@ -200,7 +208,10 @@ def _training(d: Any) -> TrainingDefaults:
     noise = d.get("input_noise", 0.0)
     if isinstance(noise, bool) or not isinstance(noise, (int, float)) or not math.isfinite(noise) or noise < 0:
         raise ValueError(f"[training] input_noise must be a number >= 0, not {noise!r:.40}")
-    return TrainingDefaults(residual, float(noise))
+    step_noise = d.get("step_noise", "gaussian")
+    if step_noise not in STEP_NOISES:
+        raise ValueError(f"[training] step_noise must be one of {', '.join(STEP_NOISES)}, not {step_noise!r:.40}")
+    return TrainingDefaults(residual, float(noise), step_noise)
 
 
 @dataclass(frozen=True)
@@ -495,7 +506,7 @@ TOML_KEYS: dict[str, tuple[str, ...]] = {
     "[versions]": ("pattern", "params", "map"),
     "[controller]": ("name", "params"),
     "[[requirements]]": ("name", "expr", "kind", "probability"),
-    "[training]": ("residual", "input_noise"),
+    "[training]": ("residual", "input_noise", "step_noise"),
 }
 
 

@@ -49,7 +49,8 @@ def test_bad_values_are_one_line_and_exit_code_2(car_dir, tmp_path, capsys, extr
 def test_the_system_description_sets_the_defaults_and_the_command_line_wins(car_dir, tmp_path):
     """The car's [training] (residual head, input noise 0.5) applies to a plain `envi train` on its logs,
     also without --system (twin logs carry sidecars); --no-residual / --input-noise override it; lane
-    keeping's description sets neither; a deterministic BC head is still allowed."""
+    keeping's description sets neither (its Student-t step noise: tests/test_step_noise.py); a
+    deterministic BC head is still allowed."""
     base = ["train", "--logs", str(car_dir), "--epochs", "1", "--hidden", "8", "--quiet"]
     for extra, residual, noise in (
         ([], True, 0.5),
@@ -62,7 +63,7 @@ def test_the_system_description_sets_the_defaults_and_the_command_line_wins(car_
         ck = Checkpoint.load(out)
         assert ck.config.residual is residual and ck.record.hyper["input_noise"] == noise, extra
     assert load_system("car").training == TrainingDefaults(residual=True, input_noise=0.5)
-    assert load_system("lane-keeping").training == TrainingDefaults()
+    assert load_system("lane-keeping").training == TrainingDefaults(step_noise="student-t")
     assert TrainingDefaults(True, 0.5).for_algorithm("gail") == {"residual": True}  # input noise is BC's loss
     assert TrainingDefaults(True, 0.5).for_algorithm("random") == {}
 
@@ -74,6 +75,7 @@ def test_the_system_description_sets_the_defaults_and_the_command_line_wins(car_
         ("input_noise = 0.5", "input_noise = -0.5", "input_noise must be a number >= 0"),
         ("input_noise = 0.5", "input_noise = nan", "input_noise must be a number >= 0"),
         ("residual = true", "residuals = true", "unknown key 'residuals' (did you mean 'residual'?"),
+        ("input_noise = 0.5", 'input_noise = 0.5\nstep_noise = "laplace"', "step_noise must be one of gaussian"),
     ],
 )
 def test_a_bad_training_table_is_refused_naming_the_file(tmp_path, line, bad, message):

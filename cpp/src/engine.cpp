@@ -93,6 +93,8 @@ struct Workspace {
 // the limit events' (uniform streams from 0x80000000): layer `k`'s noise on state i at step t uses
 // channel kLayerStream | k << 16 | i, its per-run gain step kRunGainStep.
 constexpr uint32_t kLayerStream = 0x40000000u;
+// A Student-t step noise's chi-square draws: state i's j-th at channel kDofStream | i << 8 | j.
+constexpr uint32_t kDofStream = 0x20000000u;
 constexpr uint32_t kRunGainStep = 0xFFFFFFFFu;
 
 struct Runner {
@@ -159,6 +161,21 @@ struct Runner {
       col[pos * c + k] = z;
       col[(pos + l) * c + k] = z;
     }
+  }
+
+  // A unit-variance draw of state i's step noise for run `run` at step t: normal, or a Student-t of
+  // nu degrees of freedom as a normal over the root of a chi-square of nu further normals (keys
+  // kDofStream | i << 8 | j), scaled by sqrt((nu - 2) / nu) (EnvModel.step_noise).
+  double step_noise(uint64_t run, long t, int i) const {
+    double z = normal(job.seed, run, uint32_t(t), uint32_t(i));
+    const int nu = m.noise_dof.empty() ? 0 : m.noise_dof[size_t(i)];
+    if (!nu) return z;
+    double chi2 = 0;
+    for (int j = 0; j < nu; ++j) {
+      double g = normal(job.seed, run, uint32_t(t), kDofStream | uint32_t(i) << 8 | uint32_t(j));
+      chi2 += g * g;
+    }
+    return z * std::sqrt((nu - 2) / chi2);
   }
 
   // Sets up run b's (global run `run`) layer memory from sigma_0's commands `window` (l rows of C
@@ -268,7 +285,7 @@ struct Runner {
         for (int b = 0; b < count; ++b)
           for (int i = 0; i < ns; ++i) {
             size_t k = size_t(b) * size_t(ns) + size_t(i);
-            float eps = float(normal(job.seed, uint64_t(first + b), uint32_t(t), uint32_t(i)));
+            float eps = float(step_noise(uint64_t(first + b), t, i));
             w.mean.data()[k] += std::exp(ls[k]) * eps;
           }
       }

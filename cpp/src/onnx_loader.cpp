@@ -670,6 +670,16 @@ void read_metadata(Model& m) {
         m.residual.limits.push_back({int(iv[0]), float(iv[1])});
       }
     }
+    if (md.count("envi.noise_dof") && !md["envi.noise_dof"].is_null()) {
+      for (const Json& e : md["envi.noise_dof"].as_array()) {
+        const double d = e.type == Json::Type::Number ? e.number : -1;
+        if (!(d == 0 || (d >= 3 && d <= 30 && d == std::floor(d))))
+          throw ModelError("metadata 'envi.noise_dof' must hold 0 (normal) or whole degrees of freedom 3..30 per state");
+        m.noise_dof.push_back(int(d));
+      }
+      if (!m.noise_dof.empty() && m.noise_dof.size() != m.states.size())
+        throw ModelError("metadata 'envi.noise_dof' must give one value per state");
+    }
     if (md.count("envi.layers") && !md["envi.layers"].is_null())
       for (const auto& e : md["envi.layers"].as_array()) m.layers.push_back(effect_layer(e));
     if (const Json* alg = md.count("envi.algorithm") ? &md["envi.algorithm"] : nullptr)

@@ -36,7 +36,9 @@ def scoring_of(ckpt: Checkpoint, skip: int | None = None) -> Scoring:
 
 
 def _config_of(ckpt: Checkpoint) -> dict[str, Any]:
-    return {k: v for k, v in asdict(ckpt.config).items() if k not in ("n_state", "n_action", "kind")}
+    """The model settings a retraining repeats (the step-noise shape is fitted after training, from
+    the ``step_noise`` setting, not set)."""
+    return {k: v for k, v in asdict(ckpt.config).items() if k not in ("n_state", "n_action", "kind", "noise_dof")}
 
 
 def changes_model(ckpt: Checkpoint, finding: Finding) -> bool:
@@ -73,7 +75,8 @@ def retrain_with(ckpt: Checkpoint, finding: Finding, train_logs: Sequence[Log], 
     rec = ckpt.record
     cfg = _config_of(ckpt)
     cfg.update(finding.fix)
-    hyper = {k: rec.hyper[k] for k in ("epochs", "lr", "eval_every", "multistep", "input_noise") if k in rec.hyper}
+    keys = ("epochs", "lr", "eval_every", "multistep", "input_noise", "step_noise")
+    hyper = {k: rec.hyper[k] for k in keys if k in rec.hyper}
     return train(rec.algorithm, train_logs, val_logs, seed=rec.seed, **hyper, **cfg)
 
 

@@ -10,7 +10,8 @@ from typing import Any, Callable, Sequence
 
 from ..logs import Log
 from ..model import Checkpoint
-from ..system import SystemDescription, describe_schema
+from ..system import STEP_NOISES, SystemDescription, describe_schema
+from .step_noise import with_step_noise
 
 Trainer = Callable[..., Checkpoint]
 
@@ -41,9 +42,16 @@ def train(
 ) -> Checkpoint:
     """Train with the named algorithm. The system description the logs were read with is recorded
     in the checkpoint (from their schema when none is given), so the model says what it reads; its
-    ``[training]`` defaults (residual head, input noise) apply unless ``kwargs`` say otherwise."""
+    ``[training]`` defaults (residual head, input noise, step-noise shape) apply unless ``kwargs``
+    say otherwise. ``step_noise="student-t"`` fits a Gaussian head's tails after training
+    (:mod:`.step_noise`)."""
     if not train_logs:
         raise ValueError("no training logs")
     system = system or describe_schema(train_logs[0].meta.schema)
     kwargs = {**system.training.for_algorithm(name), **kwargs}
-    return get_trainer(name)(train_logs, val_logs, system=system, **kwargs)
+    step_noise = kwargs.pop("step_noise", "gaussian")
+    if step_noise not in STEP_NOISES:  # before training, not after it
+        raise ValueError(f"step noise must be one of {', '.join(STEP_NOISES)}, not {step_noise!r}")
+    ckpt = get_trainer(name)(train_logs, val_logs, system=system, **kwargs)
+    with_step_noise(ckpt, step_noise, val_logs, train_logs)
+    return ckpt

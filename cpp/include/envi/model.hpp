@@ -78,6 +78,10 @@ struct Model {
   };
   std::vector<EffectLayer> layers;
 
+  // The Gaussian head's step-noise shape per state (metadata 'envi.noise_dof'; empty: all normal):
+  // 0 is a normal draw, nu >= 3 a Student-t of nu degrees of freedom scaled to unit variance.
+  std::vector<int> noise_dof;
+
   // From metadata_props.
   std::vector<ChannelInfo> states, actions;
   std::vector<double> norm_low, norm_high;  // per logged channel (states then actions)
