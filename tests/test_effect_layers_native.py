@@ -15,13 +15,13 @@ from scipy import stats
 from envi_py import native
 from envi_py.cli import main as envi_main
 from envi_py.effect_layers import Layer, read_layers
-from envi_py.export import CONTENT_KEY, content_sha256, read_metadata, to_onnx
+from envi_py.export import read_metadata
 from envi_py.export_cli import main as export_main
 from envi_py.logs import load_logs, read_log, write_log
 from envi_py.simulate import initial_windows, rollout
 from envi_py.system import lane_keeping
 
-from .test_export import paper_ckpt
+from .test_export import paper_ckpt, with_metadata
 from .test_native import LANE, PID, envi_sim, windows
 
 pytestmark = pytest.mark.skipif(not native.available(), reason="native engine not built")
@@ -135,18 +135,6 @@ def test_layers_travel_in_the_export_and_envi_sim_applies_them(tmp_path, real_di
     assert got.meta.provenance["layers"] == [lay.to_json() for lay in ck.layers]
 
 
-def _with_layers_metadata(value: object) -> bytes:
-    model = to_onnx(paper_ckpt())
-    for p in model.metadata_props:
-        if p.key == "envi.layers":
-            p.value = json.dumps(value)
-    kept = [p for p in model.metadata_props if p.key != CONTENT_KEY]
-    del model.metadata_props[:]
-    model.metadata_props.extend(kept)
-    model.metadata_props.add(key=CONTENT_KEY, value=json.dumps(content_sha256(model)))
-    return model.SerializeToString()
-
-
 @pytest.mark.parametrize(
     "entry, match",
     [
@@ -161,7 +149,7 @@ def _with_layers_metadata(value: object) -> bytes:
 )
 def test_the_loader_refuses_bad_layers_as_python_does(entry, match):
     with pytest.raises(ValueError, match=match):
-        native.load(_with_layers_metadata([entry]))
+        native.load(with_metadata(paper_ckpt(), "envi.layers", [entry]))
     with pytest.raises(ValueError):
         Layer.from_json(entry)  # type: ignore[arg-type]
 

@@ -51,6 +51,20 @@ def paper_ckpt(head: str = "deterministic", seed: int = 0, **cfg) -> Checkpoint:
     return Checkpoint(model, Normaliser.fit(logs), LANE_KEEPING_SCHEMA, record)
 
 
+def with_metadata(ckpt: Checkpoint, key: str, value: object) -> bytes:
+    """``ckpt`` exported with metadata ``key`` replaced by ``value`` and the content hash made again:
+    a file only the loader's own checks can refuse."""
+    model = to_onnx(ckpt)
+    for p in model.metadata_props:
+        if p.key == key:
+            p.value = json.dumps(value)
+    kept = [p for p in model.metadata_props if p.key != CONTENT_KEY]
+    del model.metadata_props[:]
+    model.metadata_props.extend(kept)
+    model.metadata_props.add(key=CONTENT_KEY, value=json.dumps(content_sha256(model)))
+    return model.SerializeToString()
+
+
 @pytest.mark.parametrize("head", ["deterministic", "gaussian"])
 def test_onnxruntime_matches_pytorch(head):
     ck = paper_ckpt(head)

@@ -4,7 +4,6 @@ command line."""
 
 from __future__ import annotations
 
-import json
 
 import numpy as np
 import pytest
@@ -13,7 +12,7 @@ from scipy import stats
 
 from envi_py import native
 from envi_py.cli import main
-from envi_py.export import CONTENT_KEY, content_sha256, read_metadata, export, to_onnx
+from envi_py.export import read_metadata, export
 from envi_py.model import Checkpoint, ModelConfig
 from envi_py.simulate import rollout
 from envi_py.system import TrainingDefaults, load_system
@@ -21,7 +20,7 @@ from envi_py.train import train
 from envi_py.train.step_noise import dof_log_likelihoods, fit_noise_dof
 from envi_py.twin import TwinProfile, generate
 
-from .test_export import paper_ckpt
+from .test_export import paper_ckpt, with_metadata
 from .test_native import LANE, windows
 
 
@@ -75,16 +74,8 @@ def test_both_engines_draw_the_same_student_t_step(tmp_path):
 @pytest.mark.skipif(not native.available(), reason="native engine not built")
 @pytest.mark.parametrize("value", [[2], [4, 4], [3.5], ["4"]])
 def test_the_loader_refuses_a_bad_noise_shape(value):
-    model = to_onnx(paper_ckpt("gaussian"))
-    for p in model.metadata_props:
-        if p.key == "envi.noise_dof":
-            p.value = json.dumps(value)
-    kept = [p for p in model.metadata_props if p.key != CONTENT_KEY]
-    del model.metadata_props[:]
-    model.metadata_props.extend(kept)
-    model.metadata_props.add(key=CONTENT_KEY, value=json.dumps(content_sha256(model)))
     with pytest.raises(ValueError, match="envi.noise_dof"):
-        native.load(model.SerializeToString())
+        native.load(with_metadata(paper_ckpt("gaussian"), "envi.noise_dof", value))
 
 
 @pytest.fixture(scope="module")
