@@ -27,6 +27,7 @@ import onnx
 from onnx import TensorProto, helper, numpy_helper
 
 from . import __version__
+from .atomic import atomic_write
 from .model import LIMIT_LEVEL_TOL, LOG_STD_MAX, LOG_STD_MIN, RESIDUAL_SCALE, Checkpoint
 
 OPSET = 17
@@ -317,14 +318,11 @@ def export(ckpt: Checkpoint, path: str | Path, check: bool = True) -> Path:
         path.parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise ValueError(f"{path}: cannot create its folder: {exc.strerror or exc}") from exc
-    tmp = path.with_name("." + path.name + ".tmp")
-    try:  # temporary file, then rename: a reader never sees half a model, a failure leaves no litter
-        tmp.write_bytes(model.SerializeToString())
-        tmp.replace(path)
+    data = model.SerializeToString()
+    try:  # a reader never sees half a model
+        return atomic_write(path, lambda fh: fh.write(data))
     except OSError as exc:
-        tmp.unlink(missing_ok=True)
         raise ValueError(f"{path}: cannot write: {exc.strerror or exc}") from exc
-    return path
 
 
 def read_metadata(path: str | Path) -> dict[str, Any]:

@@ -20,7 +20,6 @@ import math
 import os
 import re
 import stat
-import tempfile
 import warnings
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
@@ -29,6 +28,7 @@ from typing import Any
 
 import numpy as np
 
+from .atomic import atomic_write_text
 from .controllers import ControllerSpec
 from .system import Channel, LogSchema, SystemDescription, describe_schema, lane_keeping, pattern_regex
 
@@ -417,30 +417,6 @@ def read_log(
     )
 
 
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
-
-
-def _atomic_write(path: Path, text: str) -> None:
-    """Write via a temporary file and rename, so a crash never leaves half a file. The file gets the
-    mode any new file gets under the process umask (a temporary file is created 0600)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix="." + path.name, suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w", newline="") as fh:
-            fh.write(text)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.chmod(tmp, 0o666 & ~_umask())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
 def _fmt(v: float) -> str:
     return repr(int(v)) if float(v).is_integer() and abs(v) < 1e15 else repr(float(v))
 
@@ -457,8 +433,8 @@ def write_log(log: Log, path: str | os.PathLike) -> Path:
         )
     for t, s, a, extra in zip(log.time, log.states, log.actions, log.logged):
         lines.append(",".join(_fmt(v) for v in (t, *s, *a, *extra)))
-    _atomic_write(sidecar_path(path), json.dumps(log.meta.to_json(), indent=1) + "\n")
-    _atomic_write(path, "\n".join(lines) + "\n")
+    atomic_write_text(sidecar_path(path), json.dumps(log.meta.to_json(), indent=1) + "\n")
+    atomic_write_text(path, "\n".join(lines) + "\n")
     return path
 
 
@@ -609,7 +585,7 @@ def write_manifest(path: Path, logs: Sequence[Log], system: SystemDescription | 
         "system": None if system is None else system.to_json(),
         "logs": [str(Path(lg.path).resolve()) for lg in logs if lg.path],
     }
-    _atomic_write(path, json.dumps(manifest, indent=1) + "\n")
+    atomic_write_text(path, json.dumps(manifest, indent=1) + "\n")
 
 
 def load_logs(

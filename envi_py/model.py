@@ -29,6 +29,7 @@ import torch
 from torch import nn
 
 from . import __version__
+from .atomic import atomic_write
 from .dataset import Dataset, Normaliser, actuator_position, context_of, extra_channels, play_offsets
 from .effect_layers import Layer
 from .logs import Log, LogError, LogMeta, read_log, sidecar_path
@@ -501,14 +502,7 @@ class Checkpoint:
             "state_dict": state,
             "sha256": _content_hash(cfg, norm, state),
         }
-        tmp = path.with_name("." + path.name + ".tmp")
-        try:  # temporary file, then rename: a reader never sees half a model, a failure leaves no litter
-            torch.save(blob, tmp)
-            tmp.replace(path)
-        except BaseException:  # KeyboardInterrupt too: the half-written temporary file goes
-            tmp.unlink(missing_ok=True)
-            raise
-        return path
+        return atomic_write(path, lambda fh: torch.save(blob, fh))  # a reader never sees half a model
 
     @staticmethod
     def load(path: str | Path) -> Checkpoint:

@@ -199,11 +199,12 @@ def test_a_failed_save_leaves_no_temporary_file(tmp_path, monkeypatch):
     path = ck.save(tmp_path / "m.pt")
     before = path.read_bytes()
 
-    def broken(*_args, **_kwargs):
-        (tmp_path / ".m.pt.tmp").write_bytes(b"half")
+    def broken(_obj, fh, *_args, **_kwargs):
+        fh.write(b"half")
+        assert list(tmp_path.glob(".m.pt*.tmp")), "the checkpoint is not written through a temporary file"
         raise KeyboardInterrupt
 
     monkeypatch.setattr(torch, "save", broken)
     with pytest.raises(KeyboardInterrupt):
         ck.save(path)
-    assert not (tmp_path / ".m.pt.tmp").exists() and path.read_bytes() == before
+    assert not list(tmp_path.glob(".*.tmp")) and path.read_bytes() == before

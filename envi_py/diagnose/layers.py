@@ -42,6 +42,7 @@ import numpy as np
 import torch
 from scipy import stats
 
+from ..atomic import atomic_write_text
 from ..controllers import ControllerSpec
 from ..effect_layers import LAYERS, Layer, layered_commands, read_layers
 from ..logs import Log, group_by_controller
@@ -339,7 +340,7 @@ def save_layers(model_path: str | Path, fits: Sequence[Fit | dict[str, Any]]) ->
     """Write the fitted layers (fits, or their JSON as :func:`fit_and_confirm` returns it) beside the model."""
     path = layers_path(model_path)
     entries = [f.to_json() if isinstance(f, Fit) else f for f in fits]
-    path.write_text(json.dumps({"layers": entries}, indent=1) + "\n")
+    atomic_write_text(path, json.dumps({"layers": entries}, indent=1) + "\n")
     return path
 
 

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
@@ -21,6 +20,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from ..atomic import atomic_write
 from ..model import Checkpoint, load_torch_file
 from .common import Selector
 
@@ -71,17 +71,7 @@ class TrainingState:
             "selector": selector.to_state(),
             "extra": extra or {},
         }
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = self.path.with_name("." + self.path.name + ".tmp")
-        try:
-            with open(tmp, "wb") as fh:
-                torch.save(blob, fh)
-                fh.flush()
-                os.fsync(fh.fileno())
-            tmp.replace(self.path)
-        except BaseException:  # KeyboardInterrupt too: no half-written temporary file is left behind
-            tmp.unlink(missing_ok=True)
-            raise
+        atomic_write(self.path, lambda fh: torch.save(blob, fh))
 
     def restore(
         self, ckpt: Checkpoint, opt: torch.optim.Optimizer, rng: np.random.Generator, selector: Selector

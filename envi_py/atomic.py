@@ -1,0 +1,47 @@
+"""Writing a file so that no reader ever sees half of it: the one way envi writes what it keeps
+(logs and sidecars, manifests, checkpoints, training states, exported models, effect layers).
+
+The content goes to a temporary file in the target's own folder (a rename across file systems
+would not be atomic), is flushed to the disk, given the mode any new file gets under the process
+umask (a temporary file is created 0600), then renamed over the target. On any failure, Ctrl-C
+included, the temporary file is removed and the target is left as it was.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from collections.abc import Callable
+from pathlib import Path
+from typing import BinaryIO
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def atomic_write(path: str | os.PathLike, write: Callable[[BinaryIO], object]) -> Path:
+    """Call ``write`` on a binary file that becomes ``path`` once it has returned (its folder is
+    made when missing). OSError and anything ``write`` raises propagate, with nothing written."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix="." + path.name, suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            write(fh)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.chmod(tmp, 0o666 & ~_umask())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return path
+
+
+def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
+    """:func:`atomic_write` of UTF-8 text, line ends as given."""
+    return atomic_write(path, lambda fh: fh.write(text.encode("utf-8")))

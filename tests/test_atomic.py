@@ -1,0 +1,32 @@
+"""envi_py.atomic: the one way envi writes a file a reader must never see half of."""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+
+from envi_py.atomic import atomic_write, atomic_write_text
+
+
+def test_the_file_appears_whole_with_the_umask_mode(tmp_path):
+    old = os.umask(0o027)
+    try:
+        path = atomic_write_text(tmp_path / "sub" / "a.json", "{}\n")
+    finally:
+        os.umask(old)
+    assert path.read_text() == "{}\n" and path.stat().st_mode & 0o777 == 0o640
+    assert sorted(p.name for p in path.parent.iterdir()) == ["a.json"]
+
+
+@pytest.mark.parametrize("error", [OSError("disk full"), KeyboardInterrupt()])
+def test_a_failed_write_leaves_the_old_file_and_no_temporary_one(tmp_path, error):
+    path = atomic_write_text(tmp_path / "a.csv", "old\n")
+
+    def half(fh):
+        fh.write(b"ne")
+        raise error
+
+    with pytest.raises(type(error)):
+        atomic_write(path, half)
+    assert path.read_text() == "old\n" and [p.name for p in tmp_path.iterdir()] == ["a.csv"]
