@@ -31,6 +31,8 @@ STATE_LAYERS = ("noise", "quantise", "saturation")
 LAYERS = ACTION_LAYERS + STATE_LAYERS
 #: the longest delay a layer may hold (its run memory is that many commands per run)
 MAX_DELAY = 1000
+#: the most layers a model may carry (the native engine keys each layer's draws by its index)
+MAX_LAYERS = 64
 
 UNITS = {
     "delay": "ticks",
@@ -101,6 +103,8 @@ def read_layers(path: str | Path) -> tuple[Layer, ...]:
     path = Path(path)
     try:
         data = json.loads(path.read_text())
+        if len(data["layers"]) > MAX_LAYERS:
+            raise ValueError(f"{len(data['layers'])} layers, at most {MAX_LAYERS}")
         return tuple(Layer.from_json(entry["layer"]) for entry in data["layers"])
     except OSError as exc:
         raise ValueError(f"{path}: cannot read ({exc.strerror})") from None

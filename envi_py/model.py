@@ -31,7 +31,7 @@ from torch import nn
 from . import __version__
 from .atomic import atomic_write
 from .dataset import Dataset, Normaliser, actuator_position, context_of, extra_channels, play_offsets
-from .effect_layers import Layer
+from .effect_layers import MAX_LAYERS, Layer
 from .logs import Log, LogError, LogMeta, read_log, sidecar_path
 from .system import LogSchema, SystemDescription
 
@@ -313,6 +313,8 @@ class Checkpoint:
 
     def with_layers(self, layers: Sequence[Layer]) -> Checkpoint:
         """The same learnt model (shared, not copied) simulated with ``layers`` around it."""
+        if len(layers) > MAX_LAYERS:
+            raise ValueError(f"{len(layers)} effect layers, at most {MAX_LAYERS}")
         return replace(self, layers=tuple(layers))
 
     @property

@@ -182,6 +182,19 @@ def test_envi_simulate_takes_a_layers_file_on_either_engine(tmp_path, capsys):
     assert not (tmp_path / "bad").exists() or not list((tmp_path / "bad").glob("*.csv"))
 
 
+def test_at_most_64_layers_in_either_engine(tmp_path):
+    many = [Layer("lag", 1.0)] * 65
+    with pytest.raises(ValueError, match="at most 64"):
+        paper_ckpt().with_layers(many)
+    with pytest.raises(ValueError, match="at most 64 layers"):
+        native.load(with_metadata(paper_ckpt(), "envi.layers", [lay.to_json() for lay in many]))
+    path = tmp_path / "m.layers.json"
+    path.write_text(json.dumps({"layers": [{"layer": lay.to_json()} for lay in many]}))
+    with pytest.raises(ValueError, match="m.layers.json: not a layers file .65 layers, at most 64"):
+        read_layers(path)
+    assert len(paper_ckpt().with_layers(many[:64]).layers) == 64
+
+
 def test_a_layers_file_reads_back_what_the_diagnosis_saved(tmp_path):
     from envi_py.diagnose.layers import Fit, save_layers
 

@@ -680,8 +680,12 @@ void read_metadata(Model& m) {
       if (!m.noise_dof.empty() && m.noise_dof.size() != m.states.size())
         throw ModelError("metadata 'envi.noise_dof' must give one value per state");
     }
-    if (md.count("envi.layers") && !md["envi.layers"].is_null())
-      for (const auto& e : md["envi.layers"].as_array()) m.layers.push_back(effect_layer(e));
+    if (md.count("envi.layers") && !md["envi.layers"].is_null()) {
+      const auto& entries = md["envi.layers"].as_array();
+      if (entries.size() > 64)  // envi_py.effect_layers.MAX_LAYERS: each layer's draws are keyed by its index
+        throw ModelError("metadata 'envi.layers': at most 64 layers, got " + std::to_string(entries.size()));
+      for (const auto& e : entries) m.layers.push_back(effect_layer(e));
+    }
     if (const Json* alg = md.count("envi.algorithm") ? &md["envi.algorithm"] : nullptr)
       if (alg->type == Json::Type::String) m.algorithm = alg->string;
   } catch (const ModelError&) {
