@@ -11,7 +11,7 @@ import argparse
 import sys
 import time
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 from firmware_bridge.host.brick_sim import register as register_brick_sim
 
@@ -33,6 +33,9 @@ from .logs import (
 )
 from .system import SystemDescription, load_system
 from .twin.cli import register as register_twin
+
+if TYPE_CHECKING:  # torch is imported only once a command needs a model
+    from .model import Checkpoint
 
 
 def seed_type(text: str) -> int:
@@ -287,10 +290,19 @@ def cmd_train(args: argparse.Namespace) -> int:
 # ------------------------------------------------------------------------------------ simulate
 
 
-def cmd_simulate(args: argparse.Namespace) -> int:
-    from .effect_layers import describe, read_layers
-    from .logs import group_by_controller
+def load_model(args: argparse.Namespace) -> Checkpoint:
+    """``--model``, with the effect layers of ``--layers`` around it when given: the model every
+    simulating command (simulate, check) runs."""
+    from .effect_layers import read_layers
     from .model import Checkpoint
+
+    ckpt = Checkpoint.load(args.model)
+    return ckpt.with_layers(read_layers(args.layers)) if args.layers else ckpt
+
+
+def cmd_simulate(args: argparse.Namespace) -> int:
+    from .effect_layers import describe
+    from .logs import group_by_controller
     from .simulate import choose_engine, iter_simulate, versions_to_simulate
 
     _positive(args, "runs")
@@ -302,9 +314,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         raise ValueError(f"--out {out}: exists and is not a folder")
     refuse_earlier_logs(out, args.force)  # before any work: new runs among old ones read back as one set
     params = parse_params(args.param, "--param")  # a NaN gain once simulated NaN logs
-    ckpt = Checkpoint.load(args.model)
-    if args.layers:
-        ckpt = ckpt.with_layers(read_layers(args.layers))
+    ckpt = load_model(args)
     init = require_signals(read_logs(args, "init_logs", min_length=ckpt.config.history), ckpt.schema, args.model)
     inside = [lg.path for lg in init if lg.path is not None and lg.path.resolve().parent == out.resolve()]
     if inside:  # --force would delete the very logs the simulation starts from
@@ -374,7 +384,6 @@ def cmd_check(args: argparse.Namespace) -> int:
 
     from . import __version__
     from .check import check, requirements_of, write_check
-    from .model import Checkpoint
 
     if not 0 < args.alpha < 0.5:
         raise ValueError(f"--alpha must lie in (0, 0.5), got {args.alpha}")
@@ -382,7 +391,7 @@ def cmd_check(args: argparse.Namespace) -> int:
         raise ValueError(f"--delta must lie in (0, 0.5), got {args.delta}")
     _positive(args, "max_runs", "batch", "sims_per_start")
     _at_most(args, max_runs=10_000_000, batch=1_000_000, sims_per_start=100_000)
-    ckpt = Checkpoint.load(args.model)
+    ckpt = load_model(args)
     real = require_signals(read_logs(args, "real", min_length=ckpt.config.history + 1), ckpt.schema, args.model)
     system = ckpt.system
     # the requirements of the description the user names, not silently the checkpoint's older copy
@@ -427,6 +436,7 @@ def cmd_check(args: argparse.Namespace) -> int:
         "sims_per_start": args.sims_per_start,
         "seed": args.seed,
         "system": system.name if system else None,
+        **({"layers": [layer.to_json() for layer in ckpt.layers]} if ckpt.layers else {}),
     }
     width = max(len(r.version) for r in rows)
     print(
@@ -705,6 +715,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--seed", type=seed_type, default=0, help="seed of the simulations")
     p.add_argument("--engine", choices=("auto", "native", "torch"), default="auto", help="simulation engine")
+    p.add_argument(
+        "--layers",
+        default=None,
+        help="effect layers file (as envi diagnose writes it): the verdicts of the model with these effects "
+        "added, a what-if (recorded in the report's provenance)",
+    )
     p.add_argument("--out", default=None, help="folder for check.md and check.json")
     p.set_defaults(func=cmd_check)
 

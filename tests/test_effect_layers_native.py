@@ -202,3 +202,29 @@ def test_a_layers_file_reads_back_what_the_diagnosis_saved(tmp_path):
     assert read_layers(path) == (Layer("lag", 1.5),)
     with pytest.raises(ValueError, match="nope.json: cannot read"):
         read_layers(tmp_path / "nope.json")
+
+
+def test_envi_check_gives_the_verdicts_of_the_model_with_its_layers(tmp_path, capsys):
+    """A what-if verdict: clipping the colour the controller sees to [36, 44] makes the requirement
+    'never more than 4 from the edge' hold in every simulated run, whatever the plain model does."""
+    from envi_py.twin import TwinProfile, generate
+
+    model = tmp_path / "m.pt"
+    paper_ckpt().save(model)
+    real = []
+    for lg in generate(LANE, 4, 40, {}, seed=0, profile=TwinProfile()):
+        real.append(str(write_log(lg, tmp_path / "real" / f"{lg.meta.run_id}.csv")))
+    layers_file = tmp_path / "clip.layers.json"
+    layers_file.write_text(json.dumps({"layers": [{"layer": Layer("saturation", 0, 36.0, 44.0).to_json()}]}))
+    base = ["check", "--model", str(model), "--real", *real, "--require", "max_abs_dev(color, 40) <= 4@0.9"]
+    base += ["--max-runs", "200", "--batch", "100", "--sims-per-start", "4"]
+    results = {}
+    for name, extra in (("plain", []), ("layered", ["--layers", str(layers_file)])):
+        assert envi_main(base + extra + ["--out", str(tmp_path / name)]) == 0
+        results[name] = json.loads((tmp_path / name / "check.json").read_text())
+    sim = results["layered"]["rows"][0]["simulation"]
+    assert sim["verdict"] == "PASS" and sim["successes"] == sim["runs"], sim
+    assert results["plain"]["rows"][0]["simulation"]["successes"] < results["plain"]["rows"][0]["simulation"]["runs"]
+    assert results["layered"]["layers"] == [Layer("saturation", 0, 36.0, 44.0).to_json()]
+    assert "layers" not in results["plain"]
+    capsys.readouterr()
