@@ -60,7 +60,6 @@ ALL_X = (10, 20, 30, 40, 50)
 ALGORITHMS: dict[str, tuple[str, dict[str, Any]]] = {
     "random": ("random", {}),
     "bc-gaussian": ("bc", {"head": "gaussian"}),  # the lane-keeping description's defaults (step noise too)
-    "bc-normal-draws": ("bc", {"head": "gaussian", "step_noise": "gaussian"}),  # normal step noise, as before
     "bc-deterministic": ("bc", {"head": "deterministic"}),
     "bc-gaussian-lr5e-5": ("bc", {"head": "gaussian", "lr": 5e-5}),  # the paper's lr, envi's default before
     # model selection as it was before issue 19's step 1: one run per window, raw minimum, 300 fixed epochs

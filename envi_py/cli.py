@@ -384,6 +384,7 @@ def cmd_check(args: argparse.Namespace) -> int:
 
     from . import __version__
     from .check import check, requirements_of, write_check
+    from .effect_layers import layers_json
 
     if not 0 < args.alpha < 0.5:
         raise ValueError(f"--alpha must lie in (0, 0.5), got {args.alpha}")
@@ -436,7 +437,7 @@ def cmd_check(args: argparse.Namespace) -> int:
         "sims_per_start": args.sims_per_start,
         "seed": args.seed,
         "system": system.name if system else None,
-        **({"layers": [layer.to_json() for layer in ckpt.layers]} if ckpt.layers else {}),
+        **({"layers": layers_json(ckpt.layers)} if ckpt.layers else {}),
     }
     width = max(len(r.version) for r in rows)
     print(

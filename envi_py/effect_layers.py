@@ -112,6 +112,12 @@ def read_layers(path: str | Path) -> tuple[Layer, ...]:
         raise ValueError(f"{path}: not a layers file ({exc})") from None
 
 
+def layers_json(layers: Sequence[Layer]) -> list[dict[str, Any]]:
+    """The layers as plain JSON, in order: what the export's ``envi.layers``, a simulated log's
+    provenance and a check report's provenance record."""
+    return [layer.to_json() for layer in layers]
+
+
 def describe(layers: Sequence[Layer]) -> str:
     """One phrase for a report or a provenance: 'delay 2 ticks, noise 1.5 state units'."""
     return ", ".join(layer.text() for layer in layers) or "none"

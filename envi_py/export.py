@@ -28,6 +28,7 @@ from onnx import TensorProto, helper, numpy_helper
 
 from . import __version__
 from .atomic import atomic_write
+from .effect_layers import layers_json
 from .model import LIMIT_LEVEL_TOL, LOG_STD_MAX, LOG_STD_MIN, RESIDUAL_SCALE, Checkpoint
 
 OPSET = 17
@@ -85,7 +86,7 @@ def metadata(ckpt: Checkpoint) -> dict[str, str]:
         "envi.post": post_processing(ckpt),
         "envi.limit_events": [[i, v] for i, v in cfg.limit_events],
         RESIDUAL_KEY: residual_metadata(ckpt),
-        "envi.layers": [layer.to_json() for layer in ckpt.layers],
+        "envi.layers": layers_json(ckpt.layers),
         "envi.noise_dof": list(cfg.noise_dof),
         "envi.config": asdict(cfg),
         "envi.algorithm": rec.algorithm,

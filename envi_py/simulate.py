@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from .controllers import ControllerSpec
-from .effect_layers import LayerStack
+from .effect_layers import LayerStack, layers_json
 from .logs import Log, LogMeta, group_by_controller
 from .model import Checkpoint
 from .system import LogSchema
@@ -207,7 +207,7 @@ def iter_simulate(
                             "replicate": r,
                             "engine": engine,
                             **({"mean": True} if mean else {}),
-                            **({"layers": [layer.to_json() for layer in ckpt.layers]} if ckpt.layers else {}),
+                            **({"layers": layers_json(ckpt.layers)} if ckpt.layers else {}),
                         },
                     )
                     yield i, r, Log(None, time.copy(), tr[:, :ns].copy(), tr[:, ns:].copy(), meta)

@@ -26,7 +26,6 @@ from scipy import stats
 
 from ..logs import Log
 from ..model import MAX_DOF, MIN_DOF, Checkpoint
-from ..system import STEP_NOISES
 
 
 def standardised_errors(ckpt: Checkpoint, logs: Sequence[Log]) -> list[np.ndarray]:
@@ -82,9 +81,8 @@ def fit_noise_dof(ckpt: Checkpoint, logs: Sequence[Log]) -> tuple[tuple[int, ...
 
 def with_step_noise(ckpt: Checkpoint, step_noise: str, val_logs: Sequence[Log], train_logs: Sequence[Log]) -> None:
     """Give a trained checkpoint its step-noise shape in place (``gaussian``: none to fit), and record
-    it: the setting in the hyper-parameters, the fit beside the epoch selection."""
-    if step_noise not in STEP_NOISES:
-        raise ValueError(f"step noise must be one of {', '.join(STEP_NOISES)}, not {step_noise!r}")
+    it: the setting in the hyper-parameters, the fit beside the epoch selection. ``step_noise`` is one
+    of :data:`~envi_py.system.STEP_NOISES` (:func:`envi_py.train.train` checks it before training)."""
     if not ckpt.config.stochastic or ckpt.config.kind != "mlp":
         return  # nothing is drawn from a step noise
     ckpt.record.hyper["step_noise"] = step_noise

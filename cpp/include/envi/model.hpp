@@ -74,7 +74,6 @@ struct Model {
     Kind kind = Kind::Delay;
     double value = 0.0;
     double low = -INFINITY, high = INFINITY;
-    bool on_commands() const { return kind <= Kind::RunGain; }
   };
   std::vector<EffectLayer> layers;
 
