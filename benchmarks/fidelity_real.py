@@ -67,6 +67,7 @@ ALGORITHMS: dict[str, tuple[str, dict[str, Any]]] = {
     "bc-select-tie": ("bc", {"selection": SelectionSettings(tie=0.05)}),
     "bc-h64-600": ("bc", {"hidden": (64, 64), "epochs": 600}),  # 16x fewer multiply-adds in the wide layer
     "bc-res": ("bc", {"residual": True}),  # the mean head predicts the change from the last reading (the car's best)
+    "bc-context": ("bc", {"context": True}),  # sigma_0's per-run mean and spread as an input all run long
     "bcxgail-bcw4": ("bcxgail", {"bc_weight": 4.0}),
     "gail": ("gail", {}),
     "bcxgail": ("bcxgail", {}),

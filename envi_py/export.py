@@ -88,6 +88,7 @@ def metadata(ckpt: Checkpoint) -> dict[str, str]:
         RESIDUAL_KEY: residual_metadata(ckpt),
         "envi.layers": layers_json(ckpt.layers),
         "envi.noise_dof": list(cfg.noise_dof),
+        "envi.context": cfg.context,
         "envi.config": asdict(cfg),
         "envi.algorithm": rec.algorithm,
         "envi.seed": rec.seed,
@@ -228,15 +229,19 @@ def _mean_output(nodes: list, inits: list, ckpt: Checkpoint, head: str) -> None:
 def to_onnx(ckpt: Checkpoint) -> onnx.ModelProto:
     """The model as an opset-17 graph: ``window`` (N, l*C) normalised -> ``mean`` [and ``log_std``] (N, |s|)
     [and ``event_logit`` (N, e): the limit events' logits, metadata ``envi.limit_events`` says whose].
-    A residual mean head adds its base (the ``residual.*`` nodes, metadata ``envi.residual``)."""
+    A residual mean head adds its base (the ``residual.*`` nodes, metadata ``envi.residual``). With a run
+    context (metadata ``envi.context``) the input ends with it, (N, l*C + 2|s|): each state's mean and
+    population sd over sigma_0's l normalised rows (:func:`envi_py.dataset.context_of`)."""
     cfg = ckpt.config
     if cfg.kind != "mlp":
         raise ValueError(f"only MLP models can be exported, this one is {cfg.kind!r}")
-    if not cfg.plain:
+    if cfg.extras:
         raise ValueError(
-            "models with derived channels or a run context cannot be exported yet "
-            "(the runtimes only feed the window of logged channels to the model)"
+            "models with derived channels cannot be exported yet "
+            "(the runtimes only feed the window of logged channels, and a run context, to the model)"
         )
+    if cfg.context and not cfg.hidden:
+        raise ValueError("a model with a run context needs a hidden layer to be exported (the runtime adds it there)")
     sd = {k: v.detach().cpu().numpy() for k, v in ckpt.model.state_dict().items()}
     nodes: list = []
     inits: list = []

@@ -130,8 +130,8 @@ class ModelConfig:
 
     @property
     def plain(self) -> bool:
-        """True when the model's input is the window alone (no derived channels, no run context): what the
-        exporter and the native engine run, with any head (a residual one included)."""
+        """True when the model's input is the window alone (no derived channels, no run context). The
+        exporter and the native engine run these with any head, and a run context too (not derived channels)."""
         return not self.extras and not self.context
 
     @property

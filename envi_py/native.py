@@ -79,11 +79,11 @@ def unsupported(ckpt: Checkpoint, controller: ControllerSpec, mean: bool = False
     """Why the native engine cannot run this model with this controller (by its ``mean`` when asked),
     or None when it can.
 
-    It runs exported MLPs fed by the window alone (a residual mean head included: the engine adds
-    its base from the window), with every registered controller (bang-bang, lane-keeping, pid and
-    combine; its C++ twins are tested against them, warm-up included); derived channels, a run
-    context, the random baseline and a user's controller given by import path stay with the PyTorch
-    engine. Widths are not judged here: a controller that does not fit
+    It runs exported MLPs fed by the window (a residual mean head included: the engine adds its base
+    from the window) and a run context (the engine computes it from sigma_0), with every registered
+    controller (bang-bang, lane-keeping, pid and combine; its C++ twins are tested against them,
+    warm-up included); derived channels, the random baseline and a user's controller given by import
+    path stay with the PyTorch engine. Widths are not judged here: a controller that does not fit
     the model is an error (WidthError) in both engines, not a reason to switch."""
     from .controllers import REGISTRY
 
@@ -91,8 +91,10 @@ def unsupported(ckpt: Checkpoint, controller: ControllerSpec, mean: bool = False
         return "the native module is not built"
     if ckpt.config.kind != "mlp":
         return f"the model is {ckpt.config.kind!r}, not an MLP"
-    if not ckpt.config.plain:
-        return "the model has derived channels or a run context"
+    if ckpt.config.extras:
+        return "the model has derived channels"
+    if ckpt.config.context and not ckpt.config.hidden:
+        return "the model has a run context but no hidden layer"
     if controller.name not in REGISTRY:
         return f"controller {controller.name!r} is not a registered one"
     if mean and ckpt.config.stochastic and ckpt.config.limit_events:

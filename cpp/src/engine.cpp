@@ -33,9 +33,10 @@ void activate(OutMap& y, const Dense& d) {
 // Packed layers run the engine's microkernel when the block fills at least one tile of columns (a
 // single run is a matrix-vector product, Eigen's GEMV does it better); the rest runs Eigen, with
 // the bias written first and the product accumulated onto it (one pass fewer than adding it after).
-const float* forward(const std::vector<Dense>& layers, const float* in, long rows, long stride, long count,
+const float* forward(const Dense* first, const Dense* last, const float* in, long rows, long stride, long count,
                      float* a, float* b, float* scratch) {
-  for (const Dense& d : layers) {
+  for (const Dense* it = first; it != last; ++it) {
+    const Dense& d = *it;
     float* outp = (in == a) ? b : a;
     if (d.packed && count >= PackedDense::kCols) {
       d.packed->apply(in, stride, count, outp, scratch);
@@ -57,10 +58,16 @@ const float* forward(const std::vector<Dense>& layers, const float* in, long row
   return in;
 }
 
+const float* forward(const std::vector<Dense>& layers, const float* in, long rows, long stride, long count,
+                     float* a, float* b, float* scratch) {
+  return forward(layers.data(), layers.data() + layers.size(), in, rows, stride, count, a, b, scratch);
+}
+
 struct Workspace {
   MatF ring;                       // (2 l C) x block: each run's window rows, twice (see below)
   std::vector<float> buf[4];       // hidden activations, ping-pong pairs for trunk and heads
   MatF mean;                       // n_state x block
+  MatF context_bias;               // first trunk layer's width x block: context_W * each run's context
   std::vector<unsigned char> events;  // limit events x block: which happen this step
   std::vector<float> scratch;      // the packed layers' input panel
   std::vector<double> rows, states, actions, memory;
@@ -76,6 +83,7 @@ struct Workspace {
     ring.resize(2 * m.history * c, block);
     for (auto& v : buf) v.resize(size_t(m.max_width()) * size_t(block));
     mean.resize(m.n_state(), block);
+    if (m.context) context_bias.resize(m.context_W.rows(), block);
     events.resize(size_t(m.limit_events.size()) * size_t(block));
     rows.resize(size_t(block) * size_t(c));
     states.resize(size_t(block) * size_t(m.n_state()));
@@ -121,7 +129,7 @@ struct Runner {
       else if (layer.kind == K::Lag || layer.kind == K::Play) layer_memory += na;
       else if (layer.kind == K::RunGain) layer_memory += 1;
     }
-    trunk_out = m.in_features();
+    trunk_out = m.window_features();
     for (const Dense& d : m.trunk)
       if (d.W.size()) trunk_out = d.W.rows();
     for (int i = 0; i < m.channels(); ++i) {
@@ -246,6 +254,38 @@ struct Runner {
     }
   }
 
+  // Each run's context bias (Model::context): context_W times the mean and population sd of every
+  // state over sigma_0's l normalised rows (the ring's first l rows), as envi_py.dataset.context_of.
+  void context_start(Workspace& w, int count) const {
+    const long c = m.channels(), l = m.history, ns = m.n_state();
+    Eigen::VectorXf ctx(2 * ns);
+    for (int b = 0; b < count; ++b) {
+      const float* col = w.ring.col(b).data();
+      for (long i = 0; i < ns; ++i) {
+        double sum = 0, sq = 0;
+        for (long t = 0; t < l; ++t) sum += col[t * c + i];
+        const double mu = sum / double(l);
+        for (long t = 0; t < l; ++t) sq += (col[t * c + i] - mu) * (col[t * c + i] - mu);
+        ctx[i] = float(mu);
+        ctx[ns + i] = float(std::sqrt(sq / double(l)));
+      }
+      w.context_bias.col(b).noalias() = m.context_W * ctx;
+    }
+  }
+
+  // The trunk's output for the window x: with a run context, its first (linear) layer, the context
+  // bias added, then the rest (the first layer's activation first).
+  const float* trunk(Workspace& w, const float* x, long in, long stride, int count) const {
+    const Dense* layers = m.trunk.data();
+    const Dense* end = layers + m.trunk.size();
+    if (!m.context) return forward(layers, end, x, in, stride, count, w.buf[0].data(), w.buf[1].data(), w.scratch.data());
+    float* h = const_cast<float*>(forward(layers, layers + 1, x, in, stride, count, w.buf[0].data(), w.buf[1].data(),
+                                          w.scratch.data()));
+    const long rows = m.context_W.rows();
+    OutMap(h, rows, count) += w.context_bias.leftCols(count);
+    return forward(layers + 1, end, h, rows, rows, count, w.buf[0].data(), w.buf[1].data(), w.scratch.data());
+  }
+
   void block(int thread, Workspace& w, long first, int count) {
     const int ns = m.n_state(), na = m.n_action(), c = m.channels();
     const long l = m.history;
@@ -266,12 +306,12 @@ struct Runner {
     if (layered)
       for (int b = 0; b < count; ++b)
         layer_start(w, b, first + b, job.init + size_t((first + b) / job.runs) * size_t(l) * size_t(c));
-    const long in = m.in_features(), stride = w.ring.rows();
+    if (m.context) context_start(w, count);
+    const long in = m.window_features(), stride = w.ring.rows();
     long p = 0;
     for (long t = 0; t < job.steps; ++t) {
       const float* x = w.ring.data() + p * c;
-      const float* h =
-          m.trunk.empty() ? x : forward(m.trunk, x, in, stride, count, w.buf[0].data(), w.buf[1].data(), w.scratch.data());
+      const float* h = m.trunk.empty() ? x : trunk(w, x, in, stride, count);
       const long hstride = m.trunk.empty() ? stride : trunk_out;
       const float* mu = forward(m.mean, h, trunk_out, hstride, count, w.buf[2].data(), w.buf[3].data(), w.scratch.data());
       if (m.gaussian() || !m.event.empty() || m.residual.on) {

@@ -680,6 +680,11 @@ void read_metadata(Model& m) {
       if (!m.noise_dof.empty() && m.noise_dof.size() != m.states.size())
         throw ModelError("metadata 'envi.noise_dof' must give one value per state");
     }
+    if (md.count("envi.context") && !md["envi.context"].is_null()) {
+      const Json& c = md["envi.context"];
+      if (c.type != Json::Type::Bool) throw ModelError("metadata 'envi.context' must be true or false");
+      m.context = c.boolean;
+    }
     if (md.count("envi.layers") && !md["envi.layers"].is_null()) {
       const auto& entries = md["envi.layers"].as_array();
       if (entries.size() > 64)  // envi_py.effect_layers.MAX_LAYERS: each layer's draws are keyed by its index
@@ -729,6 +734,29 @@ void check_shapes(const Model& m) {
   if (!m.event.empty() && walk(m.event, t, "event head") != long(m.limit_events.size()))
     throw ModelError("the event output does not have one value per limit event");
   if (m.trunk.empty() && m.mean.empty()) throw ModelError("the model has no layers");
+}
+
+// Moves the first trunk layer's context columns to Model::context_W and its activation to a layer of
+// its own (see Model::context): the engine adds the per-run context bias between the two.
+void split_context(Model& m) {
+  if (!m.context) return;
+  if (m.trunk.empty() && m.mean.size() >= 2) {  // one head: its layers but the last become the trunk
+    m.trunk.assign(m.mean.begin(), m.mean.end() - 1);
+    m.mean.erase(m.mean.begin(), m.mean.end() - 1);
+  }
+  if (m.trunk.empty() || m.trunk[0].W.size() == 0)
+    throw ModelError("metadata 'envi.context' needs a hidden layer to take the run context");
+  Dense& first = m.trunk[0];
+  const long window = m.window_features();
+  m.context_W = first.W.rightCols(m.context_features());
+  Eigen::MatrixXf w = first.W.leftCols(window);
+  first.W = w;
+  Dense act;
+  act.act = first.act;
+  act.clip_lo = first.clip_lo;
+  act.clip_hi = first.clip_hi;
+  first.act = Act::None;
+  m.trunk.insert(m.trunk.begin() + 1, act);
 }
 
 // ---------------------------------------------------------------- content hash
@@ -913,6 +941,7 @@ Model load_model(const uint8_t* data, size_t size) {
   // Last, so that a file broken in structure is named by what is wrong with it (and fuzzing
   // reaches every check above); what passes them must still be the file that was exported.
   verify_content_hash(file.graph, file.metadata);
+  split_context(m);
   for (auto* layers : {&m.trunk, &m.mean, &m.log_std, &m.event})
     for (Dense& d : *layers)
       if (PackedDense::suits(d)) d.packed = std::make_shared<const PackedDense>(d);

@@ -81,6 +81,13 @@ struct Model {
   // 0 is a normal draw, nu >= 3 a Student-t of nu degrees of freedom scaled to unit variance.
   std::vector<int> noise_dof;
 
+  // A run context (metadata 'envi.context'; envi_py.dataset.context_of): the network's input ends
+  // with each state's mean and population sd over sigma_0's l normalised rows, fixed for the run. At
+  // load the first trunk layer's columns for it move to `context_W` and that layer's activation to a
+  // layer of its own, so the engine adds context_W * context (a per-run bias) before it.
+  bool context = false;
+  Eigen::MatrixXf context_W;  // first trunk layer's width x 2 n_state
+
   // From metadata_props.
   std::vector<ChannelInfo> states, actions;
   std::vector<double> norm_low, norm_high;  // per logged channel (states then actions)
@@ -95,7 +102,9 @@ struct Model {
   int n_state() const { return int(states.size()); }
   int n_action() const { return int(actions.size()); }
   int channels() const { return n_state() + n_action(); }
-  int in_features() const { return history * channels(); }
+  int window_features() const { return history * channels(); }
+  int context_features() const { return context ? 2 * n_state() : 0; }
+  int in_features() const { return window_features() + context_features(); }
   bool gaussian() const { return !log_std.empty(); }
   int max_width() const;
 };
