@@ -233,7 +233,6 @@ def cmd_train(args: argparse.Namespace) -> int:
             eval_every=args.eval_every,
             extras=tuple(args.extras),
             play_width=args.play_width,
-            context=args.context,
             selection=SelectionSettings(runs=args.select_runs, patience=args.patience),
         )
         if args.algorithm == "bc":
@@ -246,6 +245,8 @@ def cmd_train(args: argparse.Namespace) -> int:
             raise ValueError(f"--head deterministic: {args.algorithm} trains a Gaussian policy (PPO needs one)")
         if args.residual is not None:  # else the system description's [training] default
             kwargs["residual"] = args.residual
+        if args.context is not None:  # else the system description's [training] default
+            kwargs["context"] = args.context
         if args.step_noise is not None:  # else the system description's [training] default
             if args.head == "deterministic" and args.step_noise != "gaussian":
                 raise ValueError("--step-noise student-t shapes a Gaussian head's draws; --head deterministic has none")
@@ -556,7 +557,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--play-width", type=float, default=0.0, help="the play channel's full width, a fraction of the action range"
     )
-    p.add_argument("--context", action="store_true", help="append the per-run context of the initial window")
+    p.add_argument(
+        "--context",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="the model also reads sigma_0's per-state mean and spread at every step (default: the system "
+        "description's [training] context)",
+    )
     p.add_argument(
         "--residual",
         action=argparse.BooleanOptionalAction,

@@ -19,8 +19,9 @@ model can always say which signals it reads and writes. It declares
 - ``[training]``: the model settings measured best for this system, which ``envi train`` (and
   everything that trains: demo, experiment) uses unless told otherwise: ``residual`` (the mean head
   predicts the change from the last reading), ``input_noise`` (behaviour cloning's window
-  perturbation, in typical logged steps) and ``step_noise`` (a Gaussian head's draws: ``gaussian``,
-  or ``student-t`` with tails fitted after training).
+  perturbation, in typical logged steps), ``step_noise`` (a Gaussian head's draws: ``gaussian``,
+  or ``student-t`` with tails fitted after training) and ``context`` (sigma_0's per-state mean and
+  spread as an input all run long, so a run keeps what its start showed of it).
 
 The lane-keeping robot and the car following a lead vehicle are shipped descriptions
 (``envi_py/systems/*.toml``); ``envi init --logs DIR`` drafts one from a folder of logs.
@@ -180,6 +181,7 @@ class TrainingDefaults:
     residual: bool = False
     input_noise: float = 0.0
     step_noise: str = "gaussian"
+    context: bool = False
 
     def for_algorithm(self, algorithm: str) -> dict[str, Any]:
         """The keyword arguments ``algorithm``'s trainer takes from these defaults: the residual head
@@ -191,10 +193,17 @@ class TrainingDefaults:
             out["input_noise"] = self.input_noise
         if algorithm in ("bc", "gail", "bcxgail") and self.step_noise != "gaussian":
             out["step_noise"] = self.step_noise
+        if algorithm in ("bc", "gail", "bcxgail") and self.context:
+            out["context"] = True
         return out
 
     def to_json(self) -> dict[str, Any]:
-        return {"residual": self.residual, "input_noise": self.input_noise, "step_noise": self.step_noise}
+        return {
+            "residual": self.residual,
+            "input_noise": self.input_noise,
+            "step_noise": self.step_noise,
+            "context": self.context,
+        }
 
 
 def _training(d: Any) -> TrainingDefaults:
@@ -202,16 +211,17 @@ def _training(d: Any) -> TrainingDefaults:
         return TrainingDefaults()
     if not isinstance(d, dict):
         raise ValueError("[training] must be a table")
-    residual = d.get("residual", False)
-    if not isinstance(residual, bool):
-        raise ValueError(f"[training] residual must be true or false, not {residual!r:.40}")
+    residual, context = d.get("residual", False), d.get("context", False)
+    for key, value in (("residual", residual), ("context", context)):
+        if not isinstance(value, bool):
+            raise ValueError(f"[training] {key} must be true or false, not {value!r:.40}")
     noise = d.get("input_noise", 0.0)
     if isinstance(noise, bool) or not isinstance(noise, (int, float)) or not math.isfinite(noise) or noise < 0:
         raise ValueError(f"[training] input_noise must be a number >= 0, not {noise!r:.40}")
     step_noise = d.get("step_noise", "gaussian")
     if step_noise not in STEP_NOISES:
         raise ValueError(f"[training] step_noise must be one of {', '.join(STEP_NOISES)}, not {step_noise!r:.40}")
-    return TrainingDefaults(residual, float(noise), step_noise)
+    return TrainingDefaults(residual, float(noise), step_noise, context)
 
 
 @dataclass(frozen=True)
@@ -506,7 +516,7 @@ TOML_KEYS: dict[str, tuple[str, ...]] = {
     "[versions]": ("pattern", "params", "map"),
     "[controller]": ("name", "params"),
     "[[requirements]]": ("name", "expr", "kind", "probability"),
-    "[training]": ("residual", "input_noise", "step_noise"),
+    "[training]": ("residual", "input_noise", "step_noise", "context"),
 }
 
 

@@ -256,4 +256,5 @@ def test_a_fix_is_said_as_the_train_options_that_make_it():
     assert train_options({"head": "gaussian"}) == "--head gaussian"
     assert train_options({"extras": ["play"], "play_width": 0.05}) == "--extras play --play-width 0.05"
     assert train_options({"context": True}) == "--context"
+    assert train_options({"context": False}) == "--no-context"
     assert train_options({"round_to": (1.0,)}) == "(API: round_to=[1.0])"

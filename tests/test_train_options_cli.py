@@ -76,6 +76,7 @@ def test_the_system_description_sets_the_defaults_and_the_command_line_wins(car_
         ("input_noise = 0.5", "input_noise = nan", "input_noise must be a number >= 0"),
         ("residual = true", "residuals = true", "unknown key 'residuals' (did you mean 'residual'?"),
         ("input_noise = 0.5", 'input_noise = 0.5\nstep_noise = "laplace"', "step_noise must be one of gaussian"),
+        ("input_noise = 0.5", 'input_noise = 0.5\ncontext = "yes"', "context must be true or false"),
     ],
 )
 def test_a_bad_training_table_is_refused_naming_the_file(tmp_path, line, bad, message):
@@ -85,3 +86,19 @@ def test_a_bad_training_table_is_refused_naming_the_file(tmp_path, line, bad, me
     with pytest.raises(ValueError, match=re.escape(message)) as err:
         load_system(path)
     assert str(path) in str(err.value)
+
+
+def test_a_description_asks_for_a_run_context_and_the_command_line_wins(car_dir, tmp_path):
+    """``[training] context = true`` gives every learnt model sigma_0's context; --no-context and
+    --context override the description either way."""
+    text = (SHIPPED_DIR / "car.toml").read_text().replace("input_noise = 0.5", "input_noise = 0.5\ncontext = true")
+    desc = tmp_path / "car.toml"
+    desc.write_text(text)
+    assert load_system(desc).training.for_algorithm("bcxgail") == {"residual": True, "context": True}
+    base = ["train", "--logs", str(car_dir), "--epochs", "1", "--hidden", "8", "--quiet"]
+    for extra, context in (([], True), (["--no-context"], False), (["--system", "car", "--context"], True)):
+        out = tmp_path / f"m{len(extra)}.pt"
+        argv = [*base, *(extra if "--system" in extra else ["--system", str(desc), *extra]), "-o", str(out)]
+        assert main(argv) == 0, extra
+        assert Checkpoint.load(out).config.context is context, extra
+    assert load_system("car").training.context is False

@@ -64,7 +64,7 @@ def train_options(fix: dict[str, Any]) -> str:
         elif key == "play_width":
             parts.append(f"--play-width {value:g}")
         elif key == "context":
-            parts.append("--context" if value else "")
+            parts.append("--context" if value else "--no-context")  # explicit: a description may default either way
         else:
             parts.append(f"(API: {key}={list(value) if isinstance(value, tuple) else value})")
     return " ".join(p for p in parts if p)
