@@ -117,6 +117,7 @@ CONFIGS: dict[str, tuple[str, dict[str, Any]]] = {
     "bc-res-lr3e-4": ("bc", {"residual": True, "lr": 3e-4}),
     "bc-res-noise05": ("bc", {"residual": True, "input_noise": 0.5}),  # no collapse onto the clamp at 4 seeds
     "bc-res-wide": ("bc", {"residual": True, "hidden": (512, 512)}),
+    "default-context": ("bc", {"context": True}),  # the description's defaults plus sigma_0's per-run context
     # twice the selection's simulated runs per validation log, twice its patience: a less noisy choice of epoch
     "bc-res-sel": ("bc", {"residual": True, "selection": SelectionSettings(runs=10, patience=20)}),
     TWIN: ("none", {}),
