@@ -26,7 +26,7 @@ from .logs import (
     finite_numbers,
     load_logs,
     refuse_earlier_logs,
-    remove_logs,
+    staged_logs,
     require_signals,
     write_log,
     write_manifest,
@@ -315,6 +315,10 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         raise ValueError(f"--out {out}: exists and is not a folder")
     refuse_earlier_logs(out, args.force)  # before any work: new runs among old ones read back as one set
     params = parse_params(args.param, "--param")  # a NaN gain once simulated NaN logs
+    if args.param and not args.controller:
+        raise ValueError(
+            "--param sets the parameters of --controller; without it each initial log's own controller runs"
+        )
     ckpt = load_model(args)
     init = require_signals(read_logs(args, "init_logs", min_length=ckpt.config.history), ckpt.schema, args.model)
     inside = [lg.path for lg in init if lg.path is not None and lg.path.resolve().parent == out.resolve()]
@@ -347,12 +351,13 @@ def cmd_simulate(args: argparse.Namespace) -> int:
                     file=sys.stderr,
                 )
     t0 = time.perf_counter()
-    replaced = remove_logs(out) if args.force else 0  # only now: every check above has passed
     n = 0
-    for spec, group in versions_to_simulate(init, given):
-        for _, _, lg in iter_simulate(ckpt, spec, group, args.steps, args.runs, args.seed, args.engine, args.mean):
-            write_log(lg, out / f"{lg.meta.run_id}.csv")  # run ids are checked plain names: no path escapes
-            n += 1
+    with staged_logs(out, args.force) as staging:  # a failure mid-way leaves --out as it was
+        for spec, group in versions_to_simulate(init, given):
+            for _, _, lg in iter_simulate(ckpt, spec, group, args.steps, args.runs, args.seed, args.engine, args.mean):
+                write_log(lg, staging.folder / f"{lg.meta.run_id}.csv")  # run ids are plain names: no path escapes
+                n += 1
+    replaced = staging.replaced
     note = f" (replaced {replaced} earlier logs)" if replaced else ""
     note += f"; effect layers: {describe(ckpt.layers)}" if ckpt.layers else ""
     print(f"simulated {n} runs in {time.perf_counter() - t0:.2f} s ({'+'.join(sorted(engines))} engine) -> {out}{note}")
@@ -363,12 +368,21 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 
 def cmd_verify(args: argparse.Namespace) -> int:
+    from .logs import group_by_controller
     from .verify import to_text, verify, write_report
 
     real = read_logs(args, "real")
     sim = load_logs(args.sim, skip_bad=args.skip_bad)
     system = system_of(args)
     results = verify(real, sim, system, skip=args.skip, floor=not args.no_floor, seed=args.seed)
+    real_versions = set(group_by_controller(real))
+    for spec, group in group_by_controller(sim).items():
+        if spec not in real_versions:  # say so: a simulated log whose sidecar went missing lands here
+            print(
+                f"envi verify: note: {len(group)} simulated run(s) of {spec.label()} "
+                f"(e.g. {group[0].path or group[0].name}) have no real runs of that version; not scored",
+                file=sys.stderr,
+            )
     print(to_text(results))
     if args.out:
         md, js = write_report(results, Path(args.out), real=real, sim=sim, system=system, skip=args.skip)
@@ -479,6 +493,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     """The main job on the project's own data: twin logs -> split -> BC -> simulate -> verify."""
     from .demo import FAST, FULL, run_demo
 
+    _positive(args, "epochs")
     run_demo(Path(args.out), seed=args.seed, system=args.system, size=FAST if args.fast else FULL, epochs=args.epochs)
     return 0
 
@@ -629,7 +644,7 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="controller name or package.module:function (default: each log's own controller)",
     )
-    p.add_argument("--param", nargs="*", default=None, help="controller parameters, e.g. x=30")
+    p.add_argument("--param", nargs="*", default=None, help="parameters of --controller, e.g. x=30")
     p.add_argument("--runs", type=int, default=1, help="runs per initial window")
     p.add_argument(
         "--steps",

@@ -101,6 +101,11 @@ class WidthError(ValueError):
     """A controller whose inputs or outputs do not fit the model's states and actions."""
 
 
+class ControllerError(ValueError):
+    """A controller that failed while running: it raised, or answered NaN, inf or a value outside
+    the actions' declared range (a simulated log holding it could not be read back)."""
+
+
 def _channel(name: str, value: Any, n_state: int | None) -> int:
     if isinstance(value, bool) or not isinstance(value, (int, float)) or float(value) != int(value):
         raise ValueError(f"controller {name!r}: 'input' must be a state channel index, not {value!r:.40}")
@@ -239,18 +244,36 @@ class Checked:
     def __init__(self, inner: Any, name: str, n_action: int | None) -> None:
         self.inner, self.name, self.n_action = inner, name, n_action
 
+    def _raised(self, what: str, exc: Exception) -> ControllerError:
+        return ControllerError(f"controller {self.name!r} raised {type(exc).__name__} in {what}: {exc}")
+
     def reset(self, n: int) -> None:
-        self.inner.reset(n)
+        try:
+            self.inner.reset(n)
+        except (WidthError, ControllerError):
+            raise
+        except Exception as exc:  # a user's controller: its failure is one error line, not a traceback
+            raise self._raised("reset", exc) from exc
 
     def warmup(self, states: np.ndarray, actions: np.ndarray) -> None:
-        if hasattr(self.inner, "warmup"):
-            self.inner.warmup(states, actions)
-        else:
-            for t in range(states.shape[1]):
-                self.inner(states[:, t])
+        try:
+            if hasattr(self.inner, "warmup"):
+                self.inner.warmup(states, actions)
+            else:
+                for t in range(states.shape[1]):
+                    self.inner(states[:, t])
+        except (WidthError, ControllerError):
+            raise
+        except Exception as exc:
+            raise self._raised("warmup", exc) from exc
 
     def __call__(self, states: np.ndarray) -> np.ndarray:
-        out = np.asarray(self.inner(states), dtype=np.float64)
+        try:
+            out = np.asarray(self.inner(states), dtype=np.float64)
+        except (WidthError, ControllerError):
+            raise
+        except Exception as exc:
+            raise self._raised("a step", exc) from exc
         if out.ndim == 1 and out.shape[0] == states.shape[0]:
             out = out[:, None]
         if (
@@ -263,6 +286,9 @@ class Checked:
                 f"controller {self.name!r} answered shape {tuple(out.shape)} for {states.shape[0]} "
                 f"run(s); the model needs {want}"
             )
+        if not np.isfinite(out).all():
+            bad = out[~np.isfinite(out)][0]
+            raise ControllerError(f"controller {self.name!r} answered a non-finite action ({bad})")
         return out
 
 

@@ -90,7 +90,8 @@ def run_demo(
         f"{len(trained)} versions, validating on {len(val_logs)}, verifying on {len(test_logs)} "
         f"(all {len(group_by_controller(logs))} versions, the untrained ones are TMVU)"
     )
-    ckpt = train("bc", train_logs, val_logs, system=desc, seed=seed, epochs=epochs or size.epochs, progress=True)
+    epochs = size.epochs if epochs is None else epochs
+    ckpt = train("bc", train_logs, val_logs, system=desc, seed=seed, epochs=epochs, progress=True)
     ckpt.save(out / "model.pt")
     engine = choose_engine(ckpt, next(iter(group_by_controller(test_logs))), "auto")
     sims = simulate_versions(ckpt, test_logs, runs=size.sim_runs, seed=seed, engine="auto")

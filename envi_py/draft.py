@@ -90,9 +90,16 @@ def draft_system(folder: Path, pattern: str | None = None) -> str:
     files = sorted(p for p in folder.iterdir() if p.suffix == ".csv" and p.is_file() and not p.name.startswith("."))
     if not files:
         raise LogError(f"{folder}: no .csv logs")
+    given = pattern
     pattern = pattern or guess_pattern([p.name for p in files])
     if pattern:
-        pattern_regex(pattern)
+        rx = pattern_regex(pattern)
+        unmatched = [p.name for p in files if not rx.match(p.name)]
+        if given and unmatched:  # the description would not read these logs back
+            raise LogError(
+                f"{folder / unmatched[0]}: the file name does not match --pattern {given!r} "
+                f"({len(unmatched)} of {len(files)} logs do not)"
+            )
     sidecar = next((sidecar_path(p) for p in files if sidecar_path(p).is_file()), None)
     sample = files[:: max(1, len(files) // MAX_FILES)][:MAX_FILES]  # spread over every version
     header = read_columns(sample[0])

@@ -26,6 +26,8 @@ from typing import Any
 
 import numpy as np
 
+from .files import read_text
+
 ACTION_LAYERS = ("delay", "lag", "play", "gain_drift", "run_gain")
 STATE_LAYERS = ("noise", "quantise", "saturation")
 LAYERS = ACTION_LAYERS + STATE_LAYERS
@@ -100,15 +102,15 @@ class Layer:
 def read_layers(path: str | Path) -> tuple[Layer, ...]:
     """The layers of a layers file (``{"layers": [{"layer": {...}, ...}, ...]}``, as ``envi diagnose``
     writes it); anything else is one ValueError naming the file."""
-    path = Path(path)
+    text = read_text(path, "a layers file")
     try:
-        data = json.loads(path.read_text())
+        data = json.loads(text)
         if len(data["layers"]) > MAX_LAYERS:
             raise ValueError(f"{len(data['layers'])} layers, at most {MAX_LAYERS}")
         return tuple(Layer.from_json(entry["layer"]) for entry in data["layers"])
-    except OSError as exc:
-        raise ValueError(f"{path}: cannot read ({exc.strerror})") from None
-    except (ValueError, KeyError, TypeError) as exc:
+    except KeyError as exc:
+        raise ValueError(f"{path}: not a layers file (no key {exc})") from None
+    except (ValueError, TypeError) as exc:
         raise ValueError(f"{path}: not a layers file ({exc})") from None
 
 

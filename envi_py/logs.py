@@ -12,6 +12,7 @@ grouped by it here, once.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import hashlib
 import io
@@ -19,9 +20,11 @@ import json
 import math
 import os
 import re
-import stat
+import shutil
+import tempfile
+
 import warnings
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -30,6 +33,7 @@ import numpy as np
 
 from .atomic import atomic_write_text
 from .controllers import ControllerSpec
+from .files import regular_file
 from .system import Channel, LogSchema, SystemDescription, describe_schema, lane_keeping, pattern_regex
 
 __all__ = ["Channel", "LogSchema", "pattern_regex"]
@@ -239,12 +243,7 @@ def sidecar_path(csv_path: Path) -> Path:
 
 def _regular_file(path: Path) -> None:
     """Refuse FIFOs, devices and links to them before opening: reading one would hang or never end."""
-    try:
-        st = path.stat()
-    except OSError as exc:
-        raise LogError(f"{path}: cannot read ({exc.strerror})") from None
-    if not stat.S_ISREG(st.st_mode):
-        raise LogError(f"{path}: not a regular file (a pipe, device or folder cannot be a log)")
+    regular_file(path, "a log", LogError)
 
 
 def read_sidecar(side: Path) -> LogMeta:
@@ -552,6 +551,33 @@ def remove_logs(folder: str | os.PathLike) -> int:
     return sum(p.suffix == ".csv" for p in held)
 
 
+@dataclass
+class StagedLogs:
+    """Where :func:`staged_logs` has the new logs written, and how many earlier CSV logs they replaced."""
+
+    folder: Path
+    replaced: int = 0
+
+
+@contextlib.contextmanager
+def staged_logs(out: str | os.PathLike, force: bool) -> Iterator[StagedLogs]:
+    """Write a run's logs into a hidden folder inside ``out``; only when the block ends without error
+    are the earlier logs removed (``force``; see :func:`refuse_earlier_logs`) and the new ones moved
+    in. A simulation that fails half-way (a controller that raises, Ctrl-C) leaves ``out`` exactly as
+    it was: neither the earlier run lost nor half of a new one mixed into it."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    staged = StagedLogs(Path(tempfile.mkdtemp(dir=out, prefix=".staging-")))
+    try:
+        yield staged
+        refuse_earlier_logs(out, force)  # a log that appeared meanwhile is not silently replaced
+        staged.replaced = remove_logs(out) if force else 0
+        for p in sorted(staged.folder.iterdir()):
+            os.replace(p, out / p.name)
+    finally:
+        shutil.rmtree(staged.folder, ignore_errors=True)
+
+
 def _manifest_error(path: Path, why: str) -> LogError:
     return LogError(f"{path}: not a valid manifest ({why})")
 
@@ -617,11 +643,19 @@ def load_logs(
                 )
             entries += [(f, msys or system) for f in files]
         elif p.is_dir():
-            entries += [(f, system) for f in list_log_files(p, system.versions.pattern if system else None)]
+            pattern = system.versions.pattern if system else None
+            found = list_log_files(p, pattern)
+            if not found:
+                raise LogError(f"{p}: a folder holding no logs ({pattern or '*.csv'})")
+            entries += [(f, system) for f in found]
         elif p.exists():
             entries.append((p, system))
         else:
             raise LogError(f"{p}: no such file or folder")
+    first: dict[Path, tuple[Path, SystemDescription | None]] = {}
+    for f, fsys in entries:  # a file named twice (a folder and a file in it) is read once
+        first.setdefault(f.resolve(), (f, fsys))
+    entries = list(first.values())
     logs: list[Log] = []
     for f, fsys in entries:
         try:

@@ -25,6 +25,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from .files import read_text
+
 if sys.version_info >= (3, 11):
     import tomllib
 else:  # pragma: no cover - Python 3.10
@@ -103,11 +105,11 @@ def _convert(action: argparse.Action, value: Any, where: str) -> Any:
 
 def apply_config(parser: argparse.ArgumentParser, argv: Sequence[str], path: Path) -> None:
     """Make ``path``'s table for the command in ``argv`` that command's defaults (checked)."""
+    if not path.exists():
+        raise ValueError(f"{path}: no such run file")
     try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise ValueError(f"{path}: no such run file") from None
-    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+        data = tomllib.loads(read_text(path, "a run file"))
+    except tomllib.TOMLDecodeError as exc:
         raise ValueError(f"{path}: not a readable TOML run file ({exc})") from None
     names, sub = command_parser(parser, argv)
     table: Any = data

@@ -14,11 +14,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .controllers import ControllerSpec
+from .controllers import ControllerError, ControllerSpec
 from .effect_layers import LayerStack, layers_json
 from .logs import Log, LogMeta, group_by_controller
 from .model import Checkpoint
-from .system import LogSchema
+from .system import Channel, LogSchema
 
 
 def initial_rows(init: np.ndarray, ckpt: Checkpoint) -> tuple[np.ndarray, np.ndarray]:
@@ -89,6 +89,7 @@ def rollout(
         raise ValueError("the random baseline has no mean to simulate; simulate it without --mean")
     ns = cfg.n_state
     ctrl = controller.build(ns, cfg.n_action, ckpt.period_ms)
+    actions = ckpt.schema.actions
     batch = k * runs
     out = np.empty((batch, hist + steps, chans))
     out[:, :hist] = np.repeat(init, runs, axis=0)
@@ -104,11 +105,26 @@ def rollout(
         s = window.next_state(gen)
         seen = layers.states(s)
         out[:, hist + t, :ns] = seen
-        out[:, hist + t, ns:] = ctrl(seen)
+        out[:, hist + t, ns:] = in_range(ctrl(seen), actions, controller)
         if view is not out:
             view[:, hist + t, :ns], view[:, hist + t, ns:] = s, layers.commands(out[:, hist + t, ns:])
         window.push(view[:, hist + t : hist + t + 1], hist + t)
     return out
+
+
+def in_range(commands: np.ndarray, channels: Sequence[Channel], controller: ControllerSpec) -> np.ndarray:
+    """``commands`` (B, |a|) when every one lies in its action channel's declared range; else a
+    ControllerError naming the controller, the channel and the value (a log holding it could not be
+    read back, and no actuator of the described system can do it)."""
+    for j, ch in enumerate(channels):
+        col = commands[:, j]
+        bad = (col < ch.low) | (col > ch.high)
+        if bad.any():
+            raise ControllerError(
+                f"controller {controller.label()!r} commanded {ch.name} = {col[bad][0]:g}, outside its declared "
+                f"range [{ch.low:g}, {ch.high:g}]"
+            )
+    return commands
 
 
 def initial_windows(logs: Sequence[Log], history: int) -> np.ndarray:

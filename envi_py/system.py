@@ -38,7 +38,8 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Iterable
 
-from .controllers import ControllerSpec
+from .controllers import REGISTRY, ControllerSpec
+from .files import read_text, regular_file
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -392,14 +393,7 @@ class SystemDescription:
 
     @staticmethod
     def load(path: str | Path) -> "SystemDescription":
-        path = Path(path)
-        try:
-            text = path.read_text(encoding="utf-8-sig")
-        except OSError as exc:
-            raise ValueError(f"{path}: cannot read system description ({exc.strerror})") from None
-        except UnicodeDecodeError:
-            raise ValueError(f"{path}: not a UTF-8 text file") from None
-        return SystemDescription.from_toml_text(text, str(path))
+        return SystemDescription.from_toml_text(read_text(path, "a system description"), str(path))
 
 
 def _is_number(v: Any) -> bool:
@@ -619,6 +613,11 @@ def _uses_checked(desc: SystemDescription, where: str) -> SystemDescription:
                 )
         for r in desc.requirements:
             parse(r, signals)
+        if desc.controller is not None and desc.controller.name not in REGISTRY and ":" not in desc.controller.name:
+            raise ValueError(
+                f"unknown controller {desc.controller.name!r}; registered: {', '.join(REGISTRY)}, "
+                "or give 'package.module:function'"
+            )
         if desc.controller is not None and desc.versions.map:
             desc.controller_for({p: 0 for p in desc.versions.map})
     except ValueError as exc:
@@ -675,8 +674,9 @@ def load_system(name_or_path: str | Path) -> SystemDescription:
     if str(name_or_path) in known:
         return SystemDescription.load(known[str(name_or_path)])
     path = Path(name_or_path)
-    if not path.is_file():
+    if not path.exists():
         raise ValueError(f"{path}: no such system description; shipped: {', '.join(known)}")
+    regular_file(path, "a system description")
     return _uses_checked(SystemDescription.load(path), str(path))
 
 

@@ -263,7 +263,12 @@ def verify(
                 f"{', '.join(s.label() for s in sim_g) or 'none'}"
             )
         sl = sim_g[spec]
-        t = min(min(len(lg) for lg in rl), min(len(lg) for lg in sl))
+        shortest = min([*rl, *sl], key=len)
+        t = len(shortest)
+        if t <= skip:  # the scored part of every run is cut to the shortest one's
+            raise ValueError(
+                f"{shortest.path or shortest.name}: {t} rows; skipping {skip} (--skip) leaves nothing to score"
+            )
         rr = scoring.runs([_cut(lg, t) for lg in rl])
         sr = scoring.runs([_cut(lg, t) for lg in sl])
         mr, ms, scale = scoring.table(rr), scoring.table(sr), scoring.scales(rr)

@@ -3,8 +3,10 @@ every job is seeded from (seed, repetition, n) and results are ordered by job, n
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
+import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -12,6 +14,7 @@ from typing import Any
 
 from tqdm import tqdm
 
+from ..files import read_text
 from ..goals.presets import LANE_KEEPING_BAND, lane_keeping_centre
 from ..logs import Log
 from ..system import SystemDescription, describe_schema
@@ -22,16 +25,39 @@ from .versions import VersionChoice
 from .worker import run_job
 
 
+def _digest(result: Any) -> str:
+    return hashlib.sha256(json.dumps(result, sort_keys=True).encode()).hexdigest()
+
+
+def _journal_line(fingerprint: str, result: Any) -> str:
+    """One finished job, with the digest of its result: a record edited or damaged later is known."""
+    return json.dumps({"fingerprint": fingerprint, "result": result, "sha256": _digest(result)}) + "\n"
+
+
 def _read_journal(path: Path) -> dict[str, Any]:
-    """Finished jobs of an earlier run by fingerprint; a torn last line (killed mid-write) is ignored."""
+    """Finished jobs of an earlier run by fingerprint. A record that does not parse, lacks its parts
+    or whose result no longer matches its digest is not reused (its job runs again) and one line on
+    stderr says which lines; a torn last line (killed mid-write) is dropped without a word."""
     done: dict[str, Any] = {}
-    if path.exists():
-        for line in path.read_text().splitlines():
-            try:
-                rec = json.loads(line)
-            except json.JSONDecodeError:
-                continue
+    if not path.exists():
+        return done
+    lines = read_text(path, "an experiment journal").splitlines()
+    damaged = []
+    for i, line in enumerate(lines, 1):
+        try:
+            rec = json.loads(line)
+            ok = isinstance(rec, dict) and isinstance(rec.get("fingerprint"), str) and "result" in rec
+            ok = ok and rec.get("sha256") == _digest(rec["result"])
+        except json.JSONDecodeError:
+            ok = False
+        if ok:
             done[rec["fingerprint"]] = rec["result"]
+        elif i < len(lines) or line.strip().startswith("{") and line.strip().endswith("}"):
+            damaged.append(i)
+    if damaged:
+        shown = ", ".join(map(str, damaged[:5])) + (", ..." if len(damaged) > 5 else "")
+        what = f"{len(damaged)} damaged or unverifiable record(s) (line {shown})"
+        print(f"{path}: {what} not reused; their jobs run again", file=sys.stderr)
     return done
 
 
@@ -85,11 +111,13 @@ def run_experiment(
     t0 = time.perf_counter()
     try:
         with journal.open("a" if resume else "w") as jf:
+            if resume and jf.tell() and not journal.read_bytes().endswith(b"\n"):
+                jf.write("\n")  # after a torn last line: the next record starts a line of its own
             for j, res in tqdm(
                 executor.map(run_job, [jobs[i] for i in todo]), total=len(todo), desc="experiment", disable=not progress
             ):
                 results[todo[j]] = res
-                jf.write(json.dumps({"fingerprint": prints[todo[j]], "result": res}) + "\n")
+                jf.write(_journal_line(prints[todo[j]], res))
                 jf.flush()
     finally:
         if own:

@@ -1,0 +1,35 @@
+"""Opening a file the user named: one check and one message for every input envi reads.
+
+A named pipe or a device given where a file is expected would make a reader wait forever (or never
+reach the end), and a folder gives an unhelpful IsADirectoryError; so every reader asks here first.
+"""
+
+from __future__ import annotations
+
+import os
+import stat
+from pathlib import Path
+
+
+def regular_file(path: str | os.PathLike, what: str, error: type[ValueError] = ValueError) -> Path:
+    """``path`` when it is a regular file (or a link to one); else ``error`` naming it and ``what`` it
+    should have been: missing, unreadable, or a pipe, device or folder."""
+    path = Path(path)
+    try:
+        st = path.stat()
+    except OSError as exc:
+        raise error(f"{path}: cannot read {what} ({exc.strerror})") from None
+    if not stat.S_ISREG(st.st_mode):
+        raise error(f"{path}: not a regular file (a pipe, device or folder cannot be {what})")
+    return path
+
+
+def read_text(path: str | os.PathLike, what: str, error: type[ValueError] = ValueError) -> str:
+    """A regular file's UTF-8 text (BOM allowed); anything else is ``error`` naming the file."""
+    path = regular_file(path, what, error)
+    try:
+        return path.read_text(encoding="utf-8-sig")
+    except OSError as exc:
+        raise error(f"{path}: cannot read {what} ({exc.strerror})") from None
+    except UnicodeDecodeError as exc:
+        raise error(f"{path}: {what} is not UTF-8 text (byte {exc.start})") from None
