@@ -3,16 +3,19 @@
 from __future__ import annotations
 
 import argparse
+import json
+import math
 import sys
 from pathlib import Path
 from typing import Callable
 
 from envi_py.controllers import ControllerSpec, parse_params
-from envi_py.logs import LogError, load_logs, refuse_earlier_logs, remove_logs
+from envi_py.files import read_text
+from envi_py.logs import group_by_param, load_logs, refuse_earlier_logs, remove_logs
 from envi_py.system import lane_keeping, load_system
 
 from .car import generate_car, generate_car_versions, write_car_logs
-from .diffdrive import generate_diffdrive
+from .diffdrive import DIFFDRIVE_EFFECTS, generate_diffdrive
 from .effects import describe, parse_effects
 from .generate import generate, write_logs
 from .profile import TwinProfile, default_profile
@@ -27,14 +30,36 @@ def _profile(args: argparse.Namespace) -> TwinProfile:
     return _load_profile(args.profile) if args.profile else default_profile()
 
 
-def _load_profile(path: str) -> TwinProfile:
-    """A profile JSON, or a ValueError naming the file (not json's bare 'Expecting value')."""
+def _load_profile(path: str, option: str = "--profile") -> TwinProfile:
+    """A profile JSON, or a ValueError naming the option and the file (not json's bare 'Expecting
+    value'); a named pipe or a folder is refused before it is opened (reading a pipe blocks for ever)."""
     try:
-        return TwinProfile.load(path)
-    except OSError as exc:
-        raise ValueError(f"{path}: cannot read the profile ({exc.strerror})") from None
-    except (ValueError, TypeError, KeyError, AttributeError) as exc:
-        raise ValueError(f"{path}: not a twin profile JSON ({exc})") from None
+        text = read_text(path, "a twin profile")
+    except ValueError as exc:
+        raise ValueError(f"{option} {exc}") from None
+    try:
+        return TwinProfile.from_json(json.loads(text))
+    except (ValueError, TypeError, KeyError, AttributeError, RecursionError) as exc:
+        raise ValueError(f"{option} {path}: not a twin profile JSON ({exc})") from None
+
+
+def _refusing(sub: str, func: Callable[[argparse.Namespace], int]) -> Callable[[argparse.Namespace], int]:
+    """``func`` with every refusal as one line ``envi twin SUB: error: ...`` and exit code 2 (the
+    form of argparse's own usage errors for the sub-command); ``--debug`` shows the traceback."""
+
+    def run(args: argparse.Namespace) -> int:
+        try:
+            return func(args)
+        except (ValueError, OSError, KeyError) as exc:  # a LogError is a ValueError
+            if getattr(args, "debug", False):
+                raise
+            text = str(exc).strip()
+            msg = _os_message(exc) if isinstance(exc, OSError) else text.splitlines()[0] if text else type(exc).__name__
+            print(f"envi twin {sub}: error: {msg}", file=sys.stderr)
+            return 2
+
+    run.__doc__ = func.__doc__
+    return run
 
 
 def _checked(args: argparse.Namespace) -> dict[str, object]:
@@ -67,36 +92,33 @@ def _os_message(exc: OSError) -> str:
     return f"{exc.filename}: {exc.strerror}" if exc.filename and exc.strerror else str(exc)
 
 
-def cmd_generate(args: argparse.Namespace) -> int:
+def _generate(args: argparse.Namespace) -> int:
     """Either twin family's logs into ``--out``; every refusal is one line and exit code 2."""
     if args.system == "car":
         if args.family != "steered":
-            print("envi twin generate: --family applies to the lane-keeping twin only", file=sys.stderr)
-            return 2
+            raise ValueError("--family applies to the lane-keeping twin only")
         job = _generate_car
     else:
         if args.version is not None or args.world is not None:
-            print("envi twin generate: --version and --world apply to --system car only", file=sys.stderr)
-            return 2
+            raise ValueError("--version and --world apply to --system car only")
         job = _generate_lane
-    try:
-        summary = job(args)
-    except ValueError as exc:
-        print(f"envi twin generate: {exc}", file=sys.stderr)
-        return 2
-    except OSError as exc:
-        print(f"envi twin generate: {_os_message(exc)}", file=sys.stderr)
-        return 2
-    print(summary)
+    print(job(args))
     return 0
+
+
+cmd_generate = _refusing("generate", _generate)
 
 
 def _generate_lane(args: argparse.Namespace) -> str:
     """The lane-keeping twin (steered or diffdrive world); the summary line of what was written."""
     spec = ControllerSpec(args.controller or "lane-keeping", _checked(args))
     spec.build()  # fail on a bad controller before any work
-    effects = parse_effects(args.effects)
-    if args.family == "diffdrive":
+    diffdrive = args.family == "diffdrive"
+    try:  # every parameter finite and in range: a NaN noise once wrote logs all NaN
+        effects = parse_effects(args.effects, DIFFDRIVE_EFFECTS if diffdrive else None)
+    except ValueError as exc:
+        raise ValueError(f"--effects {args.effects}: {exc}") from None
+    if diffdrive:
         if args.profile is not None:
             raise ValueError("--profile is the steered world's calibrated profile; the diffdrive world has its own")
         logs = generate_diffdrive(spec, args.runs, args.steps, effects, args.seed)
@@ -136,24 +158,54 @@ def _generate_car(args: argparse.Namespace) -> str:
     return f"wrote {len(paths)} car twin logs to {args.out} (pattern car_{{kp_steer}}_{{kp_speed}}_{{run}}.csv{note})"
 
 
-def cmd_effects(args: argparse.Namespace) -> int:
-    print(describe())
+def _effects(args: argparse.Namespace) -> int:
+    """The effects table and the profile's effects; the profile is read first, so a bad one prints
+    only its one error line."""
     prof = _profile(args)
+    print(describe())
     print("\nprofile effects (on by default): " + ", ".join(f"{k}={v}" for k, v in prof.effects.items()))
     return 0
 
 
-def cmd_calibrate(args: argparse.Namespace) -> int:
+cmd_effects = _refusing("effects", _effects)
+
+
+def _calibration_logs(args: argparse.Namespace) -> list:
+    """``--logs``, ``--key``, ``--budget`` and ``--out`` checked before the long search: a folder of
+    logs with at least two runs of each version (the real-vs-real floor splits them in halves)."""
+    if not math.isfinite(args.budget) or args.budget <= 0:
+        raise ValueError(f"--budget must be a number of seconds above 0, got {args.budget:g}")
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {out}: exists and is not a folder")
+    logs_dir = Path(args.logs)
+    if not logs_dir.is_dir():
+        what = "no such folder" if not logs_dir.exists() else "not a folder"
+        raise ValueError(f"--logs {logs_dir}: {what}; --logs takes a folder of real logs ({args.pattern})")
+    logs = load_logs(logs_dir, lane_keeping().with_pattern(args.pattern))
+    known = sorted({k for lg in logs for k in lg.param})
+    if args.key not in known:
+        raise ValueError(
+            f"--key {args.key}: not a parameter of the logs in {logs_dir}; known: {', '.join(known) or 'none'}"
+        )
+    missing = [lg for lg in logs if args.key not in lg.param]
+    if missing:
+        raise ValueError(f"--key {args.key}: {missing[0].path} has no such parameter")
+    for value, group in group_by_param(logs, args.key).items():
+        if len(group) < 2:
+            raise ValueError(
+                f"--logs {logs_dir}: {args.key}={value} has 1 log; calibration needs 2 or more runs of each version"
+            )
+    return logs
+
+
+def _calibrate(args: argparse.Namespace) -> int:
     from .calibrate import calibrate
     from .report import write_calibration
 
-    try:
-        logs = load_logs(args.logs, lane_keeping().with_pattern(args.pattern))
-    except LogError as exc:
-        print(f"envi twin calibrate: {exc}", file=sys.stderr)
-        return 2
+    logs = _calibration_logs(args)
     budget = 25.0 if args.quick else args.budget
-    start = _load_profile(args.start) if args.start else None
+    start = _load_profile(args.start, "--start") if args.start else None
     prof = calibrate(
         logs,
         key=args.key,
@@ -170,6 +222,9 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         print(f"{args.key}={x}: {h['within_2x']}/8 metrics within 2x floor, median W1 ratio {h['median_w1_ratio']:.2f}")
     print(f"profile: {path}\nreport: {out / 'report.md'} {out / 'report.json'} {out / 'traces.png'}")
     return 0
+
+
+cmd_calibrate = _refusing("calibrate", _calibrate)
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -246,7 +301,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--logs", required=True, help="folder of real logs")
     p.add_argument("--pattern", default="log_{x}_{run}.csv")
     p.add_argument("--key", default="x", help="controller parameter that tells the versions apart")
-    p.add_argument("--budget", type=float, default=420.0, help="search time in seconds")
+    p.add_argument("--budget", type=float, default=420.0, help="search time in seconds (above 0)")
     p.add_argument("--quick", action="store_true", help="a 25 s search (for tests and smoke runs)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--start", default=None, help="profile JSON to start the search from (e.g. the shipped one)")

@@ -49,7 +49,7 @@ NOVEL: dict[str, Effect] = {
             "kick",
             "periodic heading kick: every period_s the robot's heading jumps by deg (a bump in the track)",
             {
-                "period_s": Param(1.0, "s", "time between kicks"),
+                "period_s": Param(1.0, "s", "time between kicks", 0.0, above=True),
                 "deg": Param(8.0, "deg", "heading jump, alternating in sign"),
             },
             "deg",
@@ -58,8 +58,8 @@ NOVEL: dict[str, Effect] = {
             "arc",
             "one sharply curved section: the edge turns at per_m from start_m for length_m",
             {
-                "start_m": Param(0.15, "m", "where the section starts (distance travelled)"),
-                "length_m": Param(0.25, "m", "section length"),
+                "start_m": Param(0.15, "m", "where the section starts (distance travelled)", 0.0),
+                "length_m": Param(0.25, "m", "section length", 0.0),
                 "per_m": Param(4.0, "1/m", "curvature inside the section"),
             },
             "per_m",
@@ -91,30 +91,20 @@ class DiffDriveProfile:
         return asdict(self)
 
 
+#: Every effect this world knows: the shared registry's and its own.
+DIFFDRIVE_EFFECTS: dict[str, Effect] = {**EFFECTS, **NOVEL}
+
+
 def resolve_diffdrive(effects: Mapping[str, Any] | None) -> dict[str, dict[str, float]]:
-    """Full parameters of the requested effects: the shared registry's and :data:`NOVEL`."""
+    """Full parameters of the requested effects: the shared registry's and :data:`NOVEL`, each
+    checked like :func:`.effects.effect_params` (finite and within its range)."""
     out = {}
     for name, value in (effects or {}).items():
-        if name in NOVEL:
-            eff = NOVEL[name]
-            if value is None or value is False or value == 0:
-                continue
-            if isinstance(value, Mapping):
-                unknown = set(value) - set(eff.params)
-                if unknown:
-                    raise ValueError(f"effect {name!r}: unknown parameter(s) {', '.join(sorted(unknown))}")
-                params = {k: float(value.get(k, p.default)) for k, p in eff.params.items()}
-            else:
-                params = {k: float(p.default) for k, p in eff.params.items()}
-                if value is not True:
-                    params[eff.primary] = float(value)
-        elif name in EFFECTS:
-            params = effect_params(name, value)
-            if params is None:
-                continue
-        else:
-            raise ValueError(f"unknown diffdrive effect {name!r}; known: {', '.join([*EFFECTS, *NOVEL])}")
-        out[name] = params
+        if name not in DIFFDRIVE_EFFECTS:
+            raise ValueError(f"unknown diffdrive effect {name!r}; known: {', '.join(DIFFDRIVE_EFFECTS)}")
+        params = effect_params(name, value, DIFFDRIVE_EFFECTS)
+        if params is not None:
+            out[name] = params
     return dict(sorted(out.items()))
 
 

@@ -7,6 +7,7 @@ which effects made it. Names follow the diagnosis candidates (``envi_py.diagnose
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any, Mapping
 
@@ -15,11 +16,33 @@ import numpy as np
 
 @dataclass(frozen=True)
 class Param:
-    """One effect parameter: default value, unit and meaning."""
+    """One effect parameter: default value, unit, meaning and the range in which it means something
+    (``low`` excluded when ``above``; ``whole`` for a count). A value outside it is refused: a NaN
+    noise once wrote logs all NaN, an infinite one pinned every reading at the limits."""
 
     default: float
     unit: str
     doc: str
+    low: float = -math.inf
+    high: float = math.inf
+    above: bool = False
+    whole: bool = False
+
+    def rule(self) -> str:
+        """The range in words, e.g. 'a whole number from 0 to 1000'."""
+        kind = "a whole number" if self.whole else "a number"
+        if self.low > -math.inf and self.high < math.inf:
+            return f"{kind} from {self.low:g} to {self.high:g}"
+        if self.low > -math.inf:
+            return f"{kind} {'above' if self.above else 'of at least'} {self.low:g}"
+        return f"a finite {kind[2:]}"
+
+
+#: Ranges shared by several parameters.
+_NONNEG = {"low": 0.0}
+_POS = {"low": 0.0, "above": True}
+_FRACTION = {"low": 0.0, "high": 1.0}
+_SCALE = {"low": 0.0, "high": 100.0}  # the colour scale
 
 
 @dataclass(frozen=True)
@@ -38,82 +61,84 @@ EFFECTS: dict[str, Effect] = {
         Effect(
             "delay",
             "actuation delay: the commanded angle reaches the steering k ticks later",
-            {"ticks": Param(1, "ticks", "delay in control periods")},
+            {"ticks": Param(1, "ticks", "delay in control periods", 0.0, 1000.0, whole=True)},
             "ticks",
         ),
         Effect(
             "lag",
             "steering actuator lag: the angle follows the command as a first-order system",
-            {"tau_ms": Param(60.0, "ms", "time constant")},
+            {"tau_ms": Param(60.0, "ms", "time constant", **_POS)},
             "tau_ms",
         ),
         Effect(
             "rate_limit",
             "steering rate limit: the angle moves at most this fast toward the command",
-            {"deg_per_s": Param(600.0, "deg/s", "maximum steering speed")},
+            {"deg_per_s": Param(600.0, "deg/s", "maximum steering speed", **_POS)},
             "deg_per_s",
         ),
         Effect(
             "backlash",
             "steering backlash: the angle does not move until the command leaves a play band",
-            {"width_deg": Param(6.0, "deg", "full width of the play")},
+            {"width_deg": Param(6.0, "deg", "full width of the play", **_NONNEG)},
             "width_deg",
         ),
         Effect(
             "deadzone",
             "steering dead zone: commands within +-width give no angle, larger ones lose width",
-            {"width_deg": Param(5.0, "deg", "half width of the dead zone")},
+            {"width_deg": Param(5.0, "deg", "half width of the dead zone", **_NONNEG)},
             "width_deg",
         ),
         Effect(
             "steer_limit",
             "steering end stops, possibly asymmetric: the wheel angle saturates",
             {
-                "pos_deg": Param(45.0, "deg", "largest angle toward black (positive commands)"),
-                "neg_deg": Param(45.0, "deg", "largest angle toward white (negative commands), as a magnitude"),
+                "pos_deg": Param(45.0, "deg", "largest angle toward black (positive commands)", **_NONNEG),
+                "neg_deg": Param(
+                    45.0, "deg", "largest angle toward white (negative commands), as a magnitude", **_NONNEG
+                ),
             },
             "pos_deg",
         ),
         Effect(
             "noise",
             "Gaussian sensor noise on the colour reading",
-            {"sigma": Param(1.5, "colour units", "standard deviation")},
+            {"sigma": Param(1.5, "colour units", "standard deviation", **_NONNEG)},
             "sigma",
         ),
         Effect(
             "quantise",
             "sensor quantisation: the reading is rounded to a multiple of step",
-            {"step": Param(1.0, "colour units", "quantisation step")},
+            {"step": Param(1.0, "colour units", "quantisation step", **_POS)},
             "step",
         ),
         Effect(
             "lowpass",
             "sensor low-pass response: the reading follows the surface as a first-order system",
-            {"tau_ms": Param(40.0, "ms", "time constant")},
+            {"tau_ms": Param(40.0, "ms", "time constant", **_POS)},
             "tau_ms",
         ),
         Effect(
             "saturation",
             "the sensor clips readings to its range",
             {
-                "low": Param(0.0, "colour units", "lowest reading"),
-                "high": Param(100.0, "colour units", "highest reading"),
+                "low": Param(0.0, "colour units", "lowest reading", **_SCALE),
+                "high": Param(100.0, "colour units", "highest reading", **_SCALE),
             },
             "high",
         ),
         Effect(
             "battery",
             "battery sag: speed falls linearly over the run",
-            {"sag": Param(0.2, "fraction", "speed lost by the end of the run")},
+            {"sag": Param(0.2, "fraction", "speed lost by the end of the run", **_FRACTION)},
             "sag",
         ),
         Effect(
             "run_variation",
             "run-to-run differences of speed, steering grip and white reflectance",
             {
-                "speed_sd": Param(0.05, "fraction", "relative sd of speed"),
-                "grip_sd": Param(0.05, "fraction", "relative sd of steering grip"),
-                "white_sd": Param(0.0, "colour units", "sd of the white reflectance"),
+                "speed_sd": Param(0.05, "fraction", "relative sd of speed", **_NONNEG),
+                "grip_sd": Param(0.05, "fraction", "relative sd of steering grip", **_NONNEG),
+                "white_sd": Param(0.0, "colour units", "sd of the white reflectance", **_NONNEG),
             },
             "speed_sd",
         ),
@@ -121,9 +146,9 @@ EFFECTS: dict[str, Effect] = {
             "patches",
             "slippery patches along the track reduce the steering grip",
             {
-                "per_m": Param(2.0, "1/m", "patches per metre travelled"),
-                "length_mm": Param(100.0, "mm", "patch length"),
-                "grip": Param(0.5, "fraction", "steering grip on a patch"),
+                "per_m": Param(2.0, "1/m", "patches per metre travelled", 0.0, 1000.0),
+                "length_mm": Param(100.0, "mm", "patch length", **_NONNEG),
+                "grip": Param(0.5, "fraction", "steering grip on a patch", **_FRACTION),
             },
             "per_m",
         ),
@@ -133,7 +158,7 @@ EFFECTS: dict[str, Effect] = {
             {
                 "mean_per_m": Param(0.0, "1/m", "mean curvature"),
                 "amp_per_m": Param(2.0, "1/m", "amplitude of the sinusoidal curvature"),
-                "wavelength_m": Param(1.0, "m", "wavelength of the curvature"),
+                "wavelength_m": Param(1.0, "m", "wavelength of the curvature", **_POS),
             },
             "amp_per_m",
         ),
@@ -141,48 +166,77 @@ EFFECTS: dict[str, Effect] = {
             "jitter",
             "sampling jitter and rare long pauses (the robot stands still during a pause)",
             {
-                "extra_ms": Param(2.0, "ms", "mean of the exponential extra delay per period (floored to ms)"),
-                "pause_prob": Param(0.0, "1/tick", "probability of a long pause per period"),
-                "pause_ms": Param(11000.0, "ms", "mean pause length (uniform within +-25%)"),
+                "extra_ms": Param(
+                    2.0, "ms", "mean of the exponential extra delay per period (floored to ms)", **_NONNEG
+                ),
+                "pause_prob": Param(0.0, "1/tick", "probability of a long pause per period", **_FRACTION),
+                "pause_ms": Param(11000.0, "ms", "mean pause length (uniform within +-25%)", **_NONNEG),
             },
             "extra_ms",
         ),
         Effect(
             "glitch",
             "rare sensor glitches: a reading replaced by a uniform random value in 0..100",
-            {"prob": Param(0.01, "1/sample", "glitch probability per sample")},
+            {"prob": Param(0.01, "1/sample", "glitch probability per sample", **_FRACTION)},
             "prob",
         ),
     )
 }
 
 
-def effect_params(name: str, value: Mapping[str, Any] | float | int | bool | None) -> dict[str, float] | None:
+def effect_params(
+    name: str, value: Mapping[str, Any] | float | int | bool | None, registry: Mapping[str, Effect] | None = None
+) -> dict[str, float] | None:
     """Full parameters of one effect from a user value; ``None``/``False``/``0`` switches it off.
 
     A bare number sets the primary parameter; a dict overrides any parameters; unknown names fail
-    loudly, because a typo would otherwise silently generate logs without the intended effect.
+    loudly, because a typo would otherwise silently generate logs without the intended effect. Every
+    parameter must be a finite number within its range (:class:`Param`); the ValueError names the
+    effect, the parameter and the value. ``registry`` is the effects known (default :data:`EFFECTS`).
     """
-    if name not in EFFECTS:
-        raise ValueError(f"unknown twin effect {name!r}; known: {', '.join(EFFECTS)}")
-    eff = EFFECTS[name]
+    registry = EFFECTS if registry is None else registry
+    if name not in registry:
+        raise ValueError(f"unknown twin effect {name!r}; known: {', '.join(registry)}")
+    eff = registry[name]
     if value is None or value is False:
         return None
     if isinstance(value, Mapping):
         unknown = set(value) - set(eff.params)
         if unknown:
             raise ValueError(
-                f"effect {name!r}: unknown parameter(s) {', '.join(sorted(unknown))}; known: {', '.join(eff.params)}"
+                f"effect {name!r}: unknown parameter(s) {', '.join(sorted(map(str, unknown)))}; "
+                f"known: {', '.join(eff.params)}"
             )
-        return {k: float(value.get(k, p.default)) for k, p in eff.params.items()}
-    if value is True:
-        return {k: float(p.default) for k, p in eff.params.items()}
-    v = float(value)
-    if v == 0 and name != "saturation":
-        return None
-    out = {k: float(p.default) for k, p in eff.params.items()}
-    out[eff.primary] = v
+        out = {k: _number(name, k, value.get(k, p.default)) for k, p in eff.params.items()}
+    elif value is True:
+        out = {k: float(p.default) for k, p in eff.params.items()}
+    else:
+        v = _number(name, eff.primary, value)
+        if v == 0 and name != "saturation":
+            return None
+        out = {k: float(p.default) for k, p in eff.params.items()}
+        out[eff.primary] = v
+    for k, p in eff.params.items():
+        v = out[k]
+        inside = (v > p.low if p.above else v >= p.low) and v <= p.high and (not p.whole or v == int(v))
+        if not inside:
+            raise ValueError(f"effect {name!r}: {k} must be {p.rule()} [{p.unit}], got {v:g}")
+    if name == "saturation" and not out["low"] < out["high"]:
+        raise ValueError(f"effect 'saturation': low must be below high, got {out['low']:g} and {out['high']:g}")
     return out
+
+
+def _number(name: str, param: str, value: Any) -> float:
+    """``value`` as a finite float, or a ValueError naming the effect, the parameter and the value."""
+    try:
+        if isinstance(value, (bool, Mapping, list, tuple)):
+            raise TypeError
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"effect {name!r}: {param} must be a number, got {value!r}") from None
+    if not math.isfinite(v):
+        raise ValueError(f"effect {name!r}: {param} must be a finite number, got {v}")
+    return v
 
 
 def resolve(base: Mapping[str, Any], overrides: Mapping[str, Any] | None) -> dict[str, dict[str, float]]:
@@ -197,20 +251,29 @@ def resolve(base: Mapping[str, Any], overrides: Mapping[str, Any] | None) -> dic
     return dict(sorted(out.items()))
 
 
-def parse_effects(text: str | None) -> dict[str, Any]:
-    """``"delay=2,noise=1.5,jitter.pause_prob=0.01,glitch"`` -> effects dict for :func:`resolve`."""
+def parse_effects(text: str | None, registry: Mapping[str, Effect] | None = None) -> dict[str, Any]:
+    """``"delay=2,noise=1.5,jitter.pause_prob=0.01,glitch"`` -> effects dict for :func:`resolve`; each
+    effect checked against ``registry`` (default :data:`EFFECTS`) with the user's spelling in the message."""
+    registry = EFFECTS if registry is None else registry
     out: dict[str, Any] = {}
     for item in filter(None, (s.strip() for s in (text or "").split(","))):
         key, sep, value = item.partition("=")
         name, dot, param = key.strip().partition(".")
+        if name not in registry:
+            raise ValueError(f"unknown twin effect {name!r}; known: {', '.join(registry)}")
         if dot:
+            if param not in registry[name].params:
+                known = ", ".join(registry[name].params)
+                raise ValueError(f"effect {name!r}: unknown parameter {param!r}; known: {known}")
+            if not sep:
+                raise ValueError(f"effect {name!r}: {param} needs a value ({key.strip()}=...)")
             entry = out.get(name)
             entry = dict(entry) if isinstance(entry, dict) else {}
-            entry[param] = float(value)
+            entry[param] = _number(name, param, value.strip())
             out[name] = entry
         else:
-            out[name] = float(value) if sep else True
-        effect_params(name, out[name])  # validate now, with the user's spelling in the message
+            out[name] = _number(name, registry[name].primary, value.strip()) if sep else True
+        effect_params(name, out[name], registry)  # validate now, with the user's spelling in the message
     return out
 
 

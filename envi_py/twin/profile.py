@@ -7,13 +7,26 @@ The shipped profile (``profiles/default.json``) is the one calibrated to the rea
 from __future__ import annotations
 
 import json
+import math
 import os
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
+
+from envi_py.files import read_text
+
+from .effects import resolve
 
 PROFILE_DIR = Path(__file__).resolve().parent / "profiles"
 DEFAULT_PROFILE = PROFILE_DIR / "default.json"
+
+#: The physical fields' ranges beyond being a finite number: (rule in words, test). A zero speed,
+#: period or spot width would divide by zero, a huge warm-up run for ever.
+_RULES: dict[str, tuple[str, Callable[[float], bool]]] = {
+    **{k: ("a number above 0", lambda v: v > 0) for k in ("speed", "wheelbase", "spot", "gamma", "period_ms")},
+    **{k: ("a number of at least 0", lambda v: v >= 0) for k in ("ahead", "black", "white")},
+    "warmup": ("a whole number from 0 to 100000", lambda v: v == int(v) and 0 <= v <= 100_000),
+}
 
 
 @dataclass
@@ -41,10 +54,24 @@ class TwinProfile:
 
     @staticmethod
     def from_json(d: dict[str, Any]) -> "TwinProfile":
+        """A profile from its JSON object; a ValueError names an unknown field, a value that is not a
+        finite number in its range, or a bad effect (checked as :func:`.effects.resolve` would)."""
+        if not isinstance(d, dict):
+            raise ValueError(f"twin profile: a JSON object is expected, got {type(d).__name__}")
         known = {f.name for f in fields(TwinProfile)}
         unknown = set(d) - known
         if unknown:
-            raise ValueError(f"twin profile: unknown field(s) {', '.join(sorted(unknown))}")
+            raise ValueError(f"twin profile: unknown field(s) {', '.join(sorted(map(str, unknown)))}")
+        for name, value in d.items():
+            if name in ("effects", "fit"):
+                if not isinstance(value, dict):
+                    raise ValueError(f"twin profile: {name} must be a JSON object, got {value!r}")
+                continue
+            rule, fits = _RULES.get(name, ("a finite number", lambda v: True))
+            number = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+            if not (number and fits(value)):
+                raise ValueError(f"twin profile: {name} must be {rule}, got {value!r}")
+        resolve(d.get("effects", {}), None)  # every effect known, finite and within its range
         return TwinProfile(**d)
 
     def save(self, path: str | os.PathLike) -> Path:
@@ -55,7 +82,8 @@ class TwinProfile:
 
     @staticmethod
     def load(path: str | os.PathLike) -> "TwinProfile":
-        return TwinProfile.from_json(json.loads(Path(path).read_text()))
+        """The profile in ``path``: a regular file (a named pipe would block the read forever)."""
+        return TwinProfile.from_json(json.loads(read_text(path, "a twin profile")))
 
     def replace(self, **changes: Any) -> "TwinProfile":
         d = self.to_json()
