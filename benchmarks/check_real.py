@@ -65,7 +65,7 @@ def main() -> None:
     t0 = time.perf_counter()
     ckpt = train("bc", train_logs, val_logs, system=system, epochs=args.epochs, seed=0)
     train_s = time.perf_counter() - t0
-    spec = requirements_of(system, [], 0.9)[0]
+    spec = requirements_of(system, [])[0]
     req = parse(spec, [c.name for c in system.schema.channels])
     rng = np.random.default_rng(0)
     rows = []

@@ -186,12 +186,13 @@ def check(
     ckpt: Checkpoint | str | os.PathLike,
     real: Sequence[Log],
     require: Sequence[str] = (),
-    probability: float = 0.9,
+    probability: float | None = None,
     unseen: Sequence[Any] = (),
     **options: Any,
 ) -> Verdicts:
     """PASS / FAIL / UNDECIDED per version and requirement (``envi check``); ``require`` as on the
-    command line (``"min(distance) >= 10@0.95"``), else the system description's requirements."""
+    command line (``"min(distance) >= 10@0.95"``), else the system description's requirements;
+    ``probability`` for the required ones without '@' (default 0.9)."""
     from .check import check as run
     from .check import requirements_of
 

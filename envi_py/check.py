@@ -265,12 +265,22 @@ def parse_requirement(text: str, probability: float, index: int) -> RequirementS
     return RequirementSpec(f"R{index + 1}", expr, kind, prob)
 
 
+#: The required probability of a command-line requirement that does not give one with '@'.
+DEFAULT_PROBABILITY = 0.9
+
+
 def requirements_of(
-    system: SystemDescription | None, given: Sequence[str], probability: float
+    system: SystemDescription | None, given: Sequence[str], probability: float | None = None
 ) -> list[RequirementSpec]:
-    """The command line's requirements when given, else the system description's."""
+    """The command line's requirements when given, else the system description's. ``probability``
+    (``--probability``) is for the given ones without '@P'; given where none would use it, it is
+    an error rather than silently ignored."""
+    if probability is not None and all("@" in t for t in given):
+        whose = "every --require gives its own '@P'" if given else "the system description's requirements give theirs"
+        raise ValueError(f"--probability {probability:g} would apply to no requirement: {whose}")
+    prob = DEFAULT_PROBABILITY if probability is None else probability
     if given:
-        return [parse_requirement(t, probability, i) for i, t in enumerate(given)]
+        return [parse_requirement(t, prob, i) for i, t in enumerate(given)]
     return list(system.requirements) if system else []
 
 

@@ -712,7 +712,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="requirements, e.g. 'max_abs_dev(color, 40) <= 35@0.9' or 'always (distance >= 10)' "
         "(default: the system description's)",
     )
-    p.add_argument("--probability", type=float, default=0.9, help="required probability of --require without '@P'")
+    p.add_argument(
+        "--probability", type=float, default=None, help="required probability of --require without '@P' (default 0.9)"
+    )
     p.add_argument(
         "--unseen",
         nargs="*",

@@ -203,3 +203,17 @@ def test_a_layers_file_missing_a_key_says_which(tmp_path):
     f.write_text(json.dumps({"layers": [{"kind": "delay"}]}))
     with pytest.raises(ValueError, match="no key 'layer'"):
         read_layers(f)
+
+
+def test_probability_that_applies_to_no_requirement_is_refused():
+    """``--probability`` was silently ignored when every requirement gave its own '@P'."""
+    from envi_py.check import requirements_of
+
+    system = load_system("lane-keeping")
+    with pytest.raises(ValueError, match="would apply to no requirement: every --require gives its own"):
+        requirements_of(system, ["max_abs_dev(color, 40) <= 35 @ 0.8"], 0.95)
+    with pytest.raises(ValueError, match="the system description's requirements give theirs"):
+        requirements_of(system, [], 0.95)
+    mixed = requirements_of(system, ["max_abs_dev(color, 40) <= 35 @ 0.8", "max_abs_dev(color, 40) <= 30"], 0.95)
+    assert [r.probability for r in mixed] == [0.8, 0.95]
+    assert requirements_of(system, ["max_abs_dev(color, 40) <= 30"])[0].probability == 0.9
