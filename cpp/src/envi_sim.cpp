@@ -12,7 +12,9 @@
 #include <cmath>
 #include <limits>
 #include <cstdio>
+#include <cstdlib>
 #include <cstring>
+#include <dirent.h>
 #include <fstream>
 #include <iostream>
 #include <map>
@@ -47,7 +49,10 @@ const char* kUsage =
     "  --seed S             seed of a stochastic model's draws (default 0)\n"
     "  --threads K          worker threads (default 0: one per core; at most 1024)\n"
     "  --block B            runs per block of the batched engine (default 256; 1 to 65536)\n"
-    "  --out DIR            write every run as a log (CSV + .meta.json sidecar) into DIR\n"
+    "  --out DIR            write every run as a log (CSV + .meta.json sidecar) into DIR; refused when DIR\n"
+    "                       already holds logs\n"
+    "  --force              replace the logs --out already holds (its CSV files and .meta.json sidecars are\n"
+    "                       deleted once the new run has been written; any other file stays)\n"
     "  --metrics FILE|-     write the driving metrics as JSON (- for standard output)\n"
     "  --metrics-only       keep no traces, only the metrics (needs --metrics)\n"
     "  --centre X           lane centre of the metrics (default 40)\n"
@@ -59,12 +64,14 @@ const char* kUsage =
 
 struct Args {
   std::string model, controller, out, metrics;
+  std::string controller_file;  // --controller @FILE: the file the spec in `controller` was read from
   std::vector<std::string> init, params;
   long steps = -1, runs = 1, skip = -1;  // -1: each log's length minus the history; the history
   uint64_t seed = 0;
   int threads = 0, block = 256;
   double centre = 40.0, band = 10.0;
   bool metrics_only = false;
+  bool force = false;  // --force: replace the logs --out already holds
 };
 
 // Limits of the numeric options, each for a reason (cpp/README.md, "Limits of envi_sim"):
@@ -139,6 +146,7 @@ Args parse(int argc, char** argv) {
     else if (f == "--out") a.out = val();
     else if (f == "--metrics") a.metrics = val();
     else if (f == "--metrics-only" && !has_inline) a.metrics_only = true;
+    else if (f == "--force" && !has_inline) a.force = true;
     else if (f == "--centre") a.centre = to_double(f, val());
     else if (f == "--band") {
       const std::string v = val();
@@ -154,10 +162,12 @@ Args parse(int argc, char** argv) {
   if (!a.metrics_only && a.out.empty() && a.metrics.empty()) throw std::invalid_argument("nothing to write: give --out and/or --metrics");
   if (!a.params.empty() && (a.controller.empty() || a.controller[0] == '{' || a.controller[0] == '@'))
     throw std::invalid_argument("--param goes with a controller given by name (--controller NAME)");
+  if (a.force && a.out.empty()) throw std::invalid_argument("--force replaces the logs of --out: give --out DIR");
   if (!a.controller.empty() && a.controller[0] == '@') {
-    require_regular_file("--controller", a.controller.substr(1));
-    std::ifstream in(a.controller.substr(1));
-    if (!in) throw std::invalid_argument("cannot read controller file " + a.controller.substr(1));
+    a.controller_file = a.controller.substr(1);
+    require_regular_file("--controller", a.controller_file);
+    std::ifstream in(a.controller_file);
+    if (!in) throw std::invalid_argument("--controller " + a.controller_file + ": cannot read (" + std::strerror(errno) + ")");
     std::stringstream ss;
     ss << in.rdbuf();
     a.controller = ss.str();
@@ -241,10 +251,15 @@ Json param_value(const std::string& item, const std::string& value) {
   return num(v);
 }
 
+// How errors name the controller option: with the file it was read from, if any.
+std::string controller_option(const Args& a) {
+  return a.controller_file.empty() ? std::string("--controller") : "--controller " + a.controller_file;
+}
+
 // The controller to run: a JSON spec as given, a registered name with its --param values, or the
 // model's only training controller (its envi.controllers metadata). Its numbers must be finite.
 Json controller_spec(const Args& a, const Model& m) {
-  if (a.controller.empty()) {
+  if (a.controller.empty() && a.controller_file.empty()) {
     Json list = Json::parse(metadata(m, "envi.controllers"));
     size_t n = list.type == Json::Type::Array ? list.array.size() : 0;
     if (n != 1)
@@ -254,14 +269,16 @@ Json controller_spec(const Args& a, const Model& m) {
     return list.array[0];
   }
   size_t first = a.controller.find_first_not_of(" \t\r\n");
-  if (first != std::string::npos && a.controller[first] == '{') {
+  // a spec from @FILE is JSON whatever it starts with (an empty file is not "no controller")
+  if (!a.controller_file.empty() || (first != std::string::npos && a.controller[first] == '{')) {
+    const std::string where = controller_option(a);
     Json spec;
     try {
       spec = Json::parse(a.controller);
     } catch (const std::exception& e) {
-      throw std::invalid_argument(std::string("--controller: ") + e.what());
+      throw std::invalid_argument(where + ": " + e.what());
     }
-    if (!all_finite(spec)) throw std::invalid_argument("--controller: the spec holds a non-finite number (NaN or Infinity)");
+    if (!all_finite(spec)) throw std::invalid_argument(where + ": the spec holds a non-finite number (NaN or Infinity)");
     return spec;
   }
   std::vector<std::pair<std::string, Json>> params;  // as envi_py.controllers.parse_params: the last of a name wins
@@ -393,12 +410,120 @@ void check_capacity(const Args& a, const Model& m, const std::vector<Group>& gro
     fits(a.metrics == "-" ? "-" : parent_of(a.metrics), "the metrics in --metrics " + a.metrics, double(total) * 42);
 }
 
-// The output folder, checked before any work and created only after every check has passed.
-void check_out_folder(const std::string& out) {
+bool ends_with(const std::string& s, const std::string& suffix) {
+  return s.size() > suffix.size() && s.compare(s.size() - suffix.size(), suffix.size(), suffix) == 0;
+}
+
+// The logs `folder` holds, as envi_py.logs.folder_logs counts them: every file named *.csv or
+// *.meta.json whose name does not start with '.' (a folder so named is no log). Sorted names.
+std::vector<std::string> folder_logs(const std::string& folder) {
+  std::vector<std::string> names;
+  DIR* dir = ::opendir(folder.c_str());
+  if (!dir) return names;
+  while (const dirent* e = ::readdir(dir)) {
+    const std::string name = e->d_name;
+    if (name.empty() || name[0] == '.' || !(ends_with(name, ".csv") || ends_with(name, ".meta.json"))) continue;
+    struct stat st {};
+    if (::stat((folder + "/" + name).c_str(), &st) == 0 && S_ISDIR(st.st_mode)) continue;
+    names.push_back(name);
+  }
+  ::closedir(dir);
+  std::sort(names.begin(), names.end());
+  return names;
+}
+
+long count_csv(const std::vector<std::string>& names) {
+  return long(std::count_if(names.begin(), names.end(), [](const std::string& n) { return ends_with(n, ".csv"); }));
+}
+
+// "3 logs", or "2 log sidecars" when it holds sidecars only, as envi_py.logs.refuse_earlier_logs says it.
+std::string logs_text(const std::vector<std::string>& held) {
+  const long csv = count_csv(held), n = csv ? csv : long(held.size());
+  return std::to_string(n) + (csv ? " log" : " log sidecar") + (n != 1 ? "s" : "");
+}
+
+// As envi simulate refuses it (envi_py.logs.refuse_earlier_logs): new runs written among an earlier
+// run's logs would be read back as one set.
+void refuse_earlier_logs(const std::string& out, bool force) {
+  const auto held = folder_logs(out);
+  if (!held.empty() && !force)
+    throw std::invalid_argument("--out " + out + ": holds " + logs_text(held) +
+                                " of an earlier run; pass --force to replace them (other files stay) or choose an empty folder");
+}
+
+std::string real_path(const std::string& path) {
+  char* r = ::realpath(path.c_str(), nullptr);
+  if (!r) return std::string();
+  std::string s = r;
+  std::free(r);
+  return s;
+}
+
+// The new logs are written into a hidden folder inside --out and moved in only when the whole run
+// has been written (envi_py.logs.staged_logs): a run that fails half-way leaves --out as it was,
+// neither an earlier run lost nor half of a new one mixed into it.
+class Staging {
+ public:
+  explicit Staging(const std::string& out) : out_(out) {
+    std::string pattern = out + "/.staging-XXXXXX";
+    if (!::mkdtemp(pattern.data()))
+      throw std::runtime_error("--out " + out + ": cannot create a staging folder (" + std::strerror(errno) + ")");
+    dir_ = pattern;
+  }
+  Staging(const Staging&) = delete;
+  Staging& operator=(const Staging&) = delete;
+  ~Staging() { discard(); }
+  const std::string& dir() const { return dir_; }
+
+  // Deletes the earlier logs (with --force; without it, refuses logs that appeared during the run)
+  // and moves the new ones in. Returns how many earlier CSV logs were replaced.
+  long commit(bool force) {
+    const auto held = folder_logs(out_);
+    if (!held.empty() && !force)
+      throw std::runtime_error("--out " + out_ + ": " + logs_text(held) + " appeared there during the run; nothing was written " +
+                               "(pass --force to replace them)");
+    for (const auto& name : held)
+      if (::unlink((out_ + "/" + name).c_str()) != 0 && errno != ENOENT)
+        throw std::runtime_error("--out " + out_ + ": cannot delete the earlier log " + name + " (" + std::strerror(errno) + ")");
+    for (const auto& name : entries())
+      if (::rename((dir_ + "/" + name).c_str(), (out_ + "/" + name).c_str()) != 0)
+        throw std::runtime_error("--out " + out_ + ": cannot move " + name + " into place (" + std::strerror(errno) + ")");
+    discard();
+    return count_csv(held);
+  }
+
+ private:
+  std::vector<std::string> entries() const {
+    std::vector<std::string> names;
+    if (DIR* dir = ::opendir(dir_.c_str())) {
+      while (const dirent* e = ::readdir(dir))
+        if (std::strcmp(e->d_name, ".") != 0 && std::strcmp(e->d_name, "..") != 0) names.push_back(e->d_name);
+      ::closedir(dir);
+    }
+    std::sort(names.begin(), names.end());
+    return names;
+  }
+  void discard() {
+    if (dir_.empty()) return;
+    for (const auto& name : entries()) ::unlink((dir_ + "/" + name).c_str());
+    ::rmdir(dir_.c_str());
+    dir_.clear();
+  }
+  std::string out_, dir_;
+};
+
+// The output folder, checked before any work and created only after every check has passed: an
+// existing one must not hold logs (unless --force replaces them) nor the initial logs themselves.
+void check_out_folder(const std::string& out, bool force, const std::vector<std::string>& init) {
   struct stat st {};
   if (::stat(out.c_str(), &st) == 0) {
     if (!S_ISDIR(st.st_mode)) throw std::invalid_argument("--out " + out + ": exists and is not a folder");
     if (::access(out.c_str(), W_OK) != 0) throw std::invalid_argument("--out " + out + ": cannot write (" + std::strerror(errno) + ")");
+    refuse_earlier_logs(out, force);
+    const std::string folder = real_path(out);
+    for (const auto& p : init)  // --force would delete the very logs the simulation starts from
+      if (!folder.empty() && real_path(parent_of(p)) == folder)
+        throw std::invalid_argument("--out " + out + ": holds the initial log " + p + "; simulate into another folder");
     return;
   }
   const std::string parent = parent_of(out);
@@ -413,8 +538,14 @@ int run(const Args& a) {
   Model m = load_model_file(a.model);
   if (!a.metrics.empty()) check_metrics_apply(m, a.model);
   Json spec = controller_spec(a, m);
-  Controller ctrl = Controller::from_json(spec, m.period_ms);
-  ctrl.check(m.n_state(), m.n_action());
+  Controller ctrl;
+  try {
+    ctrl = Controller::from_json(spec, m.period_ms);
+    ctrl.check(m.n_state(), m.n_action());
+  } catch (const std::exception& e) {  // a spec read from a file is named by its file
+    if (a.controller_file.empty()) throw;
+    throw std::invalid_argument(controller_option(a) + ": " + e.what());
+  }
   const Json ctrl_json = Json::parse(ctrl.to_json());
 
   const long l = m.history, c = m.channels();
@@ -443,7 +574,7 @@ int run(const Args& a) {
         if (windows[i].run_id == windows[j].run_id)
           throw std::invalid_argument("--init " + a.init[i] + ": run id '" + windows[i].run_id + "' is also " + a.init[j] +
                                       "'s; their simulated logs in --out would overwrite each other");
-    check_out_folder(a.out);
+    check_out_folder(a.out, a.force, a.init);
   }
   check_capacity(a, m, groups, want_logs, want_metrics);
   const long K = long(windows.size()), R = K * a.runs;
@@ -475,6 +606,9 @@ int run(const Args& a) {
   }
   if (want_logs && ::mkdir(a.out.c_str(), 0777) != 0 && errno != EEXIST)
     throw std::runtime_error("--out " + a.out + ": cannot create (" + std::strerror(errno) + ")");
+  std::unique_ptr<Staging> staging;
+  if (want_logs) staging = std::make_unique<Staging>(a.out);
+  long replaced = 0;
   std::vector<double> sums(8, 0.0), traces;
   MetricRows mrows;
   const std::string schema = metadata(m, "envi.schema");
@@ -549,11 +683,12 @@ int run(const Args& a) {
                            {"run_id", str(run_id)},
                            {"source", str("sim")},
                            {"provenance", provenance(w.name, r)}});
-          write_log(a.out, run_id, m, meta, time, traces.data() + size_t(i) * size_t(length) * size_t(c), length);
+          write_log(staging->dir(), run_id, m, meta, time, traces.data() + size_t(i) * size_t(length) * size_t(c), length);
         }
       }
     }
   }
+  if (staging) replaced = staging->commit(a.force);
   if (want_metrics) {
     if (!streamed)
       for (long g = 0; g < R; ++g) {
@@ -570,7 +705,9 @@ int run(const Args& a) {
   if (mout != &std::cout) {
     std::cerr << "envi_sim: " << R << " runs";
     if (streamed) std::cerr << " x " << groups[0].steps << " steps";
-    std::cerr << " (" << threads_used << " threads)\n";
+    std::cerr << " (" << threads_used << " threads)";
+    if (replaced) std::cerr << "; replaced " << replaced << " earlier log" << (replaced != 1 ? "s" : "") << " in " << a.out;
+    std::cerr << "\n";
   }
   return 0;
 }

@@ -320,11 +320,23 @@ class Compiler {
     if (it == values_.end()) throw ModelError(n.op + " node '" + n.name + "' reads '" + name + "', which no earlier node produces");
     return it->second;
   }
-  const Tensor& init(const std::string& name, const Node& n) {
+  // A float32 constant of a dense layer or a Clip. Its values must be finite (a Clip's bounds may be
+  // infinite, as ONNX's own defaults are): a NaN weight passes every shape check and the content
+  // hash alike, and would simulate NaN logs whose metrics count as steady.
+  const Tensor& init(const std::string& name, const Node& n, bool infinite_ok = false) {
     auto it = inits_.find(name);
     if (it == inits_.end()) throw ModelError(n.op + " node '" + n.name + "': '" + name + "' must be a constant initializer");
     if (it->second->data_type != kFloat) throw ModelError(n.op + " node '" + n.name + "': '" + name + "' must be float32");
+    for (float v : it->second->data)
+      if (std::isnan(v) || (!infinite_ok && std::isinf(v)))
+        throw ModelError("initializer '" + name + "' (read by " + n.op + " node '" + n.name + "') holds " +
+                         (std::isnan(v) ? "NaN" : "inf") + ": a damaged model (re-export it with envi-export)");
     return *it->second;
+  }
+  // A layer's weights and bias after scaling and summing: finite inputs can still overflow.
+  static void check_finite(const Dense& d, const Node& n) {
+    if (!d.W.allFinite() || !d.b.allFinite())
+      throw ModelError(n.op + " node '" + n.name + "': its weights or bias overflow to inf or NaN");
   }
   static void check_attrs(const Node& n, std::set<std::string> allowed) {
     for (const auto& a : n.attrs)
@@ -380,11 +392,14 @@ class Compiler {
     auto ai = [&](const char* k, int64_t d) { const Attribute* a = attr(n, k); return a && a->has_i ? a->i : d; };
     auto af = [&](const char* k, float d) { const Attribute* a = attr(n, k); return a && a->has_f ? a->f : d; };
     if (ai("transA", 0) != 0) throw ModelError("Gemm node '" + n.name + "': transA is not supported");
+    for (const char* k : {"alpha", "beta"})
+      if (!std::isfinite(af(k, 1.f))) throw ModelError("Gemm node '" + n.name + "': attribute '" + k + "' is not a finite number");
     value(n.inputs[0], n);
     Dense d;
     d.W = weight(init(n.inputs[1], n), ai("transB", 0) != 0, n) * af("alpha", 1.f);
     d.b = Eigen::VectorXf::Zero(d.W.rows());
     if (n.inputs.size() == 3 && !n.inputs[2].empty()) d.b = bias(init(n.inputs[2], n), d.W.rows(), n) * af("beta", 1.f);
+    check_finite(d, n);
     define(n, apply(n.inputs[0], std::move(d)));
   }
   void matmul(const Node& n) {
@@ -407,6 +422,7 @@ class Compiler {
       throw ModelError("Add node '" + n.name + "' must add a constant bias to a MatMul or Gemm output");
     Value out = v;
     out.layers[0].b += bias(init(n.inputs[first_const ? 0 : 1], n), out.layers[0].W.rows(), n);
+    check_finite(out.layers[0], n);
     define(n, std::move(out));
   }
   void set_act(const Node& n, Act act, float lo = 0.f, float hi = 0.f) {
@@ -432,7 +448,7 @@ class Compiler {
     set_act(n, n.op == "Tanh" ? Act::Tanh : n.op == "Relu" ? Act::Relu : Act::Sigmoid);
   }
   float scalar(const std::string& name, const Node& n) {
-    const Tensor& t = init(name, n);
+    const Tensor& t = init(name, n, true);
     if (t.data.size() != 1) throw ModelError("Clip node '" + n.name + "': bound '" + name + "' is not a scalar");
     return t.data[0];
   }
@@ -595,7 +611,11 @@ Model::EffectLayer effect_layer(const Json& e) {
   bool known = false;
   for (const auto& [name, k] : kinds)
     if (kind->string == name) layer.kind = k, known = true;
-  if (!known) throw ModelError(what + "unknown effect layer '" + kind->string + "'");
+  if (!known) {
+    std::string names;
+    for (const auto& [name, k] : kinds) names += std::string(names.empty() ? "'" : ", '") + name + "'";
+    throw ModelError(what + "unknown effect layer '" + kind->string + "'; known kinds: " + names);
+  }
   auto number = [&](const char* key, double missing) {
     const Json* v = e.find(key);
     if (!v || v->is_null()) return missing;
@@ -611,6 +631,17 @@ Model::EffectLayer effect_layer(const Json& e) {
     throw ModelError(what + "delay: a whole number of ticks up to 1000");
   if (!(layer.low <= layer.high)) throw ModelError(what + kind->string + ": limits must be ordered numbers");
   return layer;
+}
+
+// A metadata value as an error message shows it: its JSON, shortened; never a second error.
+std::string shown(const Json& v) {
+  std::string text;
+  try {
+    text = dump(v);
+  } catch (const std::exception&) {
+    return "not a finite number";
+  }
+  return text.size() > 60 ? text.substr(0, 57) + "..." : text;
 }
 
 void read_metadata(Model& m) {
@@ -630,6 +661,21 @@ void read_metadata(Model& m) {
   };
   try {
     if (get("envi.format").as_string() != "envi-onnx") throw ModelError("metadata 'envi.format' is not 'envi-onnx'");
+    // Enumerated entries: a value this loader does not know is refused, never read as a default.
+    if (md.count("envi.format_version")) {
+      const Json& v = md["envi.format_version"];
+      if (!(v.type == Json::Type::Number && v.number == 1))
+        throw ModelError("metadata 'envi.format_version' is " + shown(v) + "; known versions: 1 (update envi to read newer exports)");
+    }
+    {
+      const Json& head = get("envi.head");
+      static const char* const kHeads[] = {"deterministic", "gaussian"};
+      if (head.type != Json::Type::String || (head.string != kHeads[0] && head.string != kHeads[1]))
+        throw ModelError("metadata 'envi.head' is " + shown(head) + "; known heads: 'deterministic', 'gaussian'");
+      if ((head.string == "gaussian") != m.gaussian())
+        throw ModelError("metadata 'envi.head' is '" + head.string + "', but the graph " +
+                         (m.gaussian() ? "has a log_std output" : "has no log_std output"));
+    }
     const Json& schema = get("envi.schema");
     m.states = channels(schema.at("states"));
     m.actions = channels(schema.at("actions"));
@@ -641,8 +687,12 @@ void read_metadata(Model& m) {
     m.history = int(h);
     const Json& period = get("envi.period_ms");
     m.period_ms = period.is_null() ? 0.0 : period.as_number();
+    if (!(std::isfinite(m.period_ms) && m.period_ms >= 0))
+      throw ModelError("metadata 'envi.period_ms' must be null or a finite number >= 0");
     const Json& post = get("envi.post");
-    m.clamp = post.at("clamp").type == Json::Type::Bool && post.at("clamp").boolean;
+    if (post.at("clamp").type != Json::Type::Bool)
+      throw ModelError("metadata 'envi.post': 'clamp' is " + shown(post.at("clamp")) + "; known values: true, false");
+    m.clamp = post.at("clamp").boolean;
     for (const auto& lim : post.at("limits").as_array()) {
       auto lh = lim.as_numbers();
       if (lh.size() != 2) throw ModelError("metadata 'envi.post' limits must be [low, high] pairs");
@@ -703,7 +753,8 @@ void read_metadata(Model& m) {
   if (m.norm_low.size() != nc || m.norm_high.size() != nc) throw ModelError("envi metadata: normaliser does not match the schema");
   for (size_t i = 0; i < nc; ++i)
     if (!(std::isfinite(m.norm_low[i]) && std::isfinite(m.norm_high[i]) && m.norm_high[i] > m.norm_low[i]))
-      throw ModelError("envi metadata: normaliser range of channel " + std::to_string(i) + " is empty or not finite");
+      throw ModelError("metadata 'envi.normaliser': the range of channel " + std::to_string(i) + " ('" +
+                       (i < ns ? m.states[i].name : m.actions[i - ns].name) + "') is empty or not finite");
   if (m.limit_low.size() != ns) throw ModelError("envi metadata: post-processing limits do not match the states");
   if (!m.round_to.empty() && m.round_to.size() != ns) throw ModelError("envi metadata: round_to does not match the states");
   for (double r : m.round_to)

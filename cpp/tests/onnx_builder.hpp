@@ -81,6 +81,9 @@ struct Spec {
   bool residual = false;
   int limit_state = -1;
   std::string residual_meta;  // envi.residual as written; empty: what `residual` implies
+  std::string head_meta;      // envi.head as written; empty: what `gaussian` implies
+  std::string bad_initializer;  // this initializer's first value is `bad_value` (a damaged weight)
+  float bad_value = NAN;
 };
 
 // The residual head's nodes and constants for a window of `history` rows of `channels`.
@@ -137,6 +140,10 @@ inline Bytes model(const Spec& s, std::vector<Bytes> extra_nodes = {}) {
   if (s.limit_state >= 0) field_bytes(graph, 1, node("Gemm", {"a0", "w3", "b3"}, "event_logit", {attr_int("transB", 1)}));
   for (const auto& n : extra_nodes) field_bytes(graph, 1, n);
   field_bytes(graph, 2, "g");
+  auto tensor = [&](const std::string& name, std::vector<int64_t> dims, std::vector<float> v) {
+    if (name == s.bad_initializer && !v.empty()) v[0] = s.bad_value;
+    return pb::tensor(name, std::move(dims), std::move(v));
+  };
   field_bytes(graph, 5, tensor("w0", {s.hidden, in}, rnd(size_t(s.hidden * in))));
   field_bytes(graph, 5, tensor("b0", {s.hidden}, rnd(size_t(s.hidden))));
   field_bytes(graph, 5, tensor("w1", {ns, s.hidden}, rnd(size_t(ns * s.hidden))));
@@ -192,7 +199,7 @@ inline Bytes model(const Spec& s, std::vector<Bytes> extra_nodes = {}) {
   }
   meta("envi.history", std::to_string(s.history));
   meta("envi.period_ms", "40.0");
-  meta("envi.head", s.gaussian ? "\"gaussian\"" : "\"deterministic\"");
+  meta("envi.head", !s.head_meta.empty() ? s.head_meta : s.gaussian ? "\"gaussian\"" : "\"deterministic\"");
   meta("envi.algorithm", "\"bc\"");
   std::string post = s.post;
   if (ns > 1) {

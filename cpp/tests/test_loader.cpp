@@ -34,6 +34,37 @@ int main() {
   CHECK_THROWS(ModelError, load(pb::model(spec)), "round_to");
   spec.post = R"({"clamp": tru)";
   CHECK_THROWS(ModelError, load(pb::model(spec)), "envi.post");
+  spec.post = R"({"clamp": "yes", "limits": [[0, 100]], "round_to": null})";  // not read as false
+  CHECK_THROWS(ModelError, load(pb::model(spec)), "metadata 'envi.post': 'clamp' is \"yes\"; known values: true, false");
+  spec = pb::Spec{};
+
+  // Non-finite weights pass the shape checks and the content hash (made over them): refused by name.
+  spec.gaussian = true;
+  for (const char* name : {"w0", "b0", "w1", "b1", "w2", "b2"}) {
+    spec.bad_initializer = name;
+    const std::string message = "initializer '" + std::string(name) + "' (read by";
+    CHECK_THROWS(ModelError, load(pb::model(spec)), message.c_str());
+    spec.bad_value = INFINITY;
+    CHECK_THROWS(ModelError, load(pb::model(spec)), message.c_str());
+    spec.bad_value = NAN;
+  }
+  spec.bad_initializer = "lo";  // a Clip bound may be infinite, never NaN
+  CHECK_THROWS(ModelError, load(pb::model(spec)), "initializer 'lo' (read by Clip node");
+  spec.bad_value = -INFINITY;
+  CHECK(load(pb::model(spec)).log_std[0].clip_lo == -INFINITY);
+  spec.bad_initializer.clear();
+  spec.bad_value = NAN;
+
+  // envi.head: one of the known heads, and the one the graph has
+  spec.head_meta = "\"laplace\"";
+  CHECK_THROWS(ModelError, load(pb::model(spec)), "metadata 'envi.head' is \"laplace\"; known heads: 'deterministic', 'gaussian'");
+  spec.head_meta = "null";
+  CHECK_THROWS(ModelError, load(pb::model(spec)), "metadata 'envi.head' is null; known heads");
+  spec.head_meta = "\"deterministic\"";
+  CHECK_THROWS(ModelError, load(pb::model(spec)), "metadata 'envi.head' is 'deterministic', but the graph has a log_std output");
+  spec.gaussian = false;
+  spec.head_meta = "\"gaussian\"";
+  CHECK_THROWS(ModelError, load(pb::model(spec)), "metadata 'envi.head' is 'gaussian', but the graph has no log_std output");
   spec = pb::Spec{};
 
   // external data: data_location = EXTERNAL on an initializer
