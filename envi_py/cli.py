@@ -176,6 +176,12 @@ def cmd_split(args: argparse.Namespace) -> int:
 # ------------------------------------------------------------------------------------ train
 
 
+def state_path(output: Path) -> Path:
+    """A training's resumable state: ``<output>.state``, its full name plus a suffix, so two models of
+    one stem (``m.pt``, ``m.other``) never share one and an output named ``x.state`` is not its own state."""
+    return output.with_name(output.name + ".state")
+
+
 def _positive(args: argparse.Namespace, *names: str) -> None:
     for name in names:
         v = getattr(args, name)
@@ -254,7 +260,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         if args.lr is not None:
             kwargs["lr"] = args.lr
     if args.algorithm != "random":
-        kwargs.update(state_path=Path(args.output).with_suffix(".state"), resume=args.resume)
+        kwargs.update(state_path=state_path(Path(args.output)), resume=args.resume)
     elif args.resume:
         raise ValueError("--resume: random training has no epochs, so there is nothing to resume")
     if args.tensorboard and importlib.util.find_spec("tensorboard") is None:
@@ -276,7 +282,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     if losses is not None:
         losses.cleanup()
     if args.algorithm != "random":
-        Path(args.output).with_suffix(".state").unlink(missing_ok=True)  # finished: nothing to resume
+        state_path(Path(args.output)).unlink(missing_ok=True)  # finished: nothing to resume
     sel = ckpt.record.selection
     if sel.get("warning"):
         print(f"envi train: warning: {sel['warning']}", file=sys.stderr)

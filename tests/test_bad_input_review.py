@@ -217,3 +217,16 @@ def test_probability_that_applies_to_no_requirement_is_refused():
     mixed = requirements_of(system, ["max_abs_dev(color, 40) <= 35 @ 0.8", "max_abs_dev(color, 40) <= 30"], 0.95)
     assert [r.probability for r in mixed] == [0.8, 0.95]
     assert requirements_of(system, ["max_abs_dev(color, 40) <= 30"])[0].probability == 0.9
+
+
+def test_a_training_state_is_named_after_the_whole_output(setup, tmp_path):
+    """The state was ``output.with_suffix('.state')``: ``-o x.state`` deleted the model it had just
+    saved, and ``-o m.other`` removed the resumable state of an interrupted ``-o m.pt``."""
+    args = ["train", "--logs", str(setup["logs"]), "--algorithm", "bc", "--epochs", "2", "--hidden", "8"]
+    args += ["--history", "4", "--quiet"]
+    kept = tmp_path / "m.pt.state"
+    kept.write_bytes(b"an interrupted training's state")
+    assert run_cli([*args, "-o", str(tmp_path / "x.state")])[0] == 0
+    assert run_cli([*args, "-o", str(tmp_path / "m.other")])[0] == 0
+    assert (tmp_path / "x.state").is_file() and (tmp_path / "m.other").is_file()
+    assert kept.read_bytes() == b"an interrupted training's state"

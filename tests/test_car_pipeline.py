@@ -75,7 +75,7 @@ def test_car_end_to_end_through_the_cli(car_dir, tmp_path, capsys):
     )
     ckpt = Checkpoint.load(model)
     assert ckpt.config.n_state == 2 and ckpt.config.n_action == 2 and ckpt.system.name == "car"
-    assert not (tmp_path / "car.state").exists()  # a finished training leaves no state to resume
+    assert not (tmp_path / "car.pt.state").exists()  # a finished training leaves no state to resume
     sim = tmp_path / "sim"
     assert (
         main(

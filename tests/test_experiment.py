@@ -342,3 +342,27 @@ def test_a_killed_experiment_leaves_no_worker_behind(tmp_path) -> None:
     finally:
         if proc.poll() is None:
             proc.kill()
+
+
+class _Interrupted:
+    """An executor that is interrupted before any job finishes (Ctrl-C)."""
+
+    def map(self, fn, items):
+        raise KeyboardInterrupt
+        yield  # pragma: no cover - makes this a generator
+
+    def close(self) -> None:
+        pass
+
+
+def test_an_interrupted_fresh_run_keeps_the_earlier_journal(real_logs, tmp_path) -> None:
+    """``--fresh`` once truncated ``jobs.jsonl`` at its start, so Ctrl-C lost every finished job."""
+    logs = [lg for lg in real_logs if _label(lg) == "x=30"]
+    kw = {"algorithms": ("random",), "ns": (3,), "reps": 1, "n_val": 2, "n_test": 6, "progress": False}
+    run_experiment(logs, ["tovk"], tmp_path / "e", executor=LocalExecutor(0), train_kwargs=TINY, **kw)
+    journal = (tmp_path / "e" / "jobs.jsonl").read_bytes()
+    with pytest.raises(KeyboardInterrupt):
+        run_experiment(logs, ["tovk"], tmp_path / "e", executor=_Interrupted(), resume=False, train_kwargs=TINY, **kw)
+    assert (tmp_path / "e" / "jobs.jsonl").read_bytes() == journal and journal
+    again = run_experiment(logs, ["tovk"], tmp_path / "e", executor=LocalExecutor(0), train_kwargs=TINY, **kw)
+    assert again["meta"]["jobs_reused"] == again["meta"]["jobs"] == 1

@@ -169,9 +169,9 @@ def test_envi_train_resume_continues_a_killed_gail_training(tmp_path, monkeypatc
     saves = _kill_at_second_save(monkeypatch)
     with pytest.raises(Killed):
         main([*args, "-o", str(tmp_path / "m.pt")])
-    assert saves == [2, 4] and (tmp_path / "m.state").exists()
+    assert saves == [2, 4] and (tmp_path / "m.pt.state").exists()
     assert main([*args, "--resume", "-o", str(tmp_path / "m.pt")]) == 0
-    assert not (tmp_path / "m.state").exists()  # finished: nothing left to resume
+    assert not (tmp_path / "m.pt.state").exists()  # finished: nothing left to resume
     whole, resumed = Checkpoint.load(tmp_path / "whole.pt"), Checkpoint.load(tmp_path / "m.pt")
     for k, v in _weights(whole).items():
         assert torch.equal(v, _weights(resumed)[k]), k
@@ -185,6 +185,6 @@ def test_envi_train_resume_continues_a_killed_gail_training(tmp_path, monkeypatc
     assert main([*args, "--resume", "-o", str(tmp_path / "b.pt")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err == [
-        f"envi train: error: {tmp_path / 'b.state'}: the state is from a bc training, not gail; "
+        f"envi train: error: {tmp_path / 'b.pt.state'}: the state is from a bc training, not gail; "
         "remove it or train without --resume"
     ]

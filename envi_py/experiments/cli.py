@@ -127,7 +127,8 @@ def register(sub: Any) -> None:
     p.add_argument(
         "--fresh",
         action="store_true",
-        help="retrain every job (default: reuse finished jobs recorded in the output folder)",
+        help="retrain every job (default: reuse finished jobs recorded in the output folder); the earlier "
+        "journal is replaced only when the fresh run completes",
     )
     p.add_argument("--quiet", action="store_true")
     p.add_argument("--out", default="experiment", help="output folder")

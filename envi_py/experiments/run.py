@@ -6,6 +6,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import os
 import sys
 import time
 from collections.abc import Sequence
@@ -110,7 +111,10 @@ def run_experiment(
     executor = executor or LocalExecutor()
     t0 = time.perf_counter()
     try:
-        with journal.open("a" if resume else "w") as jf:
+        # a fresh run journals beside the old journal and replaces it only when complete: an
+        # interrupted --fresh keeps every job the earlier run had finished
+        writing = journal if resume else journal.with_name(journal.name + ".fresh")
+        with writing.open("a" if resume else "w") as jf:
             if resume and jf.tell() and not journal.read_bytes().endswith(b"\n"):
                 jf.write("\n")  # after a torn last line: the next record starts a line of its own
             for j, res in tqdm(
@@ -119,6 +123,8 @@ def run_experiment(
                 results[todo[j]] = res
                 jf.write(_journal_line(prints[todo[j]], res))
                 jf.flush()
+        if writing != journal:
+            os.replace(writing, journal)
     finally:
         if own:
             executor.close()
