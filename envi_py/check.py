@@ -16,12 +16,14 @@ For every version and requirement (the system description's, or given on the com
 3. **Without real runs** (TMVU, ``--unseen``): the verdict rests on the model only, and the model's
    error measured on the versions that do have real runs is carried beside it.
 
-Simulated runs that leave the training data's range are counted and reported with each row.
+Simulated runs that leave the training data's range (a state, or a commanded action) are counted and
+reported with each row.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import math
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -30,7 +32,7 @@ import numpy as np
 from .controllers import ControllerSpec
 from .goals.evaluate import Runs, signals_of
 from .goals.requirements import Requirement, parse, satisfied
-from .goals.selection import diverged_fraction, runaway_states
+from .goals.selection import diverged_runs, runaway_states
 from .logs import Log, group_by_controller
 from .model import Checkpoint
 from .simulate import simulate_logs
@@ -83,24 +85,26 @@ class Checker:
     seed: int = 0
     _calls: int = 0
 
-    def runs(self, spec: ControllerSpec, starts: Sequence[Log], per_start: int) -> tuple[Runs, int]:
-        """``per_start`` simulated runs from each start, as goal-ready signals, and how many of them
-        left the training data: some state outside its training range (widened by 5 %) or resting on
-        a limit the simulator clamps to for a tenth of the run, a saturating sensor's no-echo reading
-        excepted (:func:`envi_py.goals.selection.runaway_states`)."""
+    def runs(self, spec: ControllerSpec, starts: Sequence[Log], per_start: int) -> tuple[Runs, np.ndarray]:
+        """``per_start`` simulated runs from each start, as goal-ready signals, and which of them (R,)
+        left the training data for a tenth of the run or more: some state outside its training range
+        (widened by 5 %) or resting on a limit the simulator clamps to, a saturating sensor's no-echo
+        reading excepted (:func:`envi_py.goals.selection.runaway_states`), or some action the
+        controller commands outside the training range of that action (a version whose parameters lie
+        beyond the trained ones: the model then answers commands it never saw)."""
         self._calls += 1
         sims = simulate_logs(
             self.ckpt, spec, starts, runs=per_start, seed=self.seed + 9973 * self._calls, engine=self.engine
         )
         runs = signals_of(sims, sims[0].meta.schema, self.ckpt.config.history, self.ckpt.period_ms)
         schema = self.ckpt.schema
-        observed = {
-            c.name: (float(self.ckpt.norm.low[i]), float(self.ckpt.norm.high[i])) for i, c in enumerate(schema.states)
-        }
+        channels = [*schema.states, *schema.actions]
+        low, high = self.ckpt.norm.low, self.ckpt.norm.high
+        observed = {c.name: (float(low[i]), float(high[i])) for i, c in enumerate(channels)}
         clamp = list(zip(*(lim.tolist() for lim in self.ckpt.limits())))
         states = runaway_states(schema.states, clamp, self.ckpt.config.limit_events)
-        outside = round(diverged_fraction([runs], states, observed, None, 0.05) * runs.count)
-        return runs, int(outside)
+        actions = [replace(c, low=-math.inf, high=math.inf) for c in schema.actions]  # judged on the training range
+        return runs, diverged_runs(runs, [*states, *actions], observed, None, 0.05)
 
 
 def _outcomes(req: Requirement, runs: Runs) -> np.ndarray:
@@ -155,7 +159,9 @@ def check(
                 if extra_runs is None
                 else np.concatenate([paired, _outcomes(req, extra_runs).reshape(-1, sims_per_start).mean(axis=1)])
             )
-            sim = _sequential(checker, spec, starts, req, spec_req.probability, alpha, delta, max_runs, batch)
+            sim, sim_outside = _sequential(
+                checker, spec, starts, req, spec_req.probability, alpha, delta, max_runs, batch
+            )
             notes = []
             if extra_runs is None:
                 notes.append(
@@ -192,7 +198,7 @@ def check(
                     len(y),
                     sim.to_json(),
                     real_json,
-                    outside,
+                    sim_outside + int(outside.sum()),
                     sim.runs + len(logs) * sims_per_start,
                     notes,
                 )
@@ -202,7 +208,9 @@ def check(
         starts = list(real)
         runs, outside = checker.runs(spec, starts, max(1, -(-max_runs // (4 * len(starts)))))
         for spec_req, req in zip(requirements, reqs):
-            sim = _sequential(checker, spec, starts, req, spec_req.probability, alpha, delta, max_runs, batch)
+            sim, sim_outside = _sequential(
+                checker, spec, starts, req, spec_req.probability, alpha, delta, max_runs, batch
+            )
             verdict = model_only(_outcomes(req, runs), spec_req.probability, measured[spec_req.name], alpha)
             rows.append(
                 CheckRow(
@@ -213,7 +221,7 @@ def check(
                     0,
                     sim.to_json(),
                     verdict.to_json(),
-                    outside,
+                    sim_outside + int(outside.sum()),
                     sim.runs + runs.count,
                     ["never field-tested: started from the initial windows of the other versions' real logs"],
                 )
@@ -231,16 +239,19 @@ def _sequential(
     delta: float,
     max_runs: int,
     batch: int,
-) -> Any:
-    """Wald's SPRT on simulated runs drawn batch by batch from the starts, in turn."""
+) -> tuple[Any, int]:
+    """Wald's SPRT on simulated runs drawn batch by batch from the starts, in turn, and how many of
+    the runs it used left the training data."""
+    outside = [0]
 
     def sample(n: int) -> np.ndarray:
         per_start = -(-n // len(starts))
-        runs, _ = checker.runs(spec, starts, per_start)
+        runs, left = checker.runs(spec, starts, per_start)
+        outside[0] += int(left[:n].sum())
         return _outcomes(req, runs)[:n].astype(bool)
 
     lo, hi = max(p - delta, 1e-6), min(p + delta, 1 - 1e-6)
-    return sprt(
+    result = sprt(
         sample,
         p,
         delta=min(delta, p - lo + 1e-12, hi - p + 1e-12) if 0 < p < 1 else delta,
@@ -249,6 +260,7 @@ def _sequential(
         max_runs=max_runs,
         batch=batch,
     )
+    return result, outside[0]
 
 
 def parse_requirement(text: str, probability: float, index: int) -> RequirementSpec:

@@ -125,3 +125,23 @@ def test_check_cli_writes_the_verdict_table_first(lane, tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert err == "envi check: error: requirement 'R1': unknown signal 'nope'; signals: color, angle"
     assert np.isfinite(js["rows"][0]["real_system"]["interval"][0])
+
+
+def test_runs_commanding_actions_beyond_the_training_range_are_counted_outside(lane):
+    """A version beyond the trained ones (x = 80 against 10..50) commands steering the model never saw:
+    every one of its runs leaves the training data, although its states may stay in range."""
+    ckpt, real, _ = lane
+    rows = check(
+        ckpt,
+        real[:4],
+        REQS[:1],
+        unseen=[ControllerSpec("lane-keeping", {"x": 20}), ControllerSpec("lane-keeping", {"x": 80})],
+        max_runs=100,
+        batch=50,
+        sims_per_start=2,
+        engine="torch",
+    )
+    by_version = {r.version: r for r in rows}
+    far, near = by_version["x=80"], by_version["x=20"]
+    assert far.outside_training == far.sim_runs > 0
+    assert near.outside_training < near.sim_runs / 2

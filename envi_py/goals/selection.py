@@ -186,6 +186,32 @@ def runaway_states(
     return out
 
 
+def diverged_runs(
+    runs: Runs,
+    channels: Sequence[Channel],
+    observed: Mapping[str, tuple[float, float]],
+    sustain: int | None,
+    margin: float,
+) -> np.ndarray:
+    """Per run (R,), whether some channel sits at a limit of its range or outside its observed range
+    (widened by ``margin`` of its width) for ``sustain`` consecutive scored samples (by default a
+    tenth of the scored run). A channel with infinite limits is judged on its observed range alone."""
+    need = sustain if sustain is not None else max(2, math.ceil(0.1 * runs.scored_length))
+    bad = np.zeros(runs.count, dtype=bool)
+    for ch in channels:
+        x = runs.scored(ch.name)
+        lo, hi = observed[ch.name]
+        widen = margin * (hi - lo)
+        flag = (x < lo - widen) | (x > hi + widen)
+        eps = ch.resolution / 2.0 if ch.resolution else 0.0  # a reading within half a step is at the limit
+        if math.isfinite(ch.low):
+            flag |= x <= ch.low + eps
+        if math.isfinite(ch.high):
+            flag |= x >= ch.high - eps
+        bad |= _longest_stretch(flag) >= need
+    return bad
+
+
 def diverged_fraction(
     runs: Sequence[Runs],
     states: Sequence[Channel],
@@ -193,23 +219,6 @@ def diverged_fraction(
     sustain: int | None,
     margin: float,
 ) -> float:
-    """Fraction of runs in which some state sits at a range limit or outside the observed range
-    (widened by ``margin`` of its width) for ``sustain`` consecutive scored samples."""
-    diverged, total = 0, 0
-    for r in runs:
-        need = sustain if sustain is not None else max(2, math.ceil(0.1 * r.scored_length))
-        bad = np.zeros(r.count, dtype=bool)
-        for ch in states:
-            x = r.scored(ch.name)
-            lo, hi = observed[ch.name]
-            widen = margin * (hi - lo)
-            flag = (x < lo - widen) | (x > hi + widen)
-            eps = ch.resolution / 2.0 if ch.resolution else 0.0  # a reading within half a step is at the limit
-            if math.isfinite(ch.low):
-                flag |= x <= ch.low + eps
-            if math.isfinite(ch.high):
-                flag |= x >= ch.high - eps
-            bad |= _longest_stretch(flag) >= need
-        diverged += int(bad.sum())
-        total += r.count
-    return diverged / total
+    """Fraction of runs in which some state diverged (:func:`diverged_runs`), over all ``runs``."""
+    diverged = sum(int(diverged_runs(r, states, observed, sustain, margin).sum()) for r in runs)
+    return diverged / sum(r.count for r in runs)
