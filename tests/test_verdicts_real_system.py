@@ -255,6 +255,26 @@ def test_margin_test_keeps_a_faithful_model():
     assert np.mean(withdrawn) <= 0.05 + 3 * np.sqrt(0.05 * 0.95 / reps)
 
 
+def test_a_kept_claim_states_the_level_each_test_ran_at():
+    """With the margins each test runs at half the level: a kept claim beside a p between the half and
+    the whole level must not read "withdrawn at 0.05" (a reader takes that for a contradiction)."""
+    rng = np.random.default_rng(11)
+    between = []
+    for k in range(400):
+        sims, y, f, real, paired = margins_synthetic(rng, 10, 0.0)
+        v = ppi_verdict(
+            sims, y, f, 0.5, sims_per_start=SIMS_PER_START, real_margins=real, paired_margins=paired, seed=k
+        )
+        if not v.withdrawn:
+            assert "each test withdraws at p <= 0.025, half of 0.05" in v.reason
+            assert "withdrawn at 0.05" not in v.reason
+            ps = (v.check.p_value, v.check.margin_p_value)
+            between.append(any(0.025 < p <= 0.05 for p in ps))
+    assert any(between)  # the case the wording is about occurred
+    plain = ppi_verdict(*margins_synthetic(rng, 10, 0.0)[:3], 0.5, sims_per_start=SIMS_PER_START)
+    assert plain.withdrawn or "(withdrawn at p <= 0.05)" in plain.reason
+
+
 def test_margin_test_withdraws_a_model_wrong_only_where_outcomes_rarely_show_it():
     """The model's margins are 0.5 low: wrong only for starts near the threshold, which 10 real runs
     often miss, so the outcome test alone keeps the claim and the interval misses the truth (the car

@@ -107,11 +107,17 @@ class RectifierCheck:
         )
 
     @property
+    def test_level(self) -> float:
+        """The level each test withdraws at: the whole level, or half of it each when the margins add the
+        PIT test (Bonferroni), so a reported p of 0.03 beside a kept claim is no contradiction."""
+        return self.level if self.margin_p_value is None else self.level / 2
+
+    @property
     def failed_test(self) -> str | None:
         """Which test withdrew the claim, in words, or None when the check passed."""
         if self.passed:
             return None
-        if self.margin_p_value is not None and self.margin_p_value <= self.level / 2:
+        if self.margin_p_value is not None and self.margin_p_value <= self.test_level:
             return (
                 "the real margins are not plausible draws from the paired simulations "
                 f"(PIT test p = {self.margin_p_value:.3g})"
@@ -475,7 +481,12 @@ def ppi_verdict(
         f"{est.method} from {est.n_sim} simulated starts and {est.n_real} paired real runs; model error "
         f"{check.mean:+.3f}, calibration test p = {check.p_value:.3g}"
         + ("" if check.margin_p_value is None else f", margin PIT test p = {check.margin_p_value:.3g}")
-        + f" (withdrawn at {check.level:g}); {check.detectable_text}"
+        + (
+            f" (withdrawn at p <= {check.level:g})"
+            if check.margin_p_value is None
+            else f" (each test withdraws at p <= {check.test_level:g}, half of {check.level:g})"
+        )
+        + f"; {check.detectable_text}"
     )
     return RealSystemVerdict(
         verdict_of(est.low, est.high, p_required),
