@@ -159,9 +159,15 @@ def log_pairs(
     return x, z[history:, :n_state]
 
 
+def pieces_between(rows: np.ndarray, breaks: Sequence[int]) -> list[np.ndarray]:
+    """``rows`` (T, C) cut before each break row (breaks at or beyond T, as in a truncated log, cut nothing)."""
+    return np.split(rows, [b for b in breaks if 0 < b < len(rows)])
+
+
 @dataclass
 class Dataset:
-    """Per-log training pairs, kept per log because the paper's BC loop steps once per log."""
+    """Per-log training pairs, kept per log because the paper's BC loop steps once per log (per piece
+    of a log with lost rows, when cut at its breaks)."""
 
     norm: Normaliser
     history: int
@@ -180,8 +186,14 @@ class Dataset:
         phase_rows: int = 100,
         context: bool = False,
         play_width: float = 0.0,
+        cut_at_breaks: bool = False,
     ) -> "Dataset":
-        """Pairs of every log; ``extras`` and ``context`` as declared by the model's config."""
+        """Pairs of every log; ``extras`` and ``context`` as declared by the model's config.
+
+        ``cut_at_breaks`` (training): a log with lost rows (its ``meta.breaks``) gives the pieces
+        between them, as logs of their own, since a window across a break would teach a jump the system
+        never made (pieces of ``history`` rows or fewer give no pair and are left out). Without it the
+        pairs line up with each log's rows, as a diagnosis of one-step residuals needs."""
         norm = norm or Normaliser.fit(logs)
         n_state = logs[0].states.shape[1]
         zs, xs, ys = [], [], []
@@ -190,10 +202,15 @@ class Dataset:
                 raise ValueError(f"{lg.name}: {len(lg)} rows, need more than the history {history}")
             zv = norm.encode(lg.values)
             ex = extra_channels(lg.time, extras, period_ms, phase_rows, action=zv[:, n_state], play_width=play_width)
-            z = np.concatenate([zv, ex], axis=1).astype(np.float32)
-            ctx = context_of(z[:history], n_state) if context else None
-            x, y = log_pairs(z, history, n_state, ctx)
-            zs.append(z), xs.append(x), ys.append(y)
+            rows = np.concatenate([zv, ex], axis=1)
+            pieces = [p for p in pieces_between(rows, lg.meta.breaks) if len(p) > history] if cut_at_breaks else [rows]
+            if not pieces:
+                raise ValueError(f"{lg.name}: no stretch of more than {history} rows between its lost rows")
+            for piece in pieces:
+                z = piece.astype(np.float32)
+                ctx = context_of(z[:history], n_state) if context else None
+                x, y = log_pairs(z, history, n_state, ctx)
+                zs.append(z), xs.append(x), ys.append(y)
         return Dataset(norm, history, n_state, xs, ys, zs)
 
     def stacked(self) -> tuple[np.ndarray, np.ndarray]:

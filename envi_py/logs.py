@@ -74,6 +74,9 @@ class LogMeta:
     run_id: str | None = None
     source: str = "fot"
     provenance: dict[str, Any] = field(default_factory=dict)
+    #: rows that do not follow the row before them, because rows were lost between the two (a dropped
+    #: frame on the collector's link): no model window may span one. Sorted, each in 1..rows-1.
+    breaks: tuple[int, ...] = ()
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -84,6 +87,7 @@ class LogMeta:
             "run_id": self.run_id,
             "source": self.source,
             "provenance": self.provenance,
+            **({"breaks": list(self.breaks)} if self.breaks else {}),
         }
 
     @staticmethod
@@ -117,6 +121,13 @@ class LogMeta:
         provenance = {} if d.get("provenance") is None else d["provenance"]
         if not isinstance(provenance, dict):
             raise LogError(f"{where}: sidecar provenance must be an object")
+        breaks = d.get("breaks") or []
+        if (
+            not isinstance(breaks, list)
+            or any(isinstance(b, bool) or not isinstance(b, int) or b < 1 for b in breaks)
+            or any(b >= c for b, c in zip(breaks, breaks[1:]))
+        ):
+            raise LogError(f"{where}: sidecar breaks {breaks!r:.60} is not an increasing list of row numbers >= 1")
         return LogMeta(
             schema=schema,
             controller=controller,
@@ -124,6 +135,7 @@ class LogMeta:
             run_id=run_id,
             source=source,
             provenance=dict(provenance),
+            breaks=tuple(breaks),
         )
 
 
@@ -405,6 +417,8 @@ def read_log(
         r = int(bad[0]) + 1
         raise LogError(f"{path}: row {rows[r]}: time {data[r, 0]:g} does not increase (previous {data[r - 1, 0]:g})")
     data = _check_ranges(path, data, rows, meta.schema)
+    if meta.breaks and meta.breaks[-1] >= n:
+        raise LogError(f"{path}: its sidecar marks a break at row {meta.breaks[-1]}, but the log has {n} rows")
     ns, nc = len(meta.schema.states), len(meta.schema.channels)
     return Log(
         path,

@@ -369,11 +369,20 @@ class Checkpoint:
         x = window.reshape(window.shape[0], -1)
         return x if context is None else torch.cat([x, context], dim=1)
 
-    def dataset(self, logs: Sequence[Log]) -> Dataset:
-        """Training pairs of ``logs`` laid out as this model sees them (derived channels, context)."""
+    def dataset(self, logs: Sequence[Log], cut_at_breaks: bool = False) -> Dataset:
+        """Pairs of ``logs`` laid out as this model sees them (derived channels, context); training cuts
+        logs at their lost rows (:meth:`Dataset.build`)."""
         cfg = self.config
         return Dataset.build(
-            logs, cfg.history, self.norm, cfg.extras, self.period_ms, cfg.phase_rows, cfg.context, cfg.play_width
+            logs,
+            cfg.history,
+            self.norm,
+            cfg.extras,
+            self.period_ms,
+            cfg.phase_rows,
+            cfg.context,
+            cfg.play_width,
+            cut_at_breaks,
         )
 
     # ------------------------------------------------------------------ what the model says

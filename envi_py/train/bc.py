@@ -108,7 +108,7 @@ def train_bc(
         "input_noise": input_noise,
     }
     ckpt = new_checkpoint("bc", train_logs, val_logs, cfg, seed, hyper, system=system)
-    data = ckpt.dataset(train_logs)
+    data = ckpt.dataset(train_logs, cut_at_breaks=True)
     xs = [torch.tensor(x) for x in data.X]
     ys = [torch.tensor(y) for y in data.Y]
     evs = [None if e is None else torch.from_numpy(e) for e in map(ckpt.limit_event_targets, data.Y)]
@@ -148,7 +148,7 @@ def one_step_loss(ckpt: Checkpoint, logs: Sequence[Log]) -> Callable[[Checkpoint
     selector's tie-break. None without logs."""
     if not logs:
         return None
-    data = ckpt.dataset(logs)
+    data = ckpt.dataset(logs, cut_at_breaks=True)
     batches = [
         (torch.tensor(x), torch.tensor(y), None if e is None else torch.from_numpy(e))
         for x, y, e in zip(data.X, data.Y, map(ckpt.limit_event_targets, data.Y))

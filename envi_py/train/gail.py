@@ -102,7 +102,7 @@ class _Trainer:
         self.disc_opt = torch.optim.Adam(self.disc.parameters(), lr=hp.disc_lr)
         self.value_opt = torch.optim.Adam(self.value.parameters(), lr=hp.value_lr)
         self.env = WindowEnv(ckpt, list(train_logs), hp.horizon, hp.stride)
-        x, y = ckpt.dataset(train_logs).stacked()
+        x, y = ckpt.dataset(train_logs, cut_at_breaks=True).stacked()
         self.real_x, self.real_y = torch.from_numpy(x), torch.from_numpy(y)
         self.gen = torch.Generator().manual_seed(seed)
         self.rng = np.random.default_rng(seed)

@@ -51,7 +51,7 @@ class WindowEnv:
         cfg = ckpt.config
         self.ckpt, self.horizon = ckpt, horizon
         hist, ns = cfg.history, cfg.n_state
-        data = ckpt.dataset(logs)
+        data = ckpt.dataset(logs, cut_at_breaks=True)
         period = ckpt.period_ms
         windows, starts, contexts, extras, log_idx = [], [], [], [], []
         for i, z in enumerate(data.z):

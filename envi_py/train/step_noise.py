@@ -31,7 +31,7 @@ from ..model import MAX_DOF, MIN_DOF, Checkpoint
 def standardised_errors(ckpt: Checkpoint, logs: Sequence[Log]) -> list[np.ndarray]:
     """Per state: the one-step errors of every window of ``logs`` over the head's predicted std (its
     limit readings left out)."""
-    data = ckpt.dataset(logs)
+    data = ckpt.dataset(logs, cut_at_breaks=True)
     x = torch.from_numpy(np.ascontiguousarray(np.concatenate(data.X)))
     y = np.concatenate(data.Y)
     with torch.no_grad():

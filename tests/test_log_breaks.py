@@ -1,0 +1,89 @@
+"""Rows lost in transit (a dropped frame on the collector's link): the log says where, and no training
+window spans the gap, since a window across it would teach a jump the system never made."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from envi_py.controllers import ControllerSpec
+from envi_py.dataset import Dataset, Normaliser
+from envi_py.logs import Log, LogError, read_log, sidecar_path, write_log
+from envi_py.twin import generate
+
+
+def _with_breaks(log: Log, breaks: tuple[int, ...]) -> Log:
+    return Log(log.path, log.time, log.states, log.actions, replace(log.meta, breaks=breaks), log.logged)
+
+
+@pytest.fixture
+def twin_log() -> Log:
+    return generate(ControllerSpec("lane-keeping", {"x": 30}), 1, 60, seed=3)[0]
+
+
+def test_breaks_travel_in_the_sidecar(tmp_path, twin_log):
+    path = write_log(_with_breaks(twin_log, (20, 41)), tmp_path / "run.csv")
+    assert read_log(path).meta.breaks == (20, 41)
+    plain = write_log(twin_log, tmp_path / "plain.csv")
+    assert "breaks" not in sidecar_path(plain).read_text()  # a log without lost rows: sidecar unchanged
+    assert read_log(plain).meta.breaks == ()
+
+
+@pytest.mark.parametrize(
+    ("breaks", "says"),
+    [
+        ("[20, 20]", "increasing"),
+        ("[0]", "increasing"),
+        ("[true]", "increasing"),
+        ('"5"', "increasing"),
+        ("[60]", "60 rows"),
+    ],
+)
+def test_a_wrong_break_is_one_line_naming_the_file(tmp_path, twin_log, breaks, says):
+    path = write_log(twin_log, tmp_path / "run.csv")
+    side = sidecar_path(path)
+    side.write_text(side.read_text().rstrip().rstrip("}") + f', "breaks": {breaks}}}')
+    with pytest.raises(LogError, match=says) as err:
+        read_log(path)
+    assert str(tmp_path) in str(err.value) and "\n" not in str(err.value)
+
+
+def test_training_pairs_never_span_a_break(twin_log):
+    """States count rows, so a pair spans a break exactly when its rows are not consecutive."""
+    t, hist, brk = len(twin_log), 5, 30
+    rows = np.arange(t, dtype=np.float64)[:, None]
+    log = Log(None, twin_log.time, rows, np.zeros((t, 1)), replace(twin_log.meta, breaks=(brk,)))
+    norm = Normaliser(np.array([0.0, -1.0]), np.array([t - 1.0, 1.0]))
+    whole = Dataset.build([log], hist, norm)
+    cut = Dataset.build([log], hist, norm, cut_at_breaks=True)
+    assert sum(len(y) for y in whole.Y) == t - hist  # lined up with the log's rows (a diagnosis needs that)
+    assert sum(len(y) for y in cut.Y) == (brk - hist) + (t - brk - hist)
+    for x, y in zip(cut.X, cut.Y):
+        first = np.rint(norm.decode(np.column_stack([x[:, 0], x[:, 1]]))[:, 0])  # each window's oldest row
+        target = np.rint(norm.decode(np.column_stack([y[:, 0], np.zeros(len(y))]))[:, 0])
+        assert np.all(target - first == hist)  # consecutive rows only
+        assert np.all((target < brk) | (first >= brk))
+
+
+def test_a_log_with_no_stretch_longer_than_the_history_is_refused(twin_log):
+    log = _with_breaks(twin_log, tuple(range(4, 60, 4)))
+    with pytest.raises(ValueError, match="no stretch of more than 5 rows"):
+        Dataset.build([log], 5, cut_at_breaks=True)
+
+
+def test_train_says_which_rows_were_lost(tmp_path, twin_log):
+    for i, lg in enumerate(generate(ControllerSpec("lane-keeping", {"x": 30}), 3, 60, seed=4)):
+        write_log(_with_breaks(lg, (25,)) if i == 0 else lg, tmp_path / f"log_{i}.csv")
+    out = subprocess.run(
+        [sys.executable, "-m", "envi_py.cli", "train", "--logs", str(tmp_path), "--epochs", "2", "--quiet"]
+        + ["--hidden", "8", "-o", str(tmp_path / "m.pt")],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert out.returncode == 0, out.stderr
+    assert "log_0.csv: rows were lost before row(s) 25; no training window spans them" in out.stderr
