@@ -17,6 +17,7 @@ from envi_py.logs import read_log, write_log
 from firmware_bridge.brick import protocol as P
 from firmware_bridge.host import collect
 from firmware_bridge.host.ledger import LEDGER_NAME, Ledger
+from firmware_bridge.host.lock import LOCK_NAME
 from firmware_bridge.host.session import BrickError, BrickInfo, Run, handshake
 from firmware_bridge.host.settle import settle
 from firmware_bridge.host.store import LogExists, remove_stale_staging, save_new
@@ -183,7 +184,8 @@ def test_first_run_already_used_is_refused_in_one_line(tmp_path: Path, capsys: p
     assert "run 5 was started by an earlier collector" in capsys.readouterr().err
     assert collect.main(argv) == 2  # free indices: it goes on to the brick, which is not there
     assert "cannot open" in capsys.readouterr().err
-    assert sorted(os.listdir(out)) == [LEDGER_NAME, "log_30_3.csv", "log_30_3.meta.json"]  # nothing touched
+    # nothing touched (the lock file is the collector's, taken before it reads the ledger)
+    assert sorted(os.listdir(out)) == [LEDGER_NAME, LOCK_NAME, "log_30_3.csv", "log_30_3.meta.json"]
 
 
 def test_a_brick_of_another_protocol_version_is_named_as_such() -> None:

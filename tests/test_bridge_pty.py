@@ -25,6 +25,7 @@ from firmware_bridge.host import collect
 from firmware_bridge.host.brick_sim import BRICK_DIR
 from firmware_bridge.host.inject import CheckpointModel
 from firmware_bridge.host.ledger import LEDGER_NAME
+from firmware_bridge.host.lock import LOCK_NAME
 
 from .conftest import make_log
 
@@ -304,7 +305,7 @@ def ctrl_c(sim: BrickSim, tmp_path: Path) -> None:
     assert "interrupted" in err
     assert "1 complete, 1 incomplete, 0 lost run(s)" in err
     names = sorted(p.name for p in out.iterdir())
-    assert names == [LEDGER_NAME, "log_30_0.csv", "log_30_0.meta.json", "log_30_1.csv", "log_30_1.meta.json"]
+    assert names == [LEDGER_NAME, LOCK_NAME, "log_30_0.csv", "log_30_0.meta.json", "log_30_1.csv", "log_30_1.meta.json"]
     ends = ledger_ends(out)
     assert ends["log_30_1"]["status"] == "incomplete" and ends["log_30_1"]["reason"] == "interrupted"
     # the brick said how many rows it sent before the STOP: every one of them is in the log

@@ -24,6 +24,7 @@ import numpy as np
 from envi_py.logs import load_logs, read_log
 from firmware_bridge.brick import protocol as P
 from firmware_bridge.host.ledger import LEDGER_NAME, Ledger
+from firmware_bridge.host.lock import LOCK_NAME
 
 from .test_bridge_pty import ROOT, BrickSim
 
@@ -67,8 +68,11 @@ class Journal:
 
 
 def digest(folder: Path) -> dict[str, str]:
+    """Every log and sidecar's hash (the ledger is appended to, the lock file holds its holder's pid)."""
     return {
-        p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(folder.iterdir()) if p.name != LEDGER_NAME
+        p.name: hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(folder.iterdir())
+        if p.name not in (LEDGER_NAME, LOCK_NAME)
     }
 
 
@@ -300,6 +304,7 @@ def test_sigkill_at_random_ticks_never_loses_overwrites_or_mixes_a_run(tmp_path:
         # continuous at the brick's period: consecutive ticks except the ones it skipped (an overrun
         # on a loaded machine), and no reading before its tick was due
         assert np.all(np.diff(ticks) >= 1) and np.all(stamps >= ticks * PERIOD_MS)
+        assert lg.meta.breaks == tuple(int(i) + 1 for i in np.nonzero(np.diff(ticks) > 1)[0])  # no window spans one
         missing = int(np.sum(np.diff(ticks) - 1)) + int(ticks[0]) + TICKS - 1 - int(ticks[-1])
         assert prov["complete"] and missing == prov["skipped_ticks"] == sum(b - a + 1 for a, b in prov["gaps"])
         assert ends[rid]["file"] == name and ends[rid]["status"] == "complete" and ends[rid]["rows"] == len(lg)

@@ -6,20 +6,22 @@ atomically, never over an existing file, with the process umask (source ``fot``,
 sidecar; after a disconnect the port is reopened (a rebooted brick or re-plugged cable) for the
 next run. Every run is in the folder's ledger (``collect-ledger.jsonl``) before the brick starts
 it, so a collector restarted after being killed stops the run the dead one left going, reports it
-lost (or recovers its log if it was written), and carries on at the next free index. The exit code
-is 2 when a run was lost or incomplete or rows were lost, unless ``--accept-partial``.
+lost (or recovers its log if it was written), and carries on at the next free index. A second
+collector on an ``--out`` in use is refused at once (``collect.lock`` there). The exit code is 2
+when a run was lost or incomplete or rows were lost, unless ``--accept-partial``.
 """
 
 from __future__ import annotations
 
 import argparse
 import datetime as _dt
+import os
 import re
 import secrets
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 import serial
@@ -34,6 +36,7 @@ from ..brick import protocol as P
 from .inject import EnvironmentModel, load_model
 from .ledger import LEDGER_NAME, Ledger
 from .link import Link, LinkLost
+from .lock import FolderBusy, hold
 from .session import BrickError, BrickInfo, Run, RunResult, handshake, ping
 from .settle import settle
 from .stats import gaps, period_stats, summary
@@ -189,6 +192,12 @@ def provenance(
     return prov
 
 
+def row_breaks(ticks: Sequence[int]) -> tuple[int, ...]:
+    """The rows whose tick does not follow the previous row's: frames were lost between the two, so
+    training keeps its windows off the gap (:attr:`envi_py.logs.LogMeta.breaks`)."""
+    return tuple(i for i in range(1, len(ticks)) if ticks[i] != ticks[i - 1] + 1)
+
+
 def to_log(
     r: RunResult, info: BrickInfo, url: str, clock: dict[str, Any], run_name: str, model: EnvironmentModel | None
 ) -> Log | None:
@@ -203,6 +212,7 @@ def to_log(
         run_id=run_name,
         source="fot" if model is None else "hil",
         provenance=provenance(r, info, url, clock, controller_mismatches(info, color, angle), model),
+        breaks=row_breaks(r.ticks),
     )
     return Log(None, np.asarray(r.time_ms, dtype=np.float64), color[:, None], angle[:, None], meta)
 
@@ -408,19 +418,23 @@ def main(argv: list[str] | None = None) -> int:
     # total known after the first handshake; shown after 1 s, so a port refused at once leaves one line
     bar = tqdm(unit="row", disable=args.quiet, dynamic_ncols=True, delay=1.0)
     session: Session | None = None
+    lock: int | None = None
     code = 0
     try:
+        lock = hold(args.out)  # before the ledger is read or the port opened: both are the holder's
         session = Session(args, load_model(args.inject) if args.inject else None, bar)
         session.run_all()
     except KeyboardInterrupt:
         code = 130
-    except (BrickError, LinkLost, ValueError, OSError) as exc:  # LogExists and a bad ledger are ValueErrors
+    except (FolderBusy, BrickError, LinkLost, ValueError, OSError) as exc:  # LogExists, a bad ledger: ValueErrors
         bar.close()
         print(f"envi-collect: {exc}", file=sys.stderr)
         code = 2
     finally:
         if session is not None:
             session.close()
+        if lock is not None:
+            os.close(lock)
     bar.close()
     if session is None or (code == 2 and not session.tally.runs):
         return code  # refused before any run: the one error line says it all

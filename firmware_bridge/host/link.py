@@ -3,7 +3,8 @@
 Built on ``serial.threaded``: the reader thread feeds bytes to :class:`FrameProtocol`, which
 decodes them with the brick's own :class:`~firmware_bridge.brick.protocol.Decoder` and queues
 each message with its arrival time. The caller takes messages from the queue with a timeout, so a
-silent brick is noticed; a hang-up arrives in the same queue as :class:`LinkLost`.
+silent brick is noticed; a hang-up (a ``SerialException`` or any ``OSError`` in the reader)
+arrives in the same queue as :class:`LinkLost`.
 """
 
 from __future__ import annotations
@@ -37,6 +38,24 @@ class FrameProtocol(serial.threaded.Protocol):
         self.inbox.put((time.perf_counter(), LinkLost(f"link lost: {exc}" if exc else "link closed")))
 
 
+class ReaderThread(serial.threaded.ReaderThread):
+    """pyserial 3.5's reader, ending on any ``OSError`` as on a ``SerialException``.
+
+    Its loop catches only ``SerialException``, but ``in_waiting`` on a device that vanished (a
+    brick killed or unplugged) can raise a bare ``OSError`` from its ioctl: the thread then died
+    with a traceback and no ``connection_lost``, and the run waited out its silence as "silent"
+    instead of ending as a disconnect.
+    """
+
+    def run(self) -> None:
+        try:
+            super().run()
+        except OSError as exc:  # raised from the loop: the protocol has not been told yet
+            self.alive = False
+            self.protocol.connection_lost(exc)
+            self.protocol = None
+
+
 class Link:
     """An open link to one brick; ``send`` frames out, ``recv`` messages in (with arrival time)."""
 
@@ -45,7 +64,7 @@ class Link:
         self.serial = serial.serial_for_url(url, baudrate=baudrate, timeout=0.05, write_timeout=1.0)
         self.serial.reset_input_buffer()
         self.encoder = P.Encoder()
-        self.thread = serial.threaded.ReaderThread(self.serial, FrameProtocol)
+        self.thread = ReaderThread(self.serial, FrameProtocol)
         self.thread.start()
         _, proto = self.thread.connect()
         self.protocol: FrameProtocol = proto
