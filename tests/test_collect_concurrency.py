@@ -57,3 +57,36 @@ def test_a_second_collector_on_a_busy_folder_is_refused_in_one_line(tmp_path: Pa
         "collector",
     )
     assert end["rows"] > 0 and end["rows_lost"] == 0
+
+
+def test_a_second_collector_on_a_busy_port_is_refused_at_once(tmp_path: Path) -> None:
+    """Two folders, one port: the second would split the brick's bytes with the first (and stop its run
+    as a foreign one). The port is opened exclusively, so the second is refused without waiting out
+    the reconnection time."""
+    sim = BrickSim(tmp_path, "--period", str(PERIOD_MS), "--world", "firmware_bridge.host.world:EdgeWorld")
+    procs: list[subprocess.Popen] = []
+    try:
+        first = launch(sim.link, tmp_path / "a", 1, 60_000, tmp_path / "first.err")
+        procs.append(first)
+        deadline = time.monotonic() + 60
+        while not own_runs(tmp_path / "a", first.pid) and first.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert own_runs(tmp_path / "a", first.pid), (tmp_path / "first.err").read_text()
+        second = launch(sim.link, tmp_path / "b", 1, 1000, tmp_path / "second.err", "--reconnect", "600")
+        procs.append(second)
+        rc = second.wait(timeout=60)  # well within the 600 s it would keep reopening a port that is gone
+        err = (tmp_path / "second.err").read_text().splitlines()
+        assert rc == 2 and err == [
+            f"envi-collect: {sim.link}: another program has the port open (another envi-collect?)"
+        ]
+        assert first.poll() is None
+        first.send_signal(signal.SIGINT)
+        assert first.wait(timeout=60) == 130
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+                p.wait(timeout=10)
+        sim.stop()
+    [start, end] = Ledger(tmp_path / "a").entries
+    assert end["status"] == "incomplete" and end["reason"] == "interrupted" and end["rows_lost"] == 0

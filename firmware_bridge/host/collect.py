@@ -67,6 +67,8 @@ def open_link(url: str, wait: float) -> Link:
         try:
             return Link(url)
         except (serial.SerialException, OSError) as exc:
+            if "exclusively lock" in str(exc):  # pyserial's only sign of it: waiting will not help
+                raise BrickError(f"{url}: another program has the port open (another envi-collect?)") from None
             if time.monotonic() >= end:
                 raise BrickError(f"{url}: cannot open ({exc})") from exc
             time.sleep(0.2)

@@ -61,7 +61,9 @@ class Link:
 
     def __init__(self, url: str, baudrate: int = 115200) -> None:
         self.url = url
-        self.serial = serial.serial_for_url(url, baudrate=baudrate, timeout=0.05, write_timeout=1.0)
+        # exclusive: a second program on the port (another collector, a terminal) would split its bytes;
+        # pyserial takes an flock on a POSIX device and ignores the flag for socket:// and loop:// URLs
+        self.serial = serial.serial_for_url(url, baudrate=baudrate, timeout=0.05, write_timeout=1.0, exclusive=True)
         self.serial.reset_input_buffer()
         self.encoder = P.Encoder()
         self.thread = ReaderThread(self.serial, FrameProtocol)
