@@ -639,7 +639,8 @@ def build_parser() -> argparse.ArgumentParser:
         "-o",
         "--output",
         required=True,
-        help="checkpoint file to write; its training curves go beside it (MODEL.curves.csv, MODEL.training.html)",
+        help="checkpoint file to write (an existing one is replaced); its training curves go beside it "
+        "(MODEL.curves.csv, MODEL.training.html)",
     )
     p.add_argument(
         "--tensorboard",
@@ -702,7 +703,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--skip", type=int, default=10, help="leading rows not scored (the initial window)")
     p.add_argument("--no-floor", action="store_true", help="skip the real-vs-real reference and its tests")
     p.add_argument("--seed", type=seed_type, default=0)
-    p.add_argument("--out", default=None, help="folder for report.md and report.json")
+    p.add_argument(
+        "--out", default=None, help="folder for report.md, .html, .json; an earlier report there is replaced as a whole"
+    )
     p.set_defaults(func=cmd_verify)
 
     p = sub.add_parser(
@@ -759,7 +762,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="effect layers file (as envi diagnose writes it): the verdicts of the model with these effects "
         "added, a what-if (recorded in the report's provenance)",
     )
-    p.add_argument("--out", default=None, help="folder for check.md and check.json")
+    p.add_argument(
+        "--out", default=None, help="folder for check.md, .html, .json; an earlier report there is replaced as a whole"
+    )
     p.set_defaults(func=cmd_check)
 
     p = sub.add_parser("demo", help="the main job on the built-in twin data")

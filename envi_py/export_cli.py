@@ -11,7 +11,7 @@ from .cli_parser import EnviParser
 def main(argv: list[str] | None = None) -> int:
     ap = EnviParser(prog="envi-export", description="Export an envi checkpoint to ONNX for the C++ runtime.")
     ap.add_argument("model", help="envi checkpoint (.pt)")
-    ap.add_argument("-o", "--output", required=True, help="ONNX file to write")
+    ap.add_argument("-o", "--output", required=True, help="ONNX file to write; an existing file there is replaced")
     ap.add_argument("--no-check", action="store_true", help="skip the onnxruntime parity check")
     ap.add_argument(
         "--layers",

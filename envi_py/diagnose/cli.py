@@ -14,8 +14,8 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
     from ..cli import read_logs
     from ..logs import Log, require_signals
     from ..model import Checkpoint
-    from .layers import save_layers
-    from .report import write_diagnosis
+    from .layers import layers_path
+    from .report import kept_model_name, write_diagnosis
     from .run import diagnose
 
     if not args.model or not args.real:
@@ -50,15 +50,14 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
         keep_models=kept,
         progress=None if args.quiet else lambda text: print(f"[diagnose] {text}", file=sys.stderr, flush=True),
     )
-    md = write_diagnosis(d, Path(args.out), model=Path(args.model))
+    out, model = Path(args.out), Path(args.model)
+    files = write_diagnosis(d, out, model=model, kept=kept)
     print(d.verdict())
-    print(f"report: {md.with_suffix('.html')} {md}")
-    for effect, fixed in kept.items():
-        path = Path(args.out) / f"{Path(args.model).stem}+{effect.replace(' ', '_')}.pt"
-        fixed.save(path)
-        print(f"model with {effect}: {path}")
+    print(f"report: {files.html} {files.markdown}")
+    for effect in kept:
+        print(f"model with {effect}: {out / kept_model_name(model, effect)}")
     if d.layer:
-        path = save_layers(Path(args.out) / Path(args.model).name, [d.layer["fit"]])
+        path = layers_path(out / model.name)
         print(f"fitted layer: {path} (simulate it: envi simulate --model {args.model} --layers {path} ...)")
     return 0
 
@@ -147,7 +146,12 @@ def register(sub: Any) -> None:
         "not refitted with a Gaussian head first",
     )
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--out", default="diagnosis", help="output folder")
+    p.add_argument(
+        "--out",
+        default="diagnosis",
+        help="output folder; an earlier diagnosis there is replaced as a whole (its report, figures, kept "
+        "models and fitted layer; other files are left alone)",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress lines on standard error")
     p.set_defaults(func=_cmd_diagnose, parser=p)
 

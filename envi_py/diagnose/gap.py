@@ -30,6 +30,8 @@ REPETITIONS, PERMUTATIONS = 10, 99
 VERSION_PERMUTATIONS = 199
 #: A goal's gap is beyond the floor when its permutation test gives p <= LEVEL.
 LEVEL = 0.05
+#: Real runs of each controller version the fair floor needs: one real half against the other.
+MIN_RUNS = 2
 
 
 def ratio_text(ratio: float) -> str:
@@ -84,9 +86,11 @@ def goal_gaps(
     against the other), both from :func:`~envi_py.verify.fair_reference` (the figures ``envi verify``
     reports), the permutation test's p-value on that goal (:func:`~envi_py.verdicts.fair_floor`, its
     null band of the ratio), and the W1 of all simulated runs against all real runs with a bootstrap
-    95% interval (``boot`` resamplings; none when 0). Needs at least 2 real runs and as many simulated ones."""
-    if len(real) < 2:
-        raise ValueError(f"the fair floor needs at least 2 real runs of each controller version, got {len(real)}")
+    95% interval (``boot`` resamplings; none when 0). Needs :data:`MIN_RUNS` real runs and as many simulated ones."""
+    if len(real) < MIN_RUNS:
+        raise ValueError(
+            f"the fair floor needs at least {MIN_RUNS} real runs of each controller version, got {len(real)}"
+        )
     rr, sr = scoring.runs(real), scoring.runs(sim)
     mr, ms, scale = scoring.table(rr), scoring.table(sr), scoring.scales(rr)
     floor, matched, tests = fair_reference(mr, ms, scale, None, None, seed, REPETITIONS, VERSION_PERMUTATIONS)

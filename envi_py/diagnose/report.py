@@ -4,18 +4,21 @@ pictures, the candidate effects, the shrink, the gaps, the residuals, and the pr
 
 from __future__ import annotations
 
+from functools import partial
 from pathlib import Path
-from typing import Any
+from typing import Any, Mapping
 
 import numpy as np
 
 from ..report.document import Figure as ReportFigure
 from ..report.document import Provenance, Report, Section, Table, Text
-from ..report.files import write_files
+from ..model import Checkpoint
+from ..report.files import Attachment, ReportFiles, write_files
 from ..report.plots import correlation_figure, png_bytes, pyplot
 from ..report.stats import Correlations
 from .effects import CANDIDATES, MIN_SHARE, WHAT_IF_BAR
 from .gap import ratio_text, share_text
+from .layers import save_layers
 from .run import Diagnosis
 
 
@@ -499,9 +502,36 @@ def _verdict_table(d: Diagnosis) -> Table:
     )
 
 
-def write_diagnosis(d: Diagnosis, out: Path, model: Path | None = None) -> Path:
+def kept_model_name(model: Path, effect: str) -> str:
+    """The file a model retrained with ``effect`` (or the Gaussian refit, ``refit``) is kept under,
+    beside the diagnosis: ``<model>+<effect>.pt``."""
+    return f"{model.stem}+{effect.replace(' ', '_')}.pt"
+
+
+def _save_model(ckpt: Checkpoint, name: str, folder: Path) -> Path:
+    return ckpt.save(folder / name)
+
+
+def _outputs(d: Diagnosis, model: Path, kept: Mapping[str, Checkpoint]) -> list[Attachment]:
+    """What the diagnosis writes besides the report: the retrained models and the fitted layer
+    (``<model>.layers.json``). They go with the report, so a new diagnosis replaces the earlier
+    one's as a whole (:func:`~envi_py.report.files.write_files`)."""
+    out: list[Attachment] = [partial(_save_model, ckpt, kept_model_name(model, e)) for e, ckpt in kept.items()]
+    if d.layer:
+        fit = d.layer["fit"]
+        out.append(lambda folder: save_layers(folder / model.name, [fit]))
+    return out
+
+
+def write_diagnosis(
+    d: Diagnosis, out: Path, model: Path | None = None, kept: Mapping[str, Checkpoint] | None = None
+) -> ReportFiles:
     """``diagnosis.md``, ``diagnosis.html``, ``diagnosis.json`` and ``diagnosis_figures/`` in ``out``;
-    ``model``: the diagnosed checkpoint, named and hashed in the provenance. Returns the Markdown path."""
+    ``model``: the diagnosed checkpoint, named and hashed in the provenance. With ``model``, the
+    ``kept`` models (by effect, :func:`kept_model_name`) and the fitted layer go beside the report,
+    named after it; without it there is nothing to name them after."""
+    if kept and model is None:
+        raise ValueError("the kept models are named after the diagnosed model: pass its path")
     sections = [
         _quality_section(d),
         *_stage_section(d),
@@ -541,4 +571,4 @@ def write_diagnosis(d: Diagnosis, out: Path, model: Path | None = None) -> Path:
         sections,
         d.to_json(),
     )
-    return write_files(report, out, "diagnosis").markdown
+    return write_files(report, out, "diagnosis", _outputs(d, model, kept or {}) if model else [])

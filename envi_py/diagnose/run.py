@@ -16,6 +16,7 @@ from ..simulate import initial_windows, rollout
 from .effects import MIN_SHARE, Finding, misfit_share, run_candidates
 from .gap import (
     LEVEL,
+    MIN_RUNS,
     by_run,
     by_version,
     coverage,
@@ -284,6 +285,19 @@ def _distinct_fixes(findings: Sequence[Finding], top: int) -> list[Finding]:
     return out[:top]
 
 
+def require_runs(ckpt: Checkpoint, logs: Sequence[Log], which: str) -> None:
+    """Refuse a set of logs whose gap the diagnosis measures with a controller version of fewer than
+    :data:`~.gap.MIN_RUNS` logs: the fair floor cannot be drawn for it (:func:`~.gap.goal_gaps`).
+    Checked before any stage, so the user hears it at once, not after the data-quality, residual
+    and simulation stages that come before the first gap."""
+    for spec, group in group_by_controller(logs).items():
+        if len(group) < MIN_RUNS:
+            raise ValueError(
+                f"the fair floor needs at least {MIN_RUNS} real runs of each controller version; {which} "
+                f"have {len(group)} of {version_label(ckpt.system, spec)}"
+            )
+
+
 def _quality(ckpt: Checkpoint, diagnosed: Sequence[Log], training: Sequence[Log]) -> list[dict[str, Any]]:
     """Data-quality findings of the diagnosed logs and of the model's training and validation logs,
     each tagged with the set it was found in."""
@@ -379,9 +393,13 @@ def diagnose(
 
     In stages: the logs' data quality first; then whether the model's class is wrong (a deterministic
     model against runs that vary, :mod:`.stages`), in which case it is refitted with the Gaussian
-    head (unless ``refit`` is False) and the rest is the diagnosis of the refit."""
+    head (unless ``refit`` is False) and the rest is the diagnosis of the refit. Before any stage, a
+    controller version with too few logs to measure its gap is refused (:func:`require_runs`)."""
     say = progress or (lambda _text: None)
     choose, confirm_l = (list(real), list(confirm)) if confirm else split_choose_confirm(real, seed)
+    require_runs(ckpt, choose, "the logs that choose the effect" + ("" if confirm else " (half of the real logs)"))
+    if retrain:  # the confirmation logs are simulated only to measure a retrained model's gap
+        require_runs(ckpt, confirm_l, "the confirmation logs" + ("" if confirm else " (the other half)"))
     train_logs = list(train_logs) if train_logs is not None else ckpt.recorded_logs("data")
     if val_logs is None:
         val_logs = ckpt.recorded_logs("validation") if ckpt.record.validation else []
