@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 from firmware_bridge.host.brick_sim import register as register_brick_sim
 
+from .atomic import atomic_write_text
 from .cli_parser import EnviParser
 from .controllers import ControllerSpec, parse_params
 from .dataset import EXTRA_CHANNELS
@@ -114,8 +115,7 @@ def cmd_init(args: argparse.Namespace) -> int:
     if out.exists() and not args.force:
         raise ValueError(f"{out}: exists; choose another --output or pass --force")
     text = draft_system(Path(args.logs), args.pattern)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(text)
+    atomic_write_text(out, text)
     SystemDescription.load(out)  # what was drafted must read back
     print(f"drafted {out}: check each signal's role, range and resolution, the controller and the goals")
     return 0

@@ -25,6 +25,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from .atomic import atomic_write_text
 from .files import read_text
 
 if sys.version_info >= (3, 11):
@@ -170,5 +171,5 @@ def write_effective(args: argparse.Namespace, names: Sequence[str]) -> Path | No
         target = Path(str(args.output) + ".run.toml")
     else:
         return None
-    target.write_text(effective_toml(args, names), encoding="utf-8")
+    atomic_write_text(target, effective_toml(args, names))
     return target

@@ -9,6 +9,8 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
+from ..atomic import atomic_write_text
+
 
 def _cmd_diagnose(args: argparse.Namespace) -> int:
     from ..cli import read_logs
@@ -99,8 +101,8 @@ def _cmd_validate(args: argparse.Namespace) -> int:
         md = cross_table(results, args.mode, worlds) + "\n\n" + md
     else:
         md += "\n".join(layer_table(results, worlds))
-    (out / "report.md").write_text(md + "\n")
-    (out / "scores.json").write_text(json.dumps([asdict(s) for s in scores], indent=1) + "\n")
+    atomic_write_text(out / "report.md", md + "\n")
+    atomic_write_text(out / "scores.json", json.dumps([asdict(s) for s in scores], indent=1) + "\n")
     print(md)
     print(f"report: {out / 'report.md'}")
     return 0

@@ -38,6 +38,7 @@ from typing import Any, Iterable, Sequence
 
 import numpy as np
 
+from ..atomic import atomic_write_text
 from ..controllers import ControllerSpec
 from ..logs import Log
 from .effects import CANDIDATES
@@ -372,7 +373,7 @@ def run_validation(
         for i, s in enumerate(seeds)
         if (w, m, c.name, s) not in done and (m == "withheld" or c.verification) and w in c.worlds
     ]
-    (out / "size.json").write_text(json.dumps(asdict(size), indent=1) + "\n")
+    atomic_write_text(out / "size.json", json.dumps(asdict(size), indent=1) + "\n")
     with path.open("a") as fh:
         if jobs > 1 and len(todo) > 1:
             with ProcessPoolExecutor(jobs) as pool:

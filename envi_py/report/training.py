@@ -10,11 +10,13 @@ per-epoch loss, so its page shows the validation curve only.
 from __future__ import annotations
 
 import csv
+import io
 import math
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from ..atomic import atomic_write_text
 from .document import Provenance, Report, Section, Table, Text
 from .files import ReportFiles, write_files
 
@@ -51,14 +53,14 @@ def read_loss_csv(path: Path) -> list[dict[str, Any]]:
 
 
 def write_curves_csv(rows: Sequence[dict[str, float]], path: Path) -> Path:
+    """The curves as CSV, written atomically: a crash mid-write keeps the earlier curves whole."""
     fields = list(dict.fromkeys(k for r in rows for k in r)) or ["epoch", "val_error", "selected", "diverged"]
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with path.open("w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=fields)
-        w.writeheader()
-        for r in rows:
-            w.writerow({k: "" if isinstance(v, float) and math.isnan(v) else f"{v:g}" for k, v in r.items()})
-    return path
+    text = io.StringIO(newline="")
+    w = csv.DictWriter(text, fieldnames=fields)
+    w.writeheader()
+    for r in rows:
+        w.writerow({k: "" if isinstance(v, float) and math.isnan(v) else f"{v:g}" for k, v in r.items()})
+    return atomic_write_text(path, text.getvalue())
 
 
 def tensorboard_writer(logdir: Path) -> Any:

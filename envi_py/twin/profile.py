@@ -15,6 +15,7 @@ from typing import Any, Callable
 
 from envi_py.files import read_text
 
+from ..atomic import atomic_write_text
 from .effects import resolve
 
 PROFILE_DIR = Path(__file__).resolve().parent / "profiles"
@@ -76,9 +77,7 @@ class TwinProfile:
 
     def save(self, path: str | os.PathLike) -> Path:
         path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(json.dumps(self.to_json(), indent=1) + "\n")
-        return path
+        return atomic_write_text(path, json.dumps(self.to_json(), indent=1) + "\n")
 
     @staticmethod
     def load(path: str | os.PathLike) -> "TwinProfile":

@@ -18,6 +18,7 @@ from envi_py.logs import Log
 from envi_py.metrics import METRIC_NAMES, MetricConfig, driving_metrics, metric_bounds, safety_comfort
 from envi_py.verify import fair_reference
 
+from ..atomic import atomic_write_text
 from .calibrate import STAT_NAMES, run_stats, targets, twin_color
 from .profile import TwinProfile
 
@@ -164,8 +165,8 @@ def write_report(
     """Write report.md, report.json and traces.png; return the summary."""
     out_dir.mkdir(parents=True, exist_ok=True)
     summary, traces = fit_summary(profile, logs, key, cfg, seed)
-    (out_dir / "report.json").write_text(json.dumps(summary, indent=1) + "\n")
-    (out_dir / "report.md").write_text(to_markdown(summary, profile) + "\n")
+    atomic_write_text(out_dir / "report.json", json.dumps(summary, indent=1) + "\n")
+    atomic_write_text(out_dir / "report.md", to_markdown(summary, profile) + "\n")
     plot(traces, out_dir / "traces.png")
     return summary
 
