@@ -104,7 +104,7 @@ def test_a_diagnosis_that_cannot_be_written_leaves_the_earlier_one(lane, tmp_pat
     with torch.no_grad():
         next(broken.model.parameters()).fill_(float("nan"))  # refused when saved, after the figures are drawn
     code, _, err = _diagnose_into(monkeypatch, lane, out, replace(d, correlation=[]), {"refit": broken})
-    assert code == 2 and err.startswith("envi diagnose: error: ")
+    assert code == 2 and err.startswith(f"envi diagnose: error: {out / 'bc+refit.pt'}: damaged model"), err
     assert _listing(out) == before and not [p for p in os.listdir(out) if p.startswith(".")]
 
 

@@ -12,6 +12,7 @@ import pytest
 from envi_py import export_cli
 from envi_py.cli import main
 
+
 def _option_help(run, argv: list[str], option: str) -> str:
     """The ``--help`` text of ``option`` (its line and the lines continuing it), on one line."""
     out = io.StringIO()

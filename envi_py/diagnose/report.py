@@ -532,6 +532,8 @@ def write_diagnosis(
     named after it; without it there is nothing to name them after."""
     if kept and model is None:
         raise ValueError("the kept models are named after the diagnosed model: pass its path")
+    for effect, ckpt in (kept or {}).items():  # named where it would land, not in the staging folder
+        ckpt.check_finite(str(out / kept_model_name(model, effect)))  # type: ignore[arg-type]
     sections = [
         _quality_section(d),
         *_stage_section(d),
