@@ -231,13 +231,11 @@ def cmd_train(args: argparse.Namespace) -> int:
             f"{val[0].path or val[0].name}: columns {','.join(val[0].meta.schema.columns)} differ from the "
             f"training logs' ({logs[0].path or logs[0].name}: {','.join(logs[0].meta.schema.columns)})"
         )
-    for lg in (*logs, *val):
-        if lg.meta.breaks:  # the collector marked rows lost in transit: no window spans them
-            print(
-                f"envi train: note: {lg.path or lg.name}: rows were lost before row(s) "
-                f"{', '.join(map(str, lg.meta.breaks))}; no training window spans them",
-                file=sys.stderr,
-            )
+    gappy = {str(lg.path or lg.name): lg.meta.breaks for lg in (*logs, *val) if lg.meta.breaks}
+    for name, breaks in gappy.items():  # the collector marked rows lost in transit: no window spans them
+        rows = ", ".join(map(str, breaks[:5])) + (f", ... ({len(breaks)} in all)" if len(breaks) > 5 else "")
+        note = f"{name}: rows were lost before row(s) {rows}; no training window spans them"
+        print(f"envi train: note: {note}", file=sys.stderr)
     kwargs: dict[str, Any] = {"seed": args.seed, "history": args.history, "progress": not args.quiet}
     if args.algorithm != "random":
         kwargs.update(

@@ -159,11 +159,6 @@ def log_pairs(
     return x, z[history:, :n_state]
 
 
-def pieces_between(rows: np.ndarray, breaks: Sequence[int]) -> list[np.ndarray]:
-    """``rows`` (T, C) cut before each break row (breaks at or beyond T, as in a truncated log, cut nothing)."""
-    return np.split(rows, [b for b in breaks if 0 < b < len(rows)])
-
-
 @dataclass
 class Dataset:
     """Per-log training pairs, kept per log because the paper's BC loop steps once per log (per piece
@@ -175,6 +170,7 @@ class Dataset:
     X: list[np.ndarray]
     Y: list[np.ndarray]
     z: list[np.ndarray]  # each whole normalised log (T, C [+ extras]); GAIL rolls out from these
+    origin: list[tuple[int, int]]  # per entry: the index of its log and the log row it starts at
 
     @staticmethod
     def build(
@@ -196,22 +192,24 @@ class Dataset:
         pairs line up with each log's rows, as a diagnosis of one-step residuals needs."""
         norm = norm or Normaliser.fit(logs)
         n_state = logs[0].states.shape[1]
-        zs, xs, ys = [], [], []
-        for lg in logs:
+        zs, xs, ys, origin = [], [], [], []
+        for li, lg in enumerate(logs):
             if len(lg) <= history:
                 raise ValueError(f"{lg.name}: {len(lg)} rows, need more than the history {history}")
             zv = norm.encode(lg.values)
             ex = extra_channels(lg.time, extras, period_ms, phase_rows, action=zv[:, n_state], play_width=play_width)
             rows = np.concatenate([zv, ex], axis=1)
-            pieces = [p for p in pieces_between(rows, lg.meta.breaks) if len(p) > history] if cut_at_breaks else [rows]
+            cuts = [b for b in lg.meta.breaks if 0 < b < len(rows)] if cut_at_breaks else []
+            pieces = [(a, p) for a, p in zip([0, *cuts], np.split(rows, cuts)) if len(p) > history]
             if not pieces:
-                raise ValueError(f"{lg.name}: no stretch of more than {history} rows between its lost rows")
-            for piece in pieces:
+                raise ValueError(f"{lg.path or lg.name}: no stretch of more than {history} rows between its lost rows")
+            for first, piece in pieces:
+                origin.append((li, first))
                 z = piece.astype(np.float32)
                 ctx = context_of(z[:history], n_state) if context else None
                 x, y = log_pairs(z, history, n_state, ctx)
                 zs.append(z), xs.append(x), ys.append(y)
-        return Dataset(norm, history, n_state, xs, ys, zs)
+        return Dataset(norm, history, n_state, xs, ys, zs, origin)
 
     def stacked(self) -> tuple[np.ndarray, np.ndarray]:
         return np.concatenate(self.X), np.concatenate(self.Y)

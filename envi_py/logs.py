@@ -121,7 +121,7 @@ class LogMeta:
         provenance = {} if d.get("provenance") is None else d["provenance"]
         if not isinstance(provenance, dict):
             raise LogError(f"{where}: sidecar provenance must be an object")
-        breaks = d.get("breaks") or []
+        breaks = [] if d.get("breaks") is None else d["breaks"]
         if (
             not isinstance(breaks, list)
             or any(isinstance(b, bool) or not isinstance(b, int) or b < 1 for b in breaks)

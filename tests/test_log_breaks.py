@@ -41,6 +41,9 @@ def test_breaks_travel_in_the_sidecar(tmp_path, twin_log):
         ("[true]", "increasing"),
         ('"5"', "increasing"),
         ("[60]", "60 rows"),
+        ("0", "increasing"),
+        ("false", "increasing"),
+        ("{}", "increasing"),
     ],
 )
 def test_a_wrong_break_is_one_line_naming_the_file(tmp_path, twin_log, breaks, says):
@@ -87,3 +90,19 @@ def test_train_says_which_rows_were_lost(tmp_path, twin_log):
     )
     assert out.returncode == 0, out.stderr
     assert "log_0.csv: rows were lost before row(s) 25; no training window spans them" in out.stderr
+
+
+def test_gail_rolls_out_from_the_pieces_with_their_own_rows(twin_log):
+    """GAIL's start windows come from the pieces between breaks, and the controller warms up on the
+    same rows the model window holds (it used to index logs by piece: IndexError or misaligned rows)."""
+    from envi_py.train import train
+    from envi_py.train.gail_env import WindowEnv
+
+    logs = [_with_breaks(twin_log, (3,)), generate(ControllerSpec("lane-keeping", {"x": 30}), 1, 60, seed=5)[0]]
+    ckpt = train("bc", logs, [], epochs=1, hidden=(8,), history=5, seed=0)
+    env = WindowEnv(ckpt, logs, horizon=20, stride=5)
+    decoded = ckpt.norm.decode(env.window0.numpy()[:, :, : ckpt.config.channels].astype(np.float64))
+    assert np.allclose(decoded, env.start_rows, atol=1e-3)  # window and warm-up rows are the same rows
+    assert np.allclose(env.start_rows[0], twin_log.values[3:8])  # the first piece (rows 0-2) is too short
+    with pytest.raises(ValueError, match="no stretch of history 5 \\+ horizon 20 rows between its lost rows"):
+        WindowEnv(ckpt, [_with_breaks(twin_log, (20, 40))], horizon=20, stride=5)

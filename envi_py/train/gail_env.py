@@ -54,13 +54,10 @@ class WindowEnv:
         data = ckpt.dataset(logs, cut_at_breaks=True)
         period = ckpt.period_ms
         windows, starts, contexts, extras, log_idx = [], [], [], [], []
-        for i, z in enumerate(data.z):
-            last = len(z) - hist - horizon
-            if last < 0:
-                raise ValueError(f"{logs[i].name}: {len(z)} rows, need history {hist} + horizon {horizon}")
-            for o in range(0, last + 1, stride):
+        for z, (i, first) in zip(data.z, data.origin):
+            for o in range(0, len(z) - hist - horizon + 1, stride):
                 windows.append(z[o : o + hist])
-                starts.append(logs[i].values[o : o + hist])
+                starts.append(logs[i].values[first + o : first + o + hist])
                 contexts.append(context_of(z[:hist], ns))
                 # 'play' depends on the simulated actions: a placeholder here, filled in by the rollout
                 extras.append(
@@ -69,12 +66,19 @@ class WindowEnv:
                         cfg.extras,
                         period,
                         cfg.phase_rows,
-                        o + hist,
+                        first + o + hist,
                         np.zeros(horizon),
                         cfg.play_width,
                     )
                 )
                 log_idx.append(i)
+        used = set(log_idx)
+        for i, lg in enumerate(logs):
+            if i not in used:  # pieces between lost rows count, not the whole log
+                raise ValueError(
+                    f"{lg.path or lg.name}: no stretch of history {hist} + horizon {horizon} rows"
+                    + (" between its lost rows" if lg.meta.breaks else f" (it has {len(lg)})")
+                )
         self.window0 = torch.from_numpy(np.stack(windows).astype(np.float32))
         self.start_rows = np.stack(starts)  # physical (B, l, C): what each controller is warmed up on
         self.context = torch.from_numpy(np.stack(contexts).astype(np.float32)) if cfg.context else None
