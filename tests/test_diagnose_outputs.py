@@ -74,7 +74,7 @@ def test_a_new_diagnosis_replaces_the_earlier_one_as_a_whole(lane, tmp_path, mon
     code, printed, _ = _diagnose_into(monkeypatch, lane, out, replace(d, layer=LAYER), {"refit": ckpt, "lag": ckpt})
     assert code == 0
     written = ["bc+refit.pt", "bc+lag.pt", "bc.pt.layers.json"]
-    assert json.loads((out / "diagnosis.json").read_text())["attached_files"] == written
+    assert [r["name"] for r in json.loads((out / "diagnosis.json").read_text())["attached_files"]] == written
     for name in written:
         assert (out / name).stat().st_size > 0 and f"{out / name}" in printed
     assert "residual_correlation.png" in os.listdir(out / "diagnosis_figures")

@@ -4,6 +4,8 @@ the files a report brings along only those the earlier report recorded are ever 
 
 from __future__ import annotations
 
+import fcntl
+import hashlib
 import json
 import os
 import stat
@@ -86,9 +88,10 @@ def test_files_a_report_brings_along_replace_the_earlier_ones_and_nothing_else(t
     first = write_files(_report("a"), out, "diagnosis", [_attach("m+lag.pt"), _attach("m+noise.pt")])
     assert first.attachments == [out / "m+lag.pt", out / "m+noise.pt"]
     js = json.loads(first.json.read_text())
-    assert js[files.ATTACHED] == ["m+lag.pt", "m+noise.pt"]
+    assert [r["name"] for r in js[files.ATTACHED]] == ["m+lag.pt", "m+noise.pt"]
     # an edited record naming files outside the folder, or the report's own, removes none of them
-    js[files.ATTACHED] += ["../outside.txt", str(tmp_path / "outside.txt"), "diagnosis.md", ".."]
+    for name in ("../outside.txt", str(tmp_path / "outside.txt"), "diagnosis.md", ".."):
+        js[files.ATTACHED].append({"name": name, "sha256": hashlib.sha256(b"not envi's").hexdigest()})
     first.json.write_text(json.dumps(js))
 
     second = write_files(_report("a", run=2), out, "diagnosis", [_attach("m+lag.pt", b"new")])
@@ -115,3 +118,67 @@ def test_an_attachment_that_fails_leaves_the_earlier_report_and_its_files(tmp_pa
     with pytest.raises(OSError, match="No space"):
         write_files(_report("b", run=2), tmp_path, "diagnosis", [_attach("m+noise.pt"), full_disk])
     assert _folder(tmp_path) == before and not [p for p in os.listdir(tmp_path) if p.startswith(".")]
+
+
+def test_a_recorded_file_goes_only_while_it_is_what_the_report_wrote(tmp_path: Path) -> None:
+    """The record is a list of names with their sha256: a file the user edited since, a user's file
+    named in a hand-edited record (or in an older writer's list of bare names), a symlink, and the
+    command's own input all stay; only an untouched attachment the new report does not write goes."""
+    out = tmp_path / "out"
+    first = write_files(_report("a"), out, "diagnosis", [_attach(n) for n in ("gone.pt", "edited.pt", "input.pt")])
+    (out / "edited.pt").write_bytes(b"changed by the user")
+    (out / "user.csv").write_text("time,color,angle\n")
+    (tmp_path / "target.txt").write_text("kept")
+    js = json.loads(first.json.read_text())
+    js[files.ATTACHED] += [
+        {"name": "user.csv", "sha256": "0" * 64},
+        "user.csv",
+        {"name": "link.pt", "sha256": hashlib.sha256(b"kept").hexdigest()},
+    ]
+    first.json.write_text(json.dumps(js))
+    (out / "link.pt").symlink_to(tmp_path / "target.txt")
+    write_files(_report("a", run=2), out, "diagnosis", protect=[out / "input.pt"])
+    assert sorted(p.name for p in out.iterdir() if p.suffix in (".pt", ".csv")) == [
+        "edited.pt",
+        "input.pt",
+        "link.pt",
+        "user.csv",
+    ]
+    assert (tmp_path / "target.txt").read_text() == "kept"
+
+
+def test_a_failure_while_moving_in_puts_the_earlier_report_back(tmp_path: Path, monkeypatch) -> None:
+    """A rename that fails halfway (or Ctrl-C there) undoes the ones done: no mix of two reports, and
+    the earlier figures folder is back."""
+    write_files(_report("a"), tmp_path, "report")
+    before = _folder(tmp_path)
+    real_replace, calls = os.replace, []
+
+    def flaky(src, dst):
+        calls.append(dst)
+        if len(calls) == 4:  # after the figures folder went out and the new one came in
+            raise KeyboardInterrupt
+        real_replace(src, dst)
+
+    monkeypatch.setattr(files.os, "replace", flaky)
+    with pytest.raises(KeyboardInterrupt):
+        write_files(_report("b", run=2), tmp_path, "report")
+    monkeypatch.undo()
+    assert _folder(tmp_path) == before and not [p for p in os.listdir(tmp_path) if p.startswith(".")]
+
+
+def test_two_writers_of_one_folder_take_turns(tmp_path: Path) -> None:
+    """The second writer waits for the first one's lock on the folder; the folder then holds one whole
+    report (the second), never the md of one and the figures of the other."""
+    import threading
+
+    write_files(_report("a"), tmp_path, "report")
+    fd = os.open(tmp_path, os.O_RDONLY)
+    fcntl.flock(fd, fcntl.LOCK_EX)  # a writer holding the folder
+    done = threading.Event()
+    t = threading.Thread(target=lambda: (write_files(_report("b", run=2), tmp_path, "report"), done.set()))
+    t.start()
+    assert not done.wait(0.5)  # waits while the folder is held
+    os.close(fd)
+    t.join(30)
+    assert done.is_set() and '"run": 2' in (tmp_path / "report.json").read_text()

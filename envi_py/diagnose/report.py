@@ -573,4 +573,5 @@ def write_diagnosis(
         sections,
         d.to_json(),
     )
-    return write_files(report, out, "diagnosis", _outputs(d, model, kept or {}) if model else [])
+    outputs = _outputs(d, model, kept or {}) if model else []
+    return write_files(report, out, "diagnosis", outputs, protect=[model] if model else [])

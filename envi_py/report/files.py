@@ -12,18 +12,22 @@ Ctrl-C) leaves the earlier report as it was, never a torn file or two runs mixed
 
 A command may hand the writer further files that belong to the report (``envi diagnose``'s retrained
 models and fitted layers): they are staged and moved in with it, and the JSON records their names
-(``attached_files``). The next report of the stem removes those recorded files it does not write
-again, and nothing else: a file the user put in the folder is never touched, whatever its name.
+and sha256 (``attached_files``). The next report of the stem removes a recorded file it does not
+write again only while it still holds exactly that content and is not one of the command's inputs:
+a file the user put in the folder, or edited, or diagnoses now, is never touched.
 """
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
+import hashlib
 import json
 import math
 import os
 import shutil
 import tempfile
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -82,7 +86,8 @@ def _write_staged(
     report: Report, folder: Path, stem: str, attachments: Sequence[Attachment]
 ) -> tuple[list[str], list[str]]:
     """The whole report in ``folder`` as it will stand in the output folder; the names of its
-    figures and of its attachments."""
+    figures and of its attachments. The JSON records each attachment with its sha256, so the next
+    report removes only a file that is still exactly what this one wrote."""
     fig_dir = f"{stem}_figures"
     files = _figure_files(report)
     for f, name in files:
@@ -93,50 +98,99 @@ def _write_staged(
         raise ValueError(f"report {report.title!r}: two of its files are named alike: {', '.join(attached)}")
     atomic_write_text(folder / f"{stem}.md", to_markdown(report, {f.name: f"{fig_dir}/{n}" for f, n in files}))
     atomic_write_text(folder / f"{stem}.html", to_html(report))
-    payload = {**report.data, "provenance": report.provenance.to_json(), ATTACHED: attached}
+    record = [{"name": n, "sha256": _sha256(folder / n)} for n in attached]
+    payload = {**report.data, "provenance": report.provenance.to_json(), ATTACHED: record}
     atomic_write_text(folder / f"{stem}.json", json.dumps(strict(payload), indent=1, allow_nan=False))
     return [n for _, n in files], attached
 
 
-def _recorded_attachments(js: Path) -> set[str]:
-    """The attachments an earlier report recorded in its JSON: bare file names only, so neither a
-    JSON the writer did not write nor an edited one can point outside the output folder."""
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with path.open("rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _stale_attachments(js: Path, keep: set[str], protect: Sequence[Path]) -> list[Path]:
+    """The files an earlier report attached that this one does not write again, and that may go: a
+    bare name recorded with its sha256 (a JSON of an older writer, or one edited by hand, names
+    nothing removable), a regular file still holding exactly that content, and none of ``protect``
+    (the command's own inputs: a model kept by an earlier diagnosis may be the one diagnosed now)."""
     try:
-        names = json.loads(js.read_text(encoding="utf-8")).get(ATTACHED, [])
+        record = json.loads(js.read_text(encoding="utf-8")).get(ATTACHED, [])
     except (OSError, ValueError, AttributeError):
-        return set()
-    if not isinstance(names, list):
-        return set()
-    return {n for n in names if isinstance(n, str) and n not in ("", ".", "..") and Path(n).name == n}
+        return []
+    if not isinstance(record, list):
+        return []
+    guarded = set()
+    for p in protect:
+        with contextlib.suppress(OSError):
+            guarded.add(os.path.realpath(p))
+    out = []
+    for r in record:
+        if not isinstance(r, dict) or not isinstance(r.get("name"), str) or not isinstance(r.get("sha256"), str):
+            continue
+        name = r["name"]
+        path = js.parent / name
+        if name in ("", ".", "..") or Path(name).name != name or name in keep or os.path.realpath(path) in guarded:
+            continue
+        if path.is_file() and not path.is_symlink() and _sha256(path) == r["sha256"]:
+            out.append(path)
+    return out
 
 
 def _move_in(staged: Path, out: Path, stem: str, old: Path) -> None:
-    """Replace the earlier report by the staged one, by renames only: the earlier figures folder
-    leaves as a whole (into ``old``, removed with the staging folder) before the new one comes in."""
-    fig_dir = out / f"{stem}_figures"
-    if fig_dir.exists() or fig_dir.is_symlink():
-        os.replace(fig_dir, old)
-    for p in staged.iterdir():
-        os.replace(p, out / p.name)
-
-
-def write_files(report: Report, out: Path, stem: str = "report", attachments: Sequence[Attachment] = ()) -> ReportFiles:
-    """Write ``report`` and its ``attachments`` into ``out``, replacing the earlier report of
-    ``stem`` as a whole (see the module docstring). Raises with the earlier report untouched when
-    any of it cannot be written."""
-    out.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(dir=out, prefix=f".{stem}.staging-"))
+    """Replace the earlier report by the staged one, by renames only. Each file of the earlier report
+    that the new one replaces (and its figures folder, as a whole) first moves into ``old``; on any
+    failure or Ctrl-C the renames are undone in reverse, so the earlier report stands as it was."""
+    old.mkdir()
+    done: list[tuple[Path, Path]] = []
     try:
-        staged = staging / "new"
-        staged.mkdir()
-        figures, attached = _write_staged(report, staged, stem, attachments)
-        stale = _recorded_attachments(out / f"{stem}.json") - {p.name for p in staged.iterdir()}
-        _move_in(staged, out, stem, staging / "old")
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)
-    for name in stale:  # only after the new report is in: a failure above keeps the earlier one whole
-        if (out / name).is_file() or (out / name).is_symlink():
-            (out / name).unlink()
+        for name in [f"{stem}_figures", *(p.name for p in staged.iterdir() if p.name != f"{stem}_figures")]:
+            target = out / name
+            if target.exists() or target.is_symlink():
+                os.replace(target, old / name)
+                done.append((target, old / name))
+            if (staged / name).exists():
+                os.replace(staged / name, target)
+                done.append((staged / name, target))
+    except BaseException:
+        for src, dst in reversed(done):
+            with contextlib.suppress(OSError):
+                os.replace(dst, src)
+        raise
+
+
+def write_files(
+    report: Report,
+    out: Path,
+    stem: str = "report",
+    attachments: Sequence[Attachment] = (),
+    protect: Sequence[Path] = (),
+) -> ReportFiles:
+    """Write ``report`` and its ``attachments`` into ``out``, replacing the earlier report of
+    ``stem`` as a whole (see the module docstring); ``protect``: files never removed as stale
+    attachments (the command's inputs). Raises with the earlier report untouched when any of it
+    cannot be written. Two writers into one folder serialise on a lock on it, so the folder holds
+    one whole report, the last one, never a mix."""
+    out.mkdir(parents=True, exist_ok=True)
+    with _locked(out):
+        staging = Path(tempfile.mkdtemp(dir=out, prefix=f".{stem}.staging-"))
+        try:
+            staged = staging / "new"
+            staged.mkdir()
+            try:
+                figures, attached = _write_staged(report, staged, stem, attachments)
+            except OSError as exc:  # name the output folder, not the hidden staging one
+                raise OSError(f"{out}: cannot write the report ({exc.strerror or exc})") from None
+            stale = _stale_attachments(out / f"{stem}.json", {p.name for p in staged.iterdir()}, protect)
+            _move_in(staged, out, stem, staging / "old")
+        finally:
+            shutil.rmtree(staging, ignore_errors=True)
+        for path in stale:  # only after the new report is in: a failure above keeps the earlier one whole
+            with contextlib.suppress(FileNotFoundError):
+                path.unlink()
     fig_dir = out / f"{stem}_figures"
     return ReportFiles(
         out / f"{stem}.md",
@@ -145,3 +199,14 @@ def write_files(report: Report, out: Path, stem: str = "report", attachments: Se
         [fig_dir / n for n in figures],
         [out / n for n in attached],
     )
+
+
+@contextlib.contextmanager
+def _locked(folder: Path) -> Iterator[None]:
+    """Hold an exclusive flock on the output folder itself while writing (no lock file is left)."""
+    fd = os.open(folder, os.O_RDONLY)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)
