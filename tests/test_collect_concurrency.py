@@ -6,12 +6,16 @@ brick and settled it lost, and the two numbered their runs over each other.
 
 from __future__ import annotations
 
+import os
 import signal
 import subprocess
 import time
 from pathlib import Path
 
+import pytest
+
 from firmware_bridge.host.ledger import Ledger
+from firmware_bridge.host.lock import FolderBusy, hold
 
 from .test_bridge_pty import BrickSim
 from .test_collect_faults import PERIOD_MS, launch, own_runs
@@ -90,3 +94,23 @@ def test_a_second_collector_on_a_busy_port_is_refused_at_once(tmp_path: Path) ->
         sim.stop()
     [start, end] = Ledger(tmp_path / "a").entries
     assert end["status"] == "incomplete" and end["reason"] == "interrupted" and end["rows_lost"] == 0
+
+
+@pytest.mark.parametrize("kind", ["symlink", "dangling", "fifo", "directory"])
+def test_a_lock_that_is_not_a_regular_file_is_refused_and_left_alone(tmp_path: Path, kind: str) -> None:
+    """collect.lock through a symlink would truncate its target (a user's file) to the pid; a FIFO
+    would block the open. Each is refused in one line naming it, and nothing is written anywhere."""
+    out = tmp_path / "logs"
+    out.mkdir()
+    target = tmp_path / "precious.txt"
+    target.write_text("the user's")
+    lock = out / "collect.lock"
+    {
+        "symlink": lambda: lock.symlink_to(target),
+        "dangling": lambda: lock.symlink_to(tmp_path / "nowhere"),
+        "fifo": lambda: os.mkfifo(lock),
+        "directory": lambda: lock.mkdir(),
+    }[kind]()
+    with pytest.raises(FolderBusy, match=f"{lock}: "):
+        hold(out)
+    assert target.read_text() == "the user's" and not (tmp_path / "nowhere").exists()

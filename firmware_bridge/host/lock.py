@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import fcntl
 import os
+import stat
 from pathlib import Path
 
 LOCK_NAME = "collect.lock"
@@ -26,7 +27,14 @@ def hold(folder: Path) -> int:
     Raises :class:`FolderBusy` when another process holds it, having changed nothing in it.
     """
     folder.mkdir(parents=True, exist_ok=True)
-    fd = os.open(folder / LOCK_NAME, os.O_RDWR | os.O_CREAT, 0o666)
+    path = folder / LOCK_NAME
+    try:  # never through a symlink, never a FIFO (opening one would block): a regular file or refused
+        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_NONBLOCK, 0o666)
+    except OSError as exc:
+        raise FolderBusy(f"{path}: cannot use it as the collector's lock ({exc.strerror})") from None
+    if not stat.S_ISREG(os.fstat(fd).st_mode):
+        os.close(fd)
+        raise FolderBusy(f"{path}: is not a regular file; remove it (envi-collect keeps its lock there)")
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except BlockingIOError:
