@@ -211,7 +211,8 @@ def check(
             sim, sim_outside = _sequential(
                 checker, spec, starts, req, spec_req.probability, alpha, delta, max_runs, batch
             )
-            verdict = model_only(_outcomes(req, runs), spec_req.probability, measured[spec_req.name], alpha)
+            left = (sim_outside + int(outside.sum()), sim.runs + runs.count)
+            verdict = model_only(_outcomes(req, runs), spec_req.probability, measured[spec_req.name], alpha, left)
             rows.append(
                 CheckRow(
                     label,
@@ -221,8 +222,8 @@ def check(
                     0,
                     sim.to_json(),
                     verdict.to_json(),
-                    sim_outside + int(outside.sum()),
-                    sim.runs + runs.count,
+                    left[0],
+                    left[1],
                     ["never field-tested: started from the initial windows of the other versions' real logs"],
                 )
             )

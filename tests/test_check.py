@@ -145,3 +145,5 @@ def test_runs_commanding_actions_beyond_the_training_range_are_counted_outside(l
     far, near = by_version["x=80"], by_version["x=20"]
     assert far.outside_training == far.sim_runs > 0
     assert near.outside_training < near.sim_runs / 2
+    # no verdict about the real system rests on extrapolation
+    assert far.real_system["verdict"] == "UNDECIDED" and "extrapolation" in far.real_system["reason"]

@@ -214,6 +214,10 @@ def test_model_only_carries_the_measured_error():
     bad = rectifier_check(np.ones(10), np.full(10, 0.1))
     refused = model_only(sims, 0.8, {"x=10": good, "x=50": bad})
     assert refused.verdict is Verdict.UNDECIDED and "x=50" in refused.reason
+    easy = rectifier_check(np.ones(10), np.full(10, 0.99))
+    assert model_only(sims, 0.5, {"x=10": easy}, left_training=(100, 1000)).verdict is Verdict.PASS  # at the limit
+    beyond = model_only(sims, 0.5, {"x=10": easy}, left_training=(101, 1000))
+    assert beyond.verdict is Verdict.UNDECIDED and "101 of its 1000 simulated runs leave" in beyond.reason
 
 
 def test_pit_values_known_answers():

@@ -534,8 +534,17 @@ class ModelOnlyVerdict:
         }
 
 
+#: The share of a never field-tested version's simulated runs that may leave the training data before
+#: the model-only claim is refused: beyond it the verdict would rest on extrapolation.
+MAX_OUTSIDE_SHARE = 0.1
+
+
 def model_only(
-    sim_outcomes: object, p_required: float, measured_errors: Mapping[str, RectifierCheck], alpha: float = 0.05
+    sim_outcomes: object,
+    p_required: float,
+    measured_errors: Mapping[str, RectifierCheck],
+    alpha: float = 0.05,
+    left_training: tuple[int, int] = (0, 0),
 ) -> ModelOnlyVerdict:
     """The verdict for a never field-tested version, with the model's measured error carried beside it.
 
@@ -543,7 +552,9 @@ def model_only(
     the model's error, which was measured only on other versions (``measured_errors``: their rectifier
     checks). The verdict uses the interval widened by the largest |bound| of those rectifier intervals:
     an assumption (the error transfers to this version), not a guarantee, and the reason says so. No
-    measured versions, or a version whose check failed, leave the verdict UNDECIDED.
+    measured versions, or a version whose check failed, leave the verdict UNDECIDED; so do simulated
+    runs that leave the training data (``left_training``: how many of how many) beyond
+    :data:`MAX_OUTSIDE_SHARE`, since the measured error says nothing about where the model never was.
     """
     y = outcomes("sim_outcomes", sim_outcomes, 1)
     p_required = probability("p_required", p_required, open_interval=False)
@@ -552,7 +563,14 @@ def model_only(
     lo, hi = clopper_pearson(k, n, confidence)
     errors = dict(measured_errors)
     failed = sorted(v for v, c in errors.items() if not c.passed)
-    if not errors:
+    outside, examined = left_training
+    if examined and outside > MAX_OUTSIDE_SHARE * examined:
+        wl, wh = 0.0, 1.0
+        reason = (
+            f"rests on the model only, and {outside} of its {examined} simulated runs leave the training data "
+            f"(states or commands where the model was never trained): extrapolation, no claim"
+        )
+    elif not errors:
         wl, wh = 0.0, 1.0
         reason = "rests on the model only, and no version has real runs to measure the model's error: no claim"
     elif failed:
