@@ -33,7 +33,7 @@ dl.provenance dd{margin:0;word-break:break-all}
 .pass{color:#0a6b2d;font-weight:700}.fail{color:#b00020;font-weight:700}.undecided{color:#8a5a00;font-weight:700}
 """
 
-_VERDICT_CLASS = {"PASS": "pass", "FAIL": "fail", "UNDECIDED": "undecided", "within": "pass", "BEYOND": "fail"}
+_VERDICT_CLASS = {"PASS": "pass", "FAIL": "fail", "UNDECIDED": "undecided", "n.s.": "undecided", "BEYOND": "fail"}
 
 
 def _inline(text: str) -> str:

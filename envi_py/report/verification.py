@@ -19,7 +19,9 @@ GUIDE = (
     "runs; sim (matched): a real half against as many simulated runs, so each figure sits beside the floor "
     "resting on equal numbers of runs. A figure near its floor is as close as real runs are to each other. "
     "Test: permutation test of 'simulated runs are exchangeable with real ones' with all real runs against as "
-    "many simulated runs; 'within' means p > 0.05."
+    "many simulated runs. 'n.s.' (p > 0.05) says only that the test could not tell simulated from real runs "
+    "with this many real runs, not that they agree: with few runs a large gap can go unseen, so read the "
+    "figure beside its floor. 'p<=0.01' is the smallest p the test's permutations can give."
 )
 
 TRACE_LOGS = 3  # real logs per version shown in the trace overlay (every log's fit is in the table)
@@ -32,14 +34,16 @@ def fmt(v: float | None, spec: str) -> str:
 def test_cell(t: dict[str, Any] | None) -> str:
     if not t:
         return "-"
-    return f"p={t['p_value']:.2f} {'within' if t['within_floor'] else 'BEYOND'}"
+    smallest = 1.0 / (1 + t.get("permutations", 99))
+    p = f"p<={smallest:.2f}" if t["p_value"] <= smallest + 1e-12 else f"p={t['p_value']:.2f}"
+    return f"{p} {'n.s.' if t['within_floor'] else 'BEYOND'}"
 
 
 def verdict_word(r: Any) -> str:
     w = r.within_floor
     if w is None:
         return "no test (fewer than 4 real runs or fewer simulated than real)"
-    return "within floor" if w else "BEYOND floor"
+    return "not told apart from real runs (n.s.)" if w else "BEYOND floor"
 
 
 def summary_row(r: Any) -> list[str]:
