@@ -411,6 +411,7 @@ def cmd_check(args: argparse.Namespace) -> int:
     from . import __version__
     from .check import check, requirements_of, write_check
     from .effect_layers import layers_json
+    from .report.requirements import real_only_text
 
     if not 0 < args.alpha < 0.5:
         raise ValueError(f"--alpha must lie in (0, 0.5), got {args.alpha}")
@@ -466,16 +467,17 @@ def cmd_check(args: argparse.Namespace) -> int:
         **({"layers": layers_json(ckpt.layers)} if ckpt.layers else {}),
     }
     width = max(len(r.version) for r in rows)
+    named = max(len("requirement"), *(len(r.requirement) for r in rows))
     print(
-        f"{'version':<{width}} {'requirement':<14} {'P req':>6} {'real':>4} {'sim runs':>8} "
-        f"{'P real system':>16} {'basis':<11} verdict"
+        f"{'version':<{width}} {'requirement':<{named}} {'P req':>6} {'real':>4} {'sim runs':>8} "
+        f"{'P real system':>16} {'basis':<11} {'verdict':<9} real runs only"
     )
     for r in rows:
         q = r.real_system
         print(
-            f"{r.version:<{width}} {r.requirement[:14]:<14} {r.p_required:>6g} {r.n_real:>4} "
+            f"{r.version:<{width}} {r.requirement:<{named}} {r.p_required:>6g} {r.n_real:>4} "
             f"{r.simulation['runs']:>8} [{q['interval'][0]:.3f}, {q['interval'][1]:.3f}] {q['basis'][:11]:<11} "
-            f"{r.verdict}"
+            f"{r.verdict:<9} {real_only_text(q)}"
         )
     if args.out:
         md, js = write_check(rows, Path(args.out), meta)

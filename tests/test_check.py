@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -104,6 +105,10 @@ def test_check_cli_writes_the_verdict_table_first(lane, tmp_path, capsys):
     )
     md = (tmp_path / "c" / "check.md").read_text()
     assert md.splitlines()[2].startswith("| version | requirement |") and "## Provenance" in md
+    # the real runs' own verdict beside every combined one (4 real runs per version here)
+    assert md.splitlines()[2].rstrip().endswith("| real runs only [interval] |")
+    assert len(re.findall(r"\| \d/4 \[[01]\.\d{3}, [01]\.\d{3}\] (?:PASS|FAIL|UNDECIDED) \|", md)) == 3
+    assert re.search(r" \d/4 \[[01]\.\d{3}, [01]\.\d{3}\] (?:PASS|FAIL|UNDECIDED)$", capsys.readouterr().out, re.M)
     js = json.loads((tmp_path / "c" / "check.json").read_text())
     assert len(js["rows"]) == 3 and js["alpha"] == 0.05
     assert (

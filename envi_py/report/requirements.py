@@ -17,6 +17,7 @@ VERDICT_COLUMNS = [
     "P (real system) [interval]",
     "basis",
     "verdict",
+    "real runs only [interval]",
 ]
 
 #: The keys of ``envi check``'s metadata that are provenance proper; the rest are its settings.
@@ -36,7 +37,17 @@ def verdict_row(r: Any) -> list[str]:
         f"[{q['interval'][0]:.3f}, {q['interval'][1]:.3f}]",
         str(q["basis"]),
         f"**{q['verdict']}**",
+        real_only_text(q),
     ]
+
+
+def real_only_text(q: dict[str, Any]) -> str:
+    """The verdict from the real runs alone (exact Clopper-Pearson), shown beside every combined one so
+    a reader sees what the model adds (or that its interval is no narrower); '-' without real runs."""
+    r = q.get("real_only")
+    if not r or not r.get("n"):
+        return "-"
+    return f"{r['k']}/{r['n']} [{r['interval'][0]:.3f}, {r['interval'][1]:.3f}] {r['verdict']}"
 
 
 def method_text(meta: dict[str, Any]) -> str:
