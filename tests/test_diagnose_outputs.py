@@ -129,3 +129,40 @@ def test_too_few_confirmation_logs_are_refused_before_any_stage_when_retraining(
     with pytest.raises(ValueError, match="the confirmation logs \\(the other half\\) have 1 of x=30"):
         diagnose(ckpt, three, retrain=True, runs=2, progress=said.append)
     assert said == []  # refused before the first stage, not after the retraining
+
+
+@pytest.mark.parametrize(
+    "fit, ci",
+    [(Layer("delay", 0.0), [0.1, 0.5]), (Layer("noise", 0.5), [-0.65, 0.23])],
+    ids=["identity", "no-shrink-shown"],
+)
+def test_a_layer_not_shown_to_help_is_neither_saved_nor_suggested(lane, tmp_path, monkeypatch, fit, ci):
+    """A delay of 0 ticks, or a layer whose shrink interval reaches below 0 on the confirmation logs,
+    is reported but not offered as a fix (it was saved and 'simulate it' suggested)."""
+    _, _, _, d = lane
+    layer = {**LAYER, "fit": Fit(fit, [0.0, 1.0], [], criterion="x").to_json(), "confirm": {**LAYER["confirm"]}}
+    layer["confirm"]["shrink_ci"] = ci
+    out = tmp_path / "diag"
+    code, printed, _ = _diagnose_into(monkeypatch, lane, out, replace(d, layer=layer), {})
+    assert code == 0 and "fitted layer" not in printed
+    assert not list(out.glob("*.layers.json")) and "Not saved" in (out / "diagnosis.md").read_text()
+
+
+def test_only_a_retrained_fix_shown_to_shrink_the_gap_is_kept(lane, monkeypatch):
+    """A fix whose shrink interval reaches below 0 (the real-log case: -11 %, -65 % to +23 %) is reported
+    with its figures but not kept as a model to offer; one whose interval lies above 0 is."""
+    from envi_py.diagnose import shrink as shrink_module
+    from envi_py.diagnose.effects import Finding
+
+    ckpt, _, _, _ = lane
+    cis = {"memory_delay": [-0.65, 0.23], "noise": [0.1, 0.4]}
+    monkeypatch.setattr(shrink_module, "retrain_with", lambda c, f, *a: f.effect)
+    monkeypatch.setattr(shrink_module, "simulate_groups", lambda m, *a: m)
+    monkeypatch.setattr(shrink_module, "gap_summary", lambda g, *a: {"mean_w1": 0.1})
+    monkeypatch.setattr(shrink_module, "shrink_interval", lambda base, groups, *a: cis[groups])
+    monkeypatch.setattr(shrink_module, "changes_model", lambda c, f: True)
+    findings = [Finding(e, 1.0, 0.01, 0.2, "", {"history": 20}) for e in cis]
+    kept: dict = {}
+    res = shrink_module.shrink(ckpt, findings, [], [], [], keep=kept)
+    assert [a["shrink_ci"] for a in res["after"]] == list(cis.values())  # both reported
+    assert list(kept) == ["noise"]

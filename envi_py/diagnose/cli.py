@@ -17,7 +17,7 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
     from ..logs import Log, require_signals
     from ..model import Checkpoint
     from .layers import layers_path
-    from .report import kept_model_name, write_diagnosis
+    from .report import kept_model_name, layer_shown_to_help, write_diagnosis
     from .run import diagnose
 
     if not args.model or not args.real:
@@ -58,7 +58,7 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
     print(f"report: {files.html} {files.markdown}")
     for effect in kept:
         print(f"model with {effect}: {out / kept_model_name(model, effect)}")
-    if d.layer:
+    if layer_shown_to_help(d):
         path = layers_path(out / model.name)
         print(f"fitted layer: {path} (simulate it: envi simulate --model {args.model} --layers {path} ...)")
     return 0

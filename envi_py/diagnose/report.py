@@ -12,6 +12,7 @@ import numpy as np
 
 from ..report.document import Figure as ReportFigure
 from ..report.document import Provenance, Report, Section, Table, Text
+from ..effect_layers import Layer
 from ..model import Checkpoint
 from ..report.files import Attachment, ReportFiles, write_files
 from ..report.plots import correlation_figure, png_bytes, pyplot
@@ -280,8 +281,12 @@ def _layer_section(d: Diagnosis) -> list[Section]:
                 Text(
                     f"The leading candidate ({d.layer['candidate']}) as a parametric layer around the learnt model, "
                     f"fitted on the logs that show the gap ({f['criterion']}; the interval is a bootstrap over those "
-                    "logs), then the gap measured on the confirmation logs without and with it. Saved beside the "
-                    "report as <model>.layers.json."
+                    "logs), then the gap measured on the confirmation logs without and with it. "
+                    + (
+                        "Saved beside the report as <model>.layers.json."
+                        if layer_shown_to_help(d)
+                        else "Not saved: it is the identity, or the confirmation logs do not show it shrinking the gap."
+                    )
                 ),
                 Table(
                     ["fitted layer", "gap before", "gap after", "floor", "shrink (95%)", "within 1.5x the floor"],
@@ -512,12 +517,20 @@ def _save_model(ckpt: Checkpoint, name: str, folder: Path) -> Path:
     return ckpt.save(folder / name)
 
 
+def layer_shown_to_help(d: Diagnosis) -> bool:
+    """Whether the fitted layer is worth saving and suggesting: not the identity (a delay of 0 ticks),
+    and the confirmation logs' shrink interval lies above 0."""
+    if not d.layer:
+        return False
+    return not Layer.from_json(d.layer["fit"]["layer"]).identity and d.layer["confirm"]["shrink_ci"][0] > 0
+
+
 def _outputs(d: Diagnosis, model: Path, kept: Mapping[str, Checkpoint]) -> list[Attachment]:
     """What the diagnosis writes besides the report: the retrained models and the fitted layer
     (``<model>.layers.json``). They go with the report, so a new diagnosis replaces the earlier
     one's as a whole (:func:`~envi_py.report.files.write_files`)."""
     out: list[Attachment] = [partial(_save_model, ckpt, kept_model_name(model, e)) for e, ckpt in kept.items()]
-    if d.layer:
+    if layer_shown_to_help(d):
         fit = d.layer["fit"]
         out.append(lambda folder: save_layers(folder / model.name, [fit]))
     return out

@@ -182,7 +182,8 @@ def shrink(
     model is scored on the same rows: after the longest initial window any of them copies. Each
     retrained fix has ``shrink_ci`` (:func:`shrink_interval`); a fix that changes nothing is
     ``unchanged`` with the untouched model's figures and no interval. Each entry says how to train
-    the fixed model (``train_options``); ``keep`` receives the retrained checkpoints by effect, so a
+    the fixed model (``train_options``); ``keep`` receives the retrained checkpoints whose shrink interval
+    lies above 0, by effect (a fix that may as well widen the gap is reported, not offered), so a
     caller can save the model that closed the gap instead of throwing it away."""
     scoring = scoring_of(ckpt, max([ckpt.config.history] + [int(f.fix.get("history", 0)) for f in findings]))
     base_groups = simulate_groups(ckpt, confirm_logs, runs, seed)
@@ -202,17 +203,18 @@ def shrink(
             )
             continue
         fixed = retrain_with(ckpt, f, train_logs, val_logs)
-        if keep is not None:
-            keep[f.effect] = fixed
         groups = simulate_groups(fixed, confirm_logs, runs, seed)
         summary = gap_summary(groups, scoring, seed)
+        ci = shrink_interval(base_groups, groups, scoring, seed)
+        if keep is not None and ci[0] > 0:  # only a fix shown to shrink the gap is offered to the user
+            keep[f.effect] = fixed
         after.append(
             {
                 "effect": f.effect,
                 "fix": f.to_json()["fix"],
                 **summary,
                 "shrink": 1 - summary["mean_w1"] / max(before["mean_w1"], 1e-12),
-                "shrink_ci": shrink_interval(base_groups, groups, scoring, seed),
+                "shrink_ci": ci,
                 "unchanged": False,
                 "train_options": train_options(f.fix),
             }
