@@ -116,8 +116,18 @@ def cmd_init(args: argparse.Namespace) -> int:
         raise ValueError(f"{out}: exists; choose another --output or pass --force")
     text = draft_system(Path(args.logs), args.pattern)
     atomic_write_text(out, text)
-    SystemDescription.load(out)  # what was drafted must read back
+    system = SystemDescription.load(out)  # what was drafted must read back
     print(f"drafted {out}: check each signal's role, range and resolution, the controller and the goals")
+    try:  # the guessed controller must take the file names' fields, or training fails only once it is done
+        first = load_logs(sorted(p for p in Path(args.logs).glob("*.csv") if not p.name.startswith("."))[:1], system)
+        if first and first[0].meta.controller:
+            ControllerSpec.from_json(first[0].meta.controller).build()
+    except ValueError as exc:
+        print(
+            f"envi init: note: {out}: {exc}; name the [controller] and the pattern's fields after its parameters "
+            "before training",
+            file=sys.stderr,
+        )
     return 0
 
 
