@@ -394,6 +394,14 @@ def cmd_verify(args: argparse.Namespace) -> int:
 
     real = read_logs(args, "real")
     sim = load_logs(args.sim, skip_bad=args.skip_bad)
+    unknown = [lg for lg in sim if lg.meta.controller is None]
+    if unknown:  # a simulated log whose sidecar went missing: its version cannot be told
+        print(
+            f"envi verify: note: {len(unknown)} simulated run(s) (e.g. {unknown[0].path or unknown[0].name}) do not "
+            "say their controller version (no sidecar); not scored",
+            file=sys.stderr,
+        )
+        sim = [lg for lg in sim if lg.meta.controller is not None]
     system = system_of(args)
     results = verify(real, sim, system, skip=args.skip, floor=not args.no_floor, seed=args.seed)
     real_versions = set(group_by_controller(real))

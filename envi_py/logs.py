@@ -489,6 +489,8 @@ def _meta_for(path: Path, system: SystemDescription, rx: re.Pattern[str] | None)
             raise LogError(f"{path}: the file name's field {odd[0]} is not a finite number")
         run = fields.pop("run", path.stem)
     spec = system.controller_for(fields)
+    if spec is not None and any(p not in system.version_of(spec) for p in system.versions.params):
+        spec = None  # the version is unknown: a default parameter would pass for the log's own (x = 30)
     return LogMeta(
         schema=system.schema,
         controller=None if spec is None else spec.to_json(),

@@ -119,6 +119,8 @@ def test_a_diagnosed_fix_can_be_trained_and_simulated_from_the_command_line(real
                 "train",
                 "--logs",
                 *logs[:4],
+                "--pattern",  # the real logs carry no sidecar: the file name says the version
+                "log_{x}_{run}.csv",
                 "--epochs",
                 "5",
                 "--history",
@@ -140,7 +142,8 @@ def test_a_diagnosed_fix_can_be_trained_and_simulated_from_the_command_line(real
     cfg = Checkpoint.load(model).config
     assert cfg.extras == ("play", "dt") and cfg.play_width == 0.3 and cfg.in_features == 4 * 4
     capsys.readouterr()
-    assert main(["simulate", "--model", str(model), "--init-logs", *logs[4:], "--out", str(tmp_path / "sim")]) == 0
+    simulate = ["simulate", "--model", str(model), "--init-logs", *logs[4:], "--pattern", "log_{x}_{run}.csv"]
+    assert main([*simulate, "--out", str(tmp_path / "sim")]) == 0
     assert "(torch engine)" in capsys.readouterr().out
     assert main(["train", "--logs", *logs[:4], "--extras", "play", "-o", str(tmp_path / "bad.pt")]) == 2
     assert "play_width" in capsys.readouterr().err
