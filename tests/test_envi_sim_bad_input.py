@@ -234,6 +234,13 @@ SIDECAR_CASES: dict[str, Callable[[dict], str | dict]] = {
     "nested too deep": lambda d: {**d, "provenance": {"deep": nest(40)}},
     "another system's states": lambda d: {**d, "states": [{**d["states"][0], "name": "speed"}]},
     "value outside the sidecar's range": lambda d: {**d, "states": [{**d["states"][0], "range": [0, 50]}]},
+    "breaks not a list": lambda d: {**d, "breaks": 0},
+    "breaks of strings": lambda d: {**d, "breaks": ["5"]},
+    "breaks of fractions": lambda d: {**d, "breaks": [5.0]},
+    "breaks of booleans": lambda d: {**d, "breaks": [True]},
+    "breaks at row 0": lambda d: {**d, "breaks": [0]},
+    "breaks not increasing": lambda d: {**d, "breaks": [9, 9]},
+    "break beyond the log": lambda d: {**d, "breaks": [ROWS]},
 }
 
 
@@ -248,7 +255,8 @@ def test_a_corrupted_sidecar_is_refused_by_both_readers(case, model, tmp_path):
         load_logs([path], min_length=HISTORY)
     python = str(err.value)
     # the sidecar is named when it is itself bad, the log when the two disagree
-    named = str(path) if case in ("another system's states", "value outside the sidecar's range") else str(side)
+    own = ("another system's states", "value outside the sidecar's range", "break beyond the log")
+    named = str(path) if case in own else str(side)
     assert named in python and "\n" not in python, python
     native = assert_refused(run_sim(model, [path], tmp_path), tmp_path, named)
     assert_same_row(python, native)

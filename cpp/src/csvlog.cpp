@@ -342,6 +342,18 @@ Sidecar read_sidecar(const std::string& path) {
   }
   const Json* prov = d.find("provenance");
   if (prov && !prov->is_null() && prov->type != Json::Type::Object) fail(path, "sidecar provenance must be an object");
+  // As LogMeta.from_json: rows that follow rows lost in transit, increasing whole numbers >= 1.
+  if (const Json* breaks = d.find("breaks"); breaks && !breaks->is_null()) {
+    bool ok = breaks->type == Json::Type::Array;
+    double previous = 0;
+    for (size_t i = 0; ok && i < breaks->array.size(); ++i) {
+      const Json& b = breaks->array[i];
+      ok = b.type == Json::Type::Number && b.integer && std::isfinite(b.number) && b.number > previous;
+      previous = b.number;
+    }
+    if (!ok) fail(path, "sidecar breaks " + dump(*breaks).substr(0, 60) + " is not an increasing list of row numbers >= 1");
+    out.last_break = breaks->array.empty() ? 0 : long(std::min(previous, 9e18));
+  }
   return out;
 }
 
@@ -354,6 +366,7 @@ InitialWindow read_initial_window(const std::string& path, const Model& model) {
   struct stat st {};
   const bool has_side = ::lstat(side.c_str(), &st) == 0;
   std::vector<LogChannel> channels = model_channels(model), declared = channels;
+  long last_break = 0;
   if (has_side) {
     Sidecar meta = read_sidecar(side);
     if (names(meta.states) != names({channels.begin(), channels.begin() + model.n_state()}) ||
@@ -365,6 +378,7 @@ InitialWindow read_initial_window(const std::string& path, const Model& model) {
     declared.insert(declared.end(), meta.actions.begin(), meta.actions.end());
     declared.insert(declared.end(), meta.logged.begin(), meta.logged.end());
     if (!meta.run_id.empty()) win.run_id = meta.run_id;
+    last_break = meta.last_break;
   }
   if (!is_run_id(win.run_id)) fail(path, "run_id " + quoted(win.run_id) + " is not a plain name (letters, digits, '.', '_', '-')");
 
@@ -420,6 +434,8 @@ InitialWindow read_initial_window(const std::string& path, const Model& model) {
     row_of.push_back(row);
   }
   const long n = long(row_of.size());
+  if (last_break >= n)
+    fail(path, "its sidecar marks a break at row " + std::to_string(last_break) + ", but the log has " + std::to_string(n) + " rows");
   if (n < std::max(model.history, 1))
     fail(path, std::to_string(n) + " data rows, shorter than the " + std::to_string(model.history) + " the history window needs");
   for (long r = 1; r < n; ++r)

@@ -35,6 +35,7 @@ struct LogChannel {
 struct Sidecar {
   std::string run_id;  // empty when the sidecar names none
   std::vector<LogChannel> states, actions, logged;
+  long last_break = 0;  // the last row that follows rows lost in transit ("breaks"); 0: none
 };
 
 // A sidecar file's content; throws std::runtime_error naming the file.
