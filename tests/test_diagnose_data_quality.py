@@ -71,6 +71,24 @@ def test_a_frozen_sensor_is_found(clean):
     }
 
 
+def test_a_held_command_and_a_saturating_sensor_at_its_limit_are_not_frozen(clean):
+    """A command held for a whole run is the controller's choice (the car's speed loop at its output
+    limit), and a saturating sensor resting at its limit reads "nothing in range" (the car's 255 cm):
+    neither is a logger that stopped. A saturating sensor frozen away from its limit still is."""
+    actions = clean[7].actions.copy()
+    actions[:, 0] = actions[0, 0]
+    assert _check(clean[:7] + [_with(clean[7], actions=actions)] + clean[8:]) == []
+    schema = clean[0].meta.schema
+    sat = [replace(schema.states[0], saturates=True)]
+    at_limit, away = clean[7].states.copy(), clean[7].states.copy()
+    at_limit[30:70, 0] = sat[0].high
+    away[30:70, 0] = away[30, 0]
+    logs = clean[:7] + [_with(clean[7], states=at_limit)] + clean[8:]
+    assert data_quality(logs, sat, schema.actions) == []
+    logs = clean[:7] + [_with(clean[7], states=away)] + clean[8:]
+    assert [f.kind for f in data_quality(logs, sat, schema.actions)] == ["frozen"]
+
+
 def test_a_reading_outside_the_declared_range_is_found(clean):
     states = clean[2].states.copy()
     states[50, 0] = 130.0

@@ -179,11 +179,24 @@ def _stretches(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return starts, np.diff(np.concatenate([starts, [len(x)]]))
 
 
+def _off_the_limits(x: np.ndarray, starts: np.ndarray, n: np.ndarray, ch: Channel) -> tuple[np.ndarray, np.ndarray]:
+    """The stretches (start, length) of ``x`` whose value is not one of the channel's range limits."""
+    keep = ~np.isin(x[starts], (ch.low, ch.high))
+    return starts[keep], n[keep]
+
+
 def frozen(logs: Sequence[Log], channels: Sequence[Channel]) -> list[QualityFinding]:
-    """Channels constant for far longer than their constant stretches usually last."""
+    """Readings (``channels``: the states, first in each log's values) constant for far longer than
+    their constant stretches usually last. Commands are the controller's choice, not a sensor's (a
+    speed loop at its output limit holds one for a whole run), and a saturating sensor resting at a
+    limit reads "nothing in range" (an ultrasonic sensor's 255 cm): neither is a logger that stopped."""
     out = []
     for k, ch in enumerate(channels):
         per = [_stretches(lg.values[:, k]) for lg in logs]
+        if ch.saturates:  # stretches at a limit reading are the sensor's answer, not a freeze
+            per = [_off_the_limits(lg.values[:, k], st, n, ch) for lg, (st, n) in zip(logs, per)]
+        if not any(len(n) for _, n in per):
+            continue
         lengths = np.concatenate([n for _, n in per])
         limit = max(FROZEN_MIN_ROWS, FROZEN_FACTOR * float(np.percentile(lengths, 99)))
         where = []
@@ -325,7 +338,7 @@ def data_quality(
     return (
         pauses(logs)
         + repeated(logs)
-        + frozen(logs, channels)
+        + frozen(logs, list(states))
         + out_of_range(logs, channels)
         + sessions(logs, list(states), version_label)
     )
