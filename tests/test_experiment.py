@@ -199,6 +199,9 @@ def test_tiny_grid_repeats_and_writes_the_report(real_logs, tmp_path) -> None:
     md = (tmp_path / "a" / "report.md").read_text()
     assert "TOVK, x=30: accuracy (%)" in md and "FOT vs FOT floor" in md and "safety/comfort KLD" in md
     assert "geometric-mean KLD" in md
+    n_real = job["evals"]["tovk"]["groups"][0]["n_real"]  # every figure says how many runs it rests on
+    assert version["runs"]["real"] == [n_real] and f"compares {n_real} real test runs" in md
+    assert f"two halves of {n_real // 2} real runs each" in md
     assert (tmp_path / "a" / "report_figures" / "accuracy_tovk.png").stat().st_size > 0
     assert (tmp_path / "a" / "report_figures" / "traces_tovk.png").stat().st_size > 0
     assert '<img src="data:image/png;base64,' in (tmp_path / "a" / "report.html").read_text()

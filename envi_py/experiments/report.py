@@ -133,6 +133,7 @@ def collect(results: Sequence[dict[str, Any]], use_case: str) -> dict[str, Any]:
     floors: dict[str, dict[str, list]] = {}
     goals: dict[str, list[str]] = {}
     geo: dict[str, dict[int, list]] = {}
+    runs: dict[str, dict[str, set[int]]] = {}
     order: list[str] = []
     seen: set[tuple] = set()
     for res in results:
@@ -150,6 +151,9 @@ def collect(results: Sequence[dict[str, Any]], use_case: str) -> dict[str, Any]:
                     f"{use_case}, {label}: jobs scored different goals ({', '.join(names)} vs "
                     f"{', '.join(g['goals'])}); were they run with different system descriptions?"
                 )
+            seen_runs = runs.setdefault(label, {"real": set(), "sim": set()})
+            seen_runs["real"].add(int(g["n_real"]))
+            seen_runs["sim"].add(int(g["n_sim"]))
             cell = table.setdefault(label, {}).setdefault(res["algorithm"], {}).setdefault(res["n"], _cell())
             _add(cell, g["sim_vs_real"], names)
             floor_key = (label, tuple(ev["test_logs"]), res["rep"])
@@ -162,6 +166,7 @@ def collect(results: Sequence[dict[str, Any]], use_case: str) -> dict[str, Any]:
         "floor": floors,
         "goals": goals,
         "kld_geomean": geo,
+        "runs": {k: {side: sorted(n) for side, n in v.items()} for k, v in runs.items()},
         "order": [v for v in order if v in table],
     }
 
@@ -192,6 +197,7 @@ def summarise(results: Sequence[dict[str, Any]], use_cases: Sequence[str]) -> di
                     for a, ns in c["table"][label].items()
                 },
                 "floor": _summary_cell(c["floor"][label]) if label in c["floor"] else {},
+                "runs": c["runs"][label],
             }
         out[uc] = {
             "versions": versions,
@@ -208,6 +214,20 @@ def summarise(results: Sequence[dict[str, Any]], use_cases: Sequence[str]) -> di
 def _has_kld(v: dict[str, Any]) -> bool:
     """Whether a version has a KLD anywhere (the lane-keeping preset's safety/comfort pair)."""
     return any("kld" in cell for ns in v["cells"].values() for cell in ns.values()) or "kld" in v["floor"]
+
+
+def runs_text(runs: dict[str, list[int]] | None) -> str:
+    """What each figure of a version rests on: its real test runs and the simulated runs against them;
+    the floor compares two halves of the real runs (``n`` counts training logs, not these)."""
+    if not runs:
+        return "Runs per figure: not recorded (a journal of an earlier envi)."
+    real = "/".join(map(str, runs["real"]))
+    half = "/".join(str(n // 2) for n in runs["real"])
+    return (
+        f"Each figure compares {real} real test runs of this version with {'/'.join(map(str, runs['sim']))} "
+        f"simulated runs (mean ± 95 % interval over repetitions); the FOT vs FOT floor compares two halves "
+        f"of {half} real runs each. n is the number of training logs per version."
+    )
 
 
 def _version_sections(uc: str, label: str, v: dict[str, Any], algorithms: Sequence[str]) -> list[Section]:
@@ -238,7 +258,7 @@ def _version_sections(uc: str, label: str, v: dict[str, Any], algorithms: Sequen
                 vals = [p] * 3 if isinstance(p, float) else p
                 rows.append([f"paper: {a}"] + [f"{q:.2f}" for q in vals])
         table = Table(["algorithm"] + [f"n={n}" for n in ns], rows, numeric=numeric)
-        sections.append(Section(f"{uc.upper()}, {label}: {title}", [table]))
+        sections.append(Section(f"{uc.upper()}, {label}: {title}", [Text(runs_text(v.get("runs"))), table]))
     best_n = str(max(ns))
     rows = []
     for j, m in enumerate(v["goals"]):
