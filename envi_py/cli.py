@@ -8,6 +8,7 @@ and a one-line reason; ``--debug`` shows the traceback.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from pathlib import Path
@@ -827,6 +828,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             if written is not None:
                 print(f"effective configuration: {written}")
         return rc
+    except BrokenPipeError:  # 'envi twin effects | head': the reader has all it wanted
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit's flush
+        return 0
     except (LogError, ValueError, OSError, KeyError) as exc:
         if args.debug:
             raise

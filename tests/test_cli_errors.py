@@ -85,3 +85,16 @@ def test_help_is_not_an_error_and_shows_defaults():
     assert proc.returncode == 0 and proc.stderr == ""
     assert proc.stdout.startswith("usage: envi train")
     assert "training epochs (default: 300)" in proc.stdout
+
+
+def test_a_reader_that_stops_early_is_no_error():
+    """'envi twin effects | head': the pipe closes before envi is done writing; that is the reader's
+    choice, not a failure (it printed 'error: [Errno 32] Broken pipe' and exited 2)."""
+    import subprocess
+    import sys
+
+    p = subprocess.Popen(
+        [sys.executable, "-m", "envi_py.cli", "twin", "effects"], stdout=subprocess.PIPE, stderr=subprocess.PIPE
+    )
+    p.stdout.close()
+    assert p.wait(timeout=120) == 0 and p.stderr.read() == b""

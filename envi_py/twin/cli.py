@@ -50,6 +50,8 @@ def _refusing(sub: str, func: Callable[[argparse.Namespace], int]) -> Callable[[
     def run(args: argparse.Namespace) -> int:
         try:
             return func(args)
+        except BrokenPipeError:
+            raise  # 'envi twin effects | head': envi's main ends it quietly
         except (ValueError, OSError, KeyError) as exc:  # a LogError is a ValueError
             if getattr(args, "debug", False):
                 raise
