@@ -71,8 +71,12 @@ def test_a_state_of_another_training_is_refused(tmp_path):
     train_logs, val_logs = _logs(4, 0), _logs(2, 1)
     state = tmp_path / "m.state"
     train("bc", train_logs, val_logs, state_path=state, **{**KW, "epochs": 3})
-    with pytest.raises(ValueError, match="belongs to another training"):
-        train("bc", train_logs, val_logs, state_path=state, resume=True, **{**KW, "seed": 4})
+    with pytest.raises(ValueError, match=r"belongs to another training \(it differs in seed\)"):
+        train("bc", train_logs, val_logs, state_path=state, resume=True, **{**KW, "epochs": 3, "seed": 4})
+    with pytest.raises(ValueError, match=r"\(it differs in epochs\)"):  # the setting is named
+        train("bc", train_logs, val_logs, state_path=state, resume=True, **{**KW, "epochs": 5})
+    with pytest.raises(ValueError, match=r"\(it differs in (limits, )?training data\)"):  # limits follow the data
+        train("bc", _logs(4, 7), val_logs, state_path=state, resume=True, **{**KW, "epochs": 3})
     with pytest.raises(ValueError, match="no training state"):
         train("bc", train_logs, val_logs, state_path=tmp_path / "none.state", resume=True, **KW)
 

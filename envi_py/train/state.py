@@ -27,8 +27,8 @@ from .common import Selector
 STATE_FORMAT = "envi-training-state"
 
 
-def fingerprint(ckpt: Checkpoint) -> str:
-    """What must match for a state to continue this training."""
+def identity(ckpt: Checkpoint) -> dict[str, Any]:
+    """What must match for a state to continue this training (as JSON-able values)."""
     rec = ckpt.record
     blob = {
         "algorithm": rec.algorithm,
@@ -38,7 +38,27 @@ def fingerprint(ckpt: Checkpoint) -> str:
         "data": [d["sha256"] for d in rec.data],
         "validation": [d["sha256"] for d in rec.validation],
     }
-    return hashlib.sha256(json.dumps(blob, sort_keys=True, default=str).encode()).hexdigest()
+    return json.loads(json.dumps(blob, sort_keys=True, default=str))
+
+
+def fingerprint(ckpt: Checkpoint) -> str:
+    return hashlib.sha256(json.dumps(identity(ckpt), sort_keys=True).encode()).hexdigest()
+
+
+def differences(old: dict[str, Any], new: dict[str, Any]) -> list[str]:
+    """What differs between two trainings' identities, by name: a hyper-parameter or model setting
+    (``epochs``, ``hidden``), ``seed``, ``training data`` or ``validation data``."""
+    names = {"data": "training data", "validation": "validation data"}
+    out = []
+    for key in sorted(set(old) | set(new)):
+        a, b = old.get(key), new.get(key)
+        if a == b:
+            continue
+        if isinstance(a, dict) and isinstance(b, dict):
+            out += [k for k in sorted(set(a) | set(b)) if a.get(k) != b.get(k)]
+        else:
+            out.append(names.get(key, key))
+    return out
 
 
 class TrainingState:
@@ -46,6 +66,7 @@ class TrainingState:
 
     def __init__(self, path: Path, ckpt: Checkpoint) -> None:
         self.path, self.fingerprint, self.algorithm = path, fingerprint(ckpt), ckpt.record.algorithm
+        self.identity = json.dumps(identity(ckpt), sort_keys=True)
         #: the algorithm's own state as saved (tensors, numbers, lists, dicts), set by :meth:`restore`
         self.extra: dict[str, Any] = {}
 
@@ -63,6 +84,7 @@ class TrainingState:
         blob = {
             "format": STATE_FORMAT,
             "fingerprint": self.fingerprint,
+            "identity": self.identity,  # to say what differs when another training tries to resume it
             "algorithm": self.algorithm,
             "epoch": epoch,
             "model": ckpt.model.state_dict(),
@@ -87,9 +109,13 @@ class TrainingState:
                 "remove it or train without --resume"
             )
         if blob.get("fingerprint") != self.fingerprint:
+            try:
+                which = differences(json.loads(blob["identity"]), json.loads(self.identity))
+            except (KeyError, TypeError, ValueError):  # a state of an earlier envi records no identity
+                which = []
             raise ValueError(
-                f"{self.path}: the state belongs to another training (different data, seed or "
-                "settings); remove it or train without --resume"
+                f"{self.path}: the state belongs to another training (it differs in "
+                f"{', '.join(which) if which else 'data, seed or settings'}); remove it or train without --resume"
             )
         ckpt.model.load_state_dict(blob["model"])
         opt.load_state_dict(blob["optimizer"])
