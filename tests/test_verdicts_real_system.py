@@ -326,3 +326,15 @@ def test_margins_go_together_and_pair_with_the_runs():
 def test_bad_inputs(args, match):
     with pytest.raises(ValueError, match=match):
         ppi_verdict(*args, p_required=0.5)
+
+
+def test_an_error_measured_on_runs_that_all_agree_is_not_known_exactly():
+    """30 of 30 real runs met the goal where the model said they would: the rectifier has no spread,
+    but 0/1 outcomes leave the real share anywhere down to 0.884 (exact interval), so the measured
+    error reaches -0.116 and a version without real runs is widened by it, not by +-0."""
+    check = rectifier_check(np.ones(30), np.ones(30))
+    lo, _ = clopper_pearson(30, 30, 0.95)
+    assert check.low == pytest.approx(lo - 1.0) and check.high == 0.0 and check.low < -0.1
+    v = model_only(np.ones(1000), 0.95, {"x=30": check})
+    assert v.widened_low == pytest.approx(clopper_pearson(1000, 1000, 0.95)[0] - (1.0 - lo))
+    assert v.verdict is Verdict.UNDECIDED  # it was PASS on an error of +-0.000

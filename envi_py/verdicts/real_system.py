@@ -279,8 +279,14 @@ def rectifier_check(
     down, up = detectable_error(g, count_level)
     r = y - f
     mean, sd = float(r.mean()), float(r.std(ddof=1))
-    if np.ptp(r) <= 1e-12:  # every real run off by the same amount (to rounding): the error is known exactly
-        return RectifierCheck(r.size, mean, 0.0, mean, mean, p, level, passed, p_margin, down, up)
+    if np.ptp(r) <= 1e-12:
+        # every real run off by the same amount (all met the goal, say, where the model said they would):
+        # no spread to estimate from, yet 0/1 outcomes do not make the error known. The exact
+        # (Clopper-Pearson) interval of the real share, less the mean prediction, bounds it instead: 30
+        # of 30 real runs allow a real P(goal) down to 0.884, so an error down to -0.116, not +-0.
+        cp_lo, cp_hi = clopper_pearson(int(y.sum()), y.size, 1.0 - level)
+        lo, hi = min(mean, cp_lo - float(f.mean())), max(mean, cp_hi - float(f.mean()))
+        return RectifierCheck(r.size, mean, 0.0, lo, hi, p, level, passed, p_margin, down, up)
     lo, hi = stats.ttest_1samp(r, 0.0).confidence_interval(1.0 - level)
     return RectifierCheck(r.size, mean, sd, float(lo), float(hi), p, level, passed, p_margin, down, up)
 
