@@ -244,6 +244,15 @@ SIDECAR_CASES: dict[str, Callable[[dict], str | dict]] = {
 }
 
 
+def test_a_manifest_given_as_a_log_says_so(model, tmp_path):
+    """envi_sim reads logs, not manifests: a split's test.json given to --init said 'row 1: missing
+    column(s) time, color, angle'."""
+    path = tmp_path / "test.json"
+    path.write_text(json.dumps({"pattern": "log_{x}_{run}.csv", "logs": ["log_30_0.csv"]}))
+    line = assert_refused(run_sim(model, [path], tmp_path), tmp_path, str(path))
+    assert "a JSON file (a manifest?), not a CSV log" in line
+
+
 @pytest.mark.parametrize("case", list(SIDECAR_CASES))
 def test_a_corrupted_sidecar_is_refused_by_both_readers(case, model, tmp_path):
     log, meta = sidecar_json()

@@ -386,6 +386,8 @@ InitialWindow read_initial_window(const std::string& path, const Model& model) {
   if (size_t bad = invalid_utf8(text); bad != std::string::npos)
     fail(path, "not a UTF-8 text CSV file (invalid byte at byte " + std::to_string(bad) + ")");
   if (text.find('\0') != std::string::npos) fail(path, "not a text CSV file (it holds NUL bytes)");
+  if (size_t first = text.find_first_not_of(" \t\r\n\xEF\xBB\xBF"); first != std::string::npos && text[first] == '{')
+    fail(path, "a JSON file (a manifest?), not a CSV log: give envi_sim the logs themselves (envi simulate reads manifests)");
   std::string lines;  // line ends made \n, as _read_text does
   lines.reserve(text.size());
   for (size_t i = 0; i < text.size(); ++i) {
