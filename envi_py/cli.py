@@ -212,6 +212,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     import importlib.util
     import tempfile
 
+    from .diagnose.data_quality import pauses
     from .train import train
     from .train.common import SelectionSettings
 
@@ -242,6 +243,8 @@ def cmd_train(args: argparse.Namespace) -> int:
             f"{val[0].path or val[0].name}: columns {','.join(val[0].meta.schema.columns)} differ from the "
             f"training logs' ({logs[0].path or logs[0].name}: {','.join(logs[0].meta.schema.columns)})"
         )
+    for finding in pauses([*logs, *val]):  # what envi diagnose flags first, said before the training
+        print(f"envi train: note: {finding.what}", file=sys.stderr)
     gappy = {str(lg.path or lg.name): lg.meta.breaks for lg in (*logs, *val) if lg.meta.breaks}
     for name, breaks in gappy.items():  # the collector marked rows lost in transit: no window spans them
         rows = ", ".join(map(str, breaks[:5])) + (f", ... ({len(breaks)} in all)" if len(breaks) > 5 else "")

@@ -106,3 +106,18 @@ def test_gail_rolls_out_from_the_pieces_with_their_own_rows(twin_log):
     assert np.allclose(env.start_rows[0], twin_log.values[3:8])  # the first piece (rows 0-2) is too short
     with pytest.raises(ValueError, match="no stretch of history 5 \\+ horizon 20 rows between its lost rows"):
         WindowEnv(ckpt, [_with_breaks(twin_log, (20, 40))], horizon=20, stride=5)
+
+
+def test_train_names_the_pauses_in_its_logs(real_dir, tmp_path):
+    """The real logs' 9-14 s pauses were flagged only by envi diagnose; training now says so first."""
+    logs = [str(real_dir / f"log_10_{i}.csv") for i in (1, 2, 3)]  # log_10_1 pauses 9.4 s after row 35
+    out = subprocess.run(
+        [sys.executable, "-m", "envi_py.cli", "train", "--logs", *logs, "--pattern", "log_{x}_{run}.csv"]
+        + ["--epochs", "2", "--hidden", "8", "--quiet", "-o", str(tmp_path / "m.pt")],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert out.returncode == 0, out.stderr
+    (note,) = [ln for ln in out.stderr.splitlines() if "pause" in ln]
+    assert note.startswith("envi train: note: 1 of 3 logs pause inside the log") and "log_10_1.csv" in note

@@ -113,7 +113,8 @@ def pauses(logs: Sequence[Log]) -> list[QualityFinding]:
             f"{min(lengths):.1f}-{max(lengths):.1f} s where the median interval is {nominal:.0f} ms "
             f"(longest: {longest['file']} at {longest['time_s']:.1f} s, row {longest['row']}, "
             f"a {longest['pause_s']:.1f} s "
-            f"pause in a log spanning {span:.1f} s). The rows after a pause do not follow from the rows before it.",
+            f"pause in a log spanning {span:.1f} s). The loop did not run meanwhile: the rows on either side "
+            "follow each other only if the system stood still (as the real lane robot's do).",
             max(lengths),
             "s",
             where,
