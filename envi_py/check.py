@@ -41,6 +41,10 @@ from .verdicts import RectifierCheck, model_only, ppi_verdict, sprt
 from .verify import version_label
 
 
+#: How close to 0 or 1 a required probability and its indifference region may come.
+SPRT_EDGE = 1e-6
+
+
 @dataclass
 class CheckRow:
     """One version against one requirement: the simulation's verdict and the real system's."""
@@ -137,6 +141,12 @@ def check(
     reqs = [parse(r, signals) for r in requirements]
     if not reqs:
         raise ValueError("no requirements: declare [[requirements]] in the system description or pass --require")
+    for r in requirements:  # the sequential test's indifference region must fit inside (0, 1)
+        if not SPRT_EDGE < r.probability < 1 - SPRT_EDGE:
+            raise ValueError(
+                f"requirement {r.name!r}: probability {r.probability:g} lies too close to 0 or 1 for a "
+                f"sequential test (between {SPRT_EDGE:g} and 1 - {SPRT_EDGE:g})"
+            )
     hist = ckpt.config.history
     checker = Checker(ckpt, engine, seed)
     groups = group_by_controller(real)
@@ -251,7 +261,7 @@ def _sequential(
         outside[0] += int(left[:n].sum())
         return _outcomes(req, runs)[:n].astype(bool)
 
-    lo, hi = max(p - delta, 1e-6), min(p + delta, 1 - 1e-6)
+    lo, hi = max(p - delta, SPRT_EDGE), min(p + delta, 1 - SPRT_EDGE)
     result = sprt(
         sample,
         p,

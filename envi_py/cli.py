@@ -514,6 +514,8 @@ def parse_where_one(text: str) -> dict[str, Any]:
         key, sep, value = part.partition("=")
         if not sep or not key.strip():
             raise ValueError(f"--unseen {text!r}: expected name=value[,name=value]")
+        if key.strip() in out:  # 'x=1,x=2' ran as x=2
+            raise ValueError(f"--unseen {text!r}: {key.strip()!r} is given twice")
         try:
             out[key.strip()] = float(value)
         except ValueError:

@@ -277,6 +277,8 @@ def load_torch_file(path: Path, missing: str, foreign: str, *, reason: bool = Tr
     code in it runs. torch raises many types for a foreign or corrupt file: each becomes one
     ValueError naming the file, ``missing`` when it does not exist, else ``foreign`` with the
     exception's type (and its message when ``reason``). One owner, so every such file fails alike."""
+    if Path(path).suffix.lower() == ".onnx" and Path(path).is_file():  # torch would talk about weights_only
+        raise ValueError(f"{path}: an exported ONNX model, not an envi checkpoint: give the .pt it was exported from")
     try:
         return torch.load(path, map_location="cpu", weights_only=True)
     except FileNotFoundError:

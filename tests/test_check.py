@@ -152,3 +152,22 @@ def test_runs_commanding_actions_beyond_the_training_range_are_counted_outside(l
     assert near.outside_training < near.sim_runs / 2
     # no verdict about the real system rests on extrapolation
     assert far.real_system["verdict"] == "UNDECIDED" and "extrapolation" in far.real_system["reason"]
+
+
+def test_odd_requests_are_refused_naming_what_is_wrong(lane, tmp_path):
+    """A required probability the sequential test cannot hold ('delta must lie in (0, 1), got -9.99e-07'
+    named nothing), a version given twice (x=1,x=2 ran as x=2), an exported model given as the
+    checkpoint (PyTorch's weights_only advice)."""
+    from envi_py.cli import parse_where_one
+    from envi_py.model import Checkpoint
+
+    ckpt, real, _ = lane
+    tiny = RequirementSpec("rare", "max(color) <= 100", "metric", 1e-300)
+    with pytest.raises(ValueError, match="requirement 'rare': probability 1e-300 lies too close to 0 or 1"):
+        check(ckpt, real, [tiny], engine="torch")
+    with pytest.raises(ValueError, match="'x' is given twice"):
+        parse_where_one("x=1,x=2")
+    onnx = tmp_path / "m.onnx"
+    onnx.write_bytes(b"\x08\x07\x12\x04envi")
+    with pytest.raises(ValueError, match="an exported ONNX model, not an envi checkpoint"):
+        Checkpoint.load(onnx)
