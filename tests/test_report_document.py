@@ -103,6 +103,8 @@ def test_training_curves_are_written_beside_the_checkpoint(twin_logs, tmp_path) 
     assert [r["epoch"] for r in rows] == ["2", "4"]
     assert [r["selected"] for r in rows].count("1") == 1
     assert rows[[r["selected"] for r in rows].index("1")]["epoch"] == str(ckpt.record.selection["best_epoch"])
+    # the report says why training ended (here: the 4-epoch cap), not only which epoch was kept
+    assert "Training stopped: reached the epoch cap (4)." in (tmp_path / "m.training.md").read_text()
     page = out["html"].read_text()
     assert '<table class="verdict">' in page and "data:image/png;base64," in page and "model sha256" in page
 

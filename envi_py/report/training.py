@@ -110,8 +110,12 @@ def training_report(ckpt: Any, model_path: Path, rows: Sequence[dict[str, float]
         ],
         numeric=frozenset({1, 2, 3, 4, 5}),
     )
+    stopped = f" Training stopped: {sel['stopped']}." if sel.get("stopped") else ""
     guide = [
-        Text(f"Selection: {sel.get('criterion', '-')}." + (f" Warning: {sel['warning']}" if sel.get("warning") else ""))
+        Text(
+            f"Selection: {sel.get('criterion', '-')}.{stopped}"
+            + (f" Warning: {sel['warning']}" if sel.get("warning") else "")
+        )
     ]
     title = f"{rec.algorithm}: {len(rec.data)} training logs, seed {rec.seed}"
     hyper = Table(["hyper-parameter", "value"], [[k, str(v)] for k, v in rec.hyper.items()])
