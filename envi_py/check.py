@@ -301,6 +301,8 @@ def requirements_of(
     if probability is not None and all("@" in t for t in given):
         whose = "every --require gives its own '@P'" if given else "the system description's requirements give theirs"
         raise ValueError(f"--probability {probability:g} would apply to no requirement: {whose}")
+    if probability is not None and not 0 < probability < 1:  # NaN fails too; it is this option's fault
+        raise ValueError(f"--probability {probability:g}: must lie strictly between 0 and 1")
     prob = DEFAULT_PROBABILITY if probability is None else probability
     if given:
         return [parse_requirement(t, prob, i) for i, t in enumerate(given)]

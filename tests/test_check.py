@@ -165,6 +165,10 @@ def test_odd_requests_are_refused_naming_what_is_wrong(lane, tmp_path):
     tiny = RequirementSpec("rare", "max(color) <= 100", "metric", 1e-300)
     with pytest.raises(ValueError, match="requirement 'rare': probability 1e-300 lies too close to 0 or 1"):
         check(ckpt, real, [tiny], engine="torch")
+    from envi_py.check import requirements_of
+
+    with pytest.raises(ValueError, match="^--probability nan: must lie strictly between 0 and 1$"):
+        requirements_of(None, ["max(color) <= 100"], float("nan"))
     with pytest.raises(ValueError, match="'x' is given twice"):
         parse_where_one("x=1,x=2")
     onnx = tmp_path / "m.onnx"
