@@ -216,7 +216,10 @@ def check(
     for spec in unseen:
         label = version_label(spec, system)
         starts = list(real)
-        runs, outside = checker.runs(spec, starts, max(1, -(-max_runs // (4 * len(starts)))))
+        try:
+            runs, outside = checker.runs(spec, starts, max(1, -(-max_runs // (4 * len(starts)))))
+        except ValueError as exc:  # a controller that drives the model to NaN (x = 1e308): say which version
+            raise ValueError(f"--unseen {label}: {exc}") from None
         for spec_req, req in zip(requirements, reqs):
             sim, sim_outside = _sequential(
                 checker, spec, starts, req, spec_req.probability, alpha, delta, max_runs, batch

@@ -167,6 +167,9 @@ def test_odd_requests_are_refused_naming_what_is_wrong(lane, tmp_path):
         check(ckpt, real, [tiny], engine="torch")
     from envi_py.check import requirements_of
 
+    with pytest.raises(ValueError, match="^--unseen x=1e\\+308: "):
+        check(ckpt, real, REQS[:1], unseen=[ControllerSpec("lane-keeping", {"x": 1e308})], engine="torch")
+
     with pytest.raises(ValueError, match="^--probability nan: must lie strictly between 0 and 1$"):
         requirements_of(None, ["max(color) <= 100"], float("nan"))
     with pytest.raises(ValueError, match="'x' is given twice"):
