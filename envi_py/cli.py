@@ -346,6 +346,13 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         )
     ckpt = load_model(args)
     init = require_signals(read_logs(args, "init_logs", min_length=ckpt.config.history), ckpt.schema, args.model)
+    for lg in init:  # sigma_0 holds rows on both sides of lost rows: the start is not one the system was in
+        if lg.meta.breaks and lg.meta.breaks[0] < ckpt.config.history:
+            print(
+                f"envi simulate: note: {lg.path or lg.name}: rows were lost before row {lg.meta.breaks[0]}, inside "
+                f"the initial window of {ckpt.config.history} rows its simulations start from",
+                file=sys.stderr,
+            )
     inside = [lg.path for lg in init if lg.path is not None and lg.path.resolve().parent == out.resolve()]
     if inside:  # --force would delete the very logs the simulation starts from
         raise ValueError(f"--out {out}: holds the initial log {inside[0].name}; simulate into another folder")

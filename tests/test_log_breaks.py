@@ -121,3 +121,21 @@ def test_train_names_the_pauses_in_its_logs(real_dir, tmp_path):
     assert out.returncode == 0, out.stderr
     (note,) = [ln for ln in out.stderr.splitlines() if "pause" in ln]
     assert note.startswith("envi train: note: 1 of 3 logs pause inside the log") and "log_10_1.csv" in note
+
+
+def test_simulate_says_when_an_initial_window_spans_lost_rows(tmp_path, twin_log):
+    from envi_py.train import train
+
+    model = train("bc", [twin_log], [], epochs=1, hidden=(8,), history=5, seed=0).save(tmp_path / "m.pt")
+    write_log(_with_breaks(twin_log, (3,)), tmp_path / "init" / "a.csv")
+    write_log(_with_breaks(twin_log, (30,)), tmp_path / "init" / "b.csv")  # after the window: nothing to say
+    out = subprocess.run(
+        [sys.executable, "-m", "envi_py.cli", "simulate", "--model", str(model), "--init-logs", str(tmp_path / "init")]
+        + ["--runs", "1", "--engine", "torch", "--out", str(tmp_path / "sim")],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert out.returncode == 0, out.stderr
+    notes = [ln for ln in out.stderr.splitlines() if "note" in ln]
+    assert len(notes) == 1 and "a.csv: rows were lost before row 3, inside the initial window of 5 rows" in notes[0]
