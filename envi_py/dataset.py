@@ -169,7 +169,7 @@ class Dataset:
     n_state: int
     X: list[np.ndarray]
     Y: list[np.ndarray]
-    z: list[np.ndarray]  # each whole normalised log (T, C [+ extras]); GAIL rolls out from these
+    z: list[np.ndarray]  # each normalised log or piece (T, C [+ extras]); GAIL rolls out from these
     origin: list[tuple[int, int]]  # per entry: the index of its log and the log row it starts at
 
     @staticmethod
