@@ -171,6 +171,9 @@ class Dataset:
     Y: list[np.ndarray]
     z: list[np.ndarray]  # each normalised log or piece (T, C [+ extras]); GAIL rolls out from these
     origin: list[tuple[int, int]]  # per entry: the index of its log and the log row it starts at
+    #: per entry: the run context of its log, from the log's first rows as simulation computes it (a
+    #: piece after a break keeps its run's context, not one of its own rows)
+    contexts: list[np.ndarray]
 
     @staticmethod
     def build(
@@ -192,24 +195,25 @@ class Dataset:
         pairs line up with each log's rows, as a diagnosis of one-step residuals needs."""
         norm = norm or Normaliser.fit(logs)
         n_state = logs[0].states.shape[1]
-        zs, xs, ys, origin = [], [], [], []
+        zs, xs, ys, origin, contexts = [], [], [], [], []
         for li, lg in enumerate(logs):
             if len(lg) <= history:
                 raise ValueError(f"{lg.name}: {len(lg)} rows, need more than the history {history}")
             zv = norm.encode(lg.values)
             ex = extra_channels(lg.time, extras, period_ms, phase_rows, action=zv[:, n_state], play_width=play_width)
             rows = np.concatenate([zv, ex], axis=1)
+            run_context = context_of(rows[:history].astype(np.float32), n_state)
             cuts = [b for b in lg.meta.breaks if 0 < b < len(rows)] if cut_at_breaks else []
             pieces = [(a, p) for a, p in zip([0, *cuts], np.split(rows, cuts)) if len(p) > history]
             if not pieces:
                 raise ValueError(f"{lg.path or lg.name}: no stretch of more than {history} rows between its lost rows")
             for first, piece in pieces:
                 origin.append((li, first))
+                contexts.append(run_context)
                 z = piece.astype(np.float32)
-                ctx = context_of(z[:history], n_state) if context else None
-                x, y = log_pairs(z, history, n_state, ctx)
+                x, y = log_pairs(z, history, n_state, run_context if context else None)
                 zs.append(z), xs.append(x), ys.append(y)
-        return Dataset(norm, history, n_state, xs, ys, zs, origin)
+        return Dataset(norm, history, n_state, xs, ys, zs, origin, contexts)
 
     def stacked(self) -> tuple[np.ndarray, np.ndarray]:
         return np.concatenate(self.X), np.concatenate(self.Y)

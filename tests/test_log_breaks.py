@@ -139,3 +139,21 @@ def test_simulate_says_when_an_initial_window_spans_lost_rows(tmp_path, twin_log
     assert out.returncode == 0, out.stderr
     notes = [ln for ln in out.stderr.splitlines() if "note" in ln]
     assert len(notes) == 1 and "a.csv: rows were lost before row 3, inside the initial window of 5 rows" in notes[0]
+
+
+def test_pieces_keep_their_run_context_and_weigh_as_one_log(twin_log):
+    """A piece after a break is part of the same run: its context is the run's (from the log's first
+    rows, as simulation computes it), and behaviour cloning steps once per log, not once per piece."""
+    from envi_py.dataset import context_of
+    from envi_py.train import train
+    from envi_py.train.bc import per_log_batches
+
+    log = _with_breaks(twin_log, (20, 40))
+    whole = Dataset.build([twin_log], 5, context=True)
+    cut = Dataset.build([log], 5, whole.norm, context=True, cut_at_breaks=True)
+    run_context = context_of(whole.z[0][:5], whole.n_state)
+    assert len(cut.contexts) == 3 and all(np.allclose(c, run_context) for c in cut.contexts)
+    assert all(np.allclose(x[:, -run_context.size :], run_context) for x in cut.X)
+    ckpt = train("bc", [log, twin_log], [], epochs=1, hidden=(8,), history=5, seed=0)
+    xs, ys, _, groups = per_log_batches(ckpt, ckpt.dataset([log, twin_log], cut_at_breaks=True))
+    assert groups == [[0, 1, 2], [3]] and [len(y) for y in ys] == [3 * (20 - 5), 60 - 5]

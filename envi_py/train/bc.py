@@ -23,6 +23,7 @@ import torch
 from torch import nn
 from tqdm import tqdm
 
+from ..dataset import Dataset
 from ..logs import Log
 from ..system import SystemDescription
 from ..model import EnvModel, Checkpoint
@@ -109,9 +110,7 @@ def train_bc(
     }
     ckpt = new_checkpoint("bc", train_logs, val_logs, cfg, seed, hyper, system=system)
     data = ckpt.dataset(train_logs, cut_at_breaks=True)
-    xs = [torch.tensor(x) for x in data.X]
-    ys = [torch.tensor(y) for y in data.Y]
-    evs = [None if e is None else torch.from_numpy(e) for e in map(ckpt.limit_event_targets, data.Y)]
+    xs, ys, evs, pieces = per_log_batches(ckpt, data)
     unrolled = (
         MultiStepLoss(data, cfg.context, list(map(ckpt.limit_event_targets, data.Y)), multistep) if multistep else None
     )
@@ -127,8 +126,8 @@ def train_bc(
         total = 0.0
         for i in rng.permutation(len(xs)):
             loss = bc_loss(ckpt.model, xs[i] if noisy is None else noisy(xs[i], rng), ys[i], evs[i])
-            if unrolled is not None:
-                loss = loss + unrolled(ckpt.model, i, head_loss)
+            if unrolled is not None:  # over the log's pieces (entries of the dataset)
+                loss = loss + sum(unrolled(ckpt.model, k, head_loss) for k in pieces[i]) / len(pieces[i])
             opt.zero_grad()
             loss.backward()
             opt.step()
@@ -148,9 +147,20 @@ def one_step_loss(ckpt: Checkpoint, logs: Sequence[Log]) -> Callable[[Checkpoint
     selector's tie-break. None without logs."""
     if not logs:
         return None
-    data = ckpt.dataset(logs, cut_at_breaks=True)
-    batches = [
-        (torch.tensor(x), torch.tensor(y), None if e is None else torch.from_numpy(e))
-        for x, y, e in zip(data.X, data.Y, map(ckpt.limit_event_targets, data.Y))
-    ]
+    batches = list(zip(*per_log_batches(ckpt, ckpt.dataset(logs, cut_at_breaks=True))[:3]))
     return lambda c: float(np.mean([bc_loss(c.model, x, y, e).item() for x, y, e in batches]))
+
+
+def per_log_batches(
+    ckpt: Checkpoint, data: Dataset
+) -> tuple[list[torch.Tensor], list[torch.Tensor], list[torch.Tensor | None], list[list[int]]]:
+    """One batch per log (the paper's BC step): the pairs of its pieces joined (none spans a break), so a
+    log with lost rows weighs as any other rather than once per piece; with each log's dataset entries."""
+    pieces: dict[int, list[int]] = {}
+    for k, (li, _) in enumerate(data.origin):
+        pieces.setdefault(li, []).append(k)
+    groups = list(pieces.values())
+    xs = [torch.tensor(np.concatenate([data.X[k] for k in g])) for g in groups]
+    ys = [np.concatenate([data.Y[k] for k in g]) for g in groups]
+    evs = [None if e is None else torch.from_numpy(e) for e in map(ckpt.limit_event_targets, ys)]
+    return xs, [torch.tensor(y) for y in ys], evs, groups

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from ..dataset import actuator_position, context_of, extra_channels, play_offsets
+from ..dataset import actuator_position, extra_channels, play_offsets
 from ..logs import Log, group_by_controller
 from ..model import Checkpoint
 
@@ -50,15 +50,15 @@ class WindowEnv:
     def __init__(self, ckpt: Checkpoint, logs: list[Log], horizon: int = 40, stride: int = 10) -> None:
         cfg = ckpt.config
         self.ckpt, self.horizon = ckpt, horizon
-        hist, ns = cfg.history, cfg.n_state
+        hist = cfg.history
         data = ckpt.dataset(logs, cut_at_breaks=True)
         period = ckpt.period_ms
         windows, starts, contexts, extras, log_idx = [], [], [], [], []
-        for z, (i, first) in zip(data.z, data.origin):
+        for z, (i, first), run_context in zip(data.z, data.origin, data.contexts):
             for o in range(0, len(z) - hist - horizon + 1, stride):
                 windows.append(z[o : o + hist])
                 starts.append(logs[i].values[first + o : first + o + hist])
-                contexts.append(context_of(z[:hist], ns))
+                contexts.append(run_context)
                 # 'play' depends on the simulated actions: a placeholder here, filled in by the rollout
                 extras.append(
                     extra_channels(

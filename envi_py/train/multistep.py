@@ -21,7 +21,7 @@ from collections.abc import Callable
 import numpy as np
 import torch
 
-from ..dataset import Dataset, context_of
+from ..dataset import Dataset
 from ..model import EnvModel
 
 #: the per-step loss: (model, heads(x), targets (B, |s|), events (B, e) or None) -> scalar
@@ -55,7 +55,7 @@ class MultiStepLoss:
         self.future: list[torch.Tensor] = []
         self.context: list[torch.Tensor | None] = []
         self.events: list[torch.Tensor | None] = []
-        for z, ev in zip(data.z, events):
+        for z, ev, run_context in zip(data.z, events, data.contexts):
             starts = np.arange(0, len(z) - hist - horizon + 1, stride)
             if len(starts) == 0:
                 self.windows.append(None), self.future.append(torch.empty(0)), self.context.append(None)
@@ -63,7 +63,7 @@ class MultiStepLoss:
                 continue
             self.windows.append(torch.from_numpy(np.stack([z[o : o + hist] for o in starts])))
             self.future.append(torch.from_numpy(np.stack([z[o + hist : o + hist + horizon] for o in starts])))
-            ctx = context_of(z[:hist], data.n_state).astype(np.float32) if context else None
+            ctx = run_context.astype(np.float32) if context else None
             self.context.append(None if ctx is None else torch.from_numpy(np.tile(ctx, (len(starts), 1))))
             # events of the log's pairs: pair j predicts row hist + j, so start o's step k is pair o + k
             self.events.append(
