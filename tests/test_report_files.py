@@ -182,3 +182,43 @@ def test_two_writers_of_one_folder_take_turns(tmp_path: Path) -> None:
     os.close(fd)
     t.join(30)
     assert done.is_set() and '"run": 2' in (tmp_path / "report.json").read_text()
+
+
+def test_a_read_only_folder_is_named_not_the_staging_one(tmp_path: Path, monkeypatch) -> None:
+    """The staging folder cannot be made (a read-only --out; as root, made to fail): the message names
+    --out, not the hidden '.report.staging-...' that never existed."""
+
+    def refused(**kwargs):
+        raise PermissionError(13, "Permission denied", str(tmp_path / ".report.staging-x"))
+
+    monkeypatch.setattr(files.tempfile, "mkdtemp", refused)
+    with pytest.raises(OSError, match=f"^{tmp_path}: cannot write the report \\(Permission denied\\)$"):
+        write_files(_report("a"), tmp_path, "report")
+
+
+def test_a_writer_killed_midway_leaves_nothing_the_next_one_keeps(tmp_path: Path) -> None:
+    """A staging folder of a writer killed with SIGKILL (a whole model may sit in it) is removed by the
+    next writer of that report, under the folder's lock."""
+    left = tmp_path / ".report.staging-dead"
+    (left / "new").mkdir(parents=True)
+    (left / "new" / "m+lag.pt").write_bytes(b"x" * 1000)
+    write_files(_report("a"), tmp_path, "report")
+    assert not [p for p in os.listdir(tmp_path) if p.startswith(".")]
+
+
+def test_an_undo_that_fails_keeps_the_earlier_files_and_says_where(tmp_path: Path, monkeypatch) -> None:
+    write_files(_report("a"), tmp_path, "report")
+    before = (tmp_path / "report.md").read_bytes()
+    real_replace = os.replace
+
+    def failing(src, dst):
+        if Path(dst) == tmp_path / "report.md":  # moving the new one in fails, and putting the earlier one back
+            raise OSError(5, "Input/output error")
+        real_replace(src, dst)
+
+    monkeypatch.setattr(files.os, "replace", failing)
+    with pytest.raises(files.ReportNotRestored, match="its files are in") as err:
+        write_files(_report("b", run=2), tmp_path, "report")
+    monkeypatch.undo()
+    kept = Path(str(err.value).rsplit("its files are in ", 1)[1])
+    assert kept.is_dir() and (kept / "report.md").read_bytes() == before

@@ -14,7 +14,8 @@ A command may hand the writer further files that belong to the report (``envi di
 models and fitted layers): they are staged and moved in with it, and the JSON records their names
 and sha256 (``attached_files``). The next report of the stem removes a recorded file it does not
 write again only while it still holds exactly that content and is not one of the command's inputs:
-a file the user put in the folder, or edited, or diagnoses now, is never touched.
+a file the user put in the folder, or edited, or diagnoses now, is never removed (a file of the
+same name as one the new report writes is replaced by it, as the report's own files are).
 """
 
 from __future__ import annotations
@@ -140,25 +141,41 @@ def _stale_attachments(js: Path, keep: set[str], protect: Sequence[Path]) -> lis
     return out
 
 
+class ReportNotRestored(OSError):
+    """Moving a new report in failed and undoing it failed too: the earlier files are kept aside."""
+
+
 def _move_in(staged: Path, out: Path, stem: str, old: Path) -> None:
     """Replace the earlier report by the staged one, by renames only. Each file of the earlier report
     that the new one replaces (and its figures folder, as a whole) first moves into ``old``; on any
-    failure or Ctrl-C the renames are undone in reverse, so the earlier report stands as it was."""
+    failure or Ctrl-C the renames are undone in reverse, so the earlier report stands as it was. A
+    rename is recorded before it is made (a Ctrl-C between the two must not leave it unrecorded) and
+    undone only where its result exists. Should undoing fail, :class:`ReportNotRestored` is raised
+    and the caller keeps ``old`` (nothing deletes the earlier files)."""
     old.mkdir()
     done: list[tuple[Path, Path]] = []
     try:
         for name in [f"{stem}_figures", *(p.name for p in staged.iterdir() if p.name != f"{stem}_figures")]:
             target = out / name
             if target.exists() or target.is_symlink():
-                os.replace(target, old / name)
                 done.append((target, old / name))
+                os.replace(target, old / name)
             if (staged / name).exists():
-                os.replace(staged / name, target)
                 done.append((staged / name, target))
+                os.replace(staged / name, target)
     except BaseException:
+        failed = []
         for src, dst in reversed(done):
-            with contextlib.suppress(OSError):
+            if not (dst.exists() or dst.is_symlink()):
+                continue  # recorded, never made
+            try:
                 os.replace(dst, src)
+            except OSError:
+                failed.append(src.name)
+        if failed:
+            raise ReportNotRestored(
+                f"{out}: the new report could not be moved in, nor the earlier one fully put back ({', '.join(failed)})"
+            ) from None
         raise
 
 
@@ -176,18 +193,33 @@ def write_files(
     one whole report, the last one, never a mix."""
     out.mkdir(parents=True, exist_ok=True)
     with _locked(out):
-        staging = Path(tempfile.mkdtemp(dir=out, prefix=f".{stem}.staging-"))
+        for left in out.glob(f".{stem}.staging-*"):  # a writer killed mid-way; under the lock none is live
+            shutil.rmtree(left, ignore_errors=True)
+        try:
+            staging = Path(tempfile.mkdtemp(dir=out, prefix=f".{stem}.staging-"))
+        except OSError as exc:  # name the output folder, not the hidden staging one
+            raise OSError(f"{out}: cannot write the report ({exc.strerror or exc})") from None
+        keep = False
         try:
             staged = staging / "new"
             staged.mkdir()
             try:
                 figures, attached = _write_staged(report, staged, stem, attachments)
-            except OSError as exc:  # name the output folder, not the hidden staging one
+            except OSError as exc:
                 raise OSError(f"{out}: cannot write the report ({exc.strerror or exc})") from None
             stale = _stale_attachments(out / f"{stem}.json", {p.name for p in staged.iterdir()}, protect)
-            _move_in(staged, out, stem, staging / "old")
+            try:
+                _move_in(staged, out, stem, staging / "old")
+            except ReportNotRestored as exc:
+                keep = True  # the earlier report's files wait there, out of reach of the next writer's cleanup
+                rescued = staging.with_name(staging.name.replace(".staging-", ".unrestored-"))
+                os.replace(staging, rescued)
+                raise ReportNotRestored(f"{exc}; its files are in {rescued / 'old'}") from None
+            except OSError as exc:
+                raise OSError(f"{out}: cannot move the new report in ({exc.strerror or exc})") from None
         finally:
-            shutil.rmtree(staging, ignore_errors=True)
+            if not keep:
+                shutil.rmtree(staging, ignore_errors=True)
         for path in stale:  # only after the new report is in: a failure above keeps the earlier one whole
             with contextlib.suppress(FileNotFoundError):
                 path.unlink()
