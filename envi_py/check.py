@@ -160,7 +160,11 @@ def check(
         seen = {lg.sha256() for lg in logs}
         starts = list(logs) + [lg for lg in extra.get(spec, []) if lg.sha256() not in seen]
         paired_runs, outside = checker.runs(spec, logs, sims_per_start)
-        extra_runs = checker.runs(spec, starts[len(logs) :], sims_per_start)[0] if len(starts) > len(logs) else None
+        extra_runs, extra_outside = (
+            checker.runs(spec, starts[len(logs) :], sims_per_start) if len(starts) > len(logs) else (None, None)
+        )
+        if extra_outside is not None:  # the further starts' runs feed the estimate: they count too
+            outside = np.concatenate([outside, extra_outside])
         for spec_req, req in zip(requirements, reqs):
             y = _outcomes(req, real_runs)
             paired = _outcomes(req, paired_runs).reshape(len(logs), sims_per_start).mean(axis=1)
@@ -209,7 +213,7 @@ def check(
                     sim.to_json(),
                     real_json,
                     sim_outside + int(outside.sum()),
-                    sim.runs + len(logs) * sims_per_start,
+                    sim.runs + outside.size,
                     notes,
                 )
             )
@@ -221,9 +225,12 @@ def check(
         except ValueError as exc:  # a controller that drives the model to NaN (x = 1e308): say which version
             raise ValueError(f"--unseen {label}: {exc}") from None
         for spec_req, req in zip(requirements, reqs):
-            sim, sim_outside = _sequential(
-                checker, spec, starts, req, spec_req.probability, alpha, delta, max_runs, batch
-            )
+            try:
+                sim, sim_outside = _sequential(
+                    checker, spec, starts, req, spec_req.probability, alpha, delta, max_runs, batch
+                )
+            except ValueError as exc:
+                raise ValueError(f"--unseen {label}: {exc}") from None
             left = (sim_outside + int(outside.sum()), sim.runs + runs.count)
             verdict = model_only(_outcomes(req, runs), spec_req.probability, measured[spec_req.name], alpha, left)
             rows.append(

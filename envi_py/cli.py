@@ -246,9 +246,9 @@ def cmd_train(args: argparse.Namespace) -> int:
     for finding in pauses([*logs, *val]):  # what envi diagnose flags first, said before the training
         print(f"envi train: note: {finding.what}", file=sys.stderr)
     gappy = {str(lg.path or lg.name): lg.meta.breaks for lg in (*logs, *val) if lg.meta.breaks}
-    for name, breaks in gappy.items():  # the collector marked rows lost in transit: no window spans them
+    for name, breaks in gappy.items():  # the collector marked missing rows: no window spans them
         rows = ", ".join(map(str, breaks[:5])) + (f", ... ({len(breaks)} in all)" if len(breaks) > 5 else "")
-        note = f"{name}: rows were lost before row(s) {rows}; no training window spans them"
+        note = f"{name}: rows are missing before row(s) {rows}; no training window spans them"
         print(f"envi train: note: {note}", file=sys.stderr)
     kwargs: dict[str, Any] = {"seed": args.seed, "history": args.history, "progress": not args.quiet}
     if args.algorithm != "random":
@@ -349,7 +349,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     for lg in init:  # sigma_0 holds rows on both sides of lost rows: the start is not one the system was in
         if lg.meta.breaks and lg.meta.breaks[0] < ckpt.config.history:
             print(
-                f"envi simulate: note: {lg.path or lg.name}: rows were lost before row {lg.meta.breaks[0]}, inside "
+                f"envi simulate: note: {lg.path or lg.name}: rows are missing before row {lg.meta.breaks[0]}, inside "
                 f"the initial window of {ckpt.config.history} rows its simulations start from",
                 file=sys.stderr,
             )
@@ -840,9 +840,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             if written is not None:
                 print(f"effective configuration: {written}")
         return rc
-    except BrokenPipeError:  # 'envi twin effects | head': the reader has all it wanted
+    except BrokenPipeError:  # 'envi twin effects | head': the reader stopped; quietly, as a shell's SIGPIPE
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit's flush
-        return 0
+        return 141  # not 0: the command may not have finished (a report after the printed table)
     except (LogError, ValueError, OSError, KeyError) as exc:
         if args.debug:
             raise

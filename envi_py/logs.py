@@ -74,8 +74,9 @@ class LogMeta:
     run_id: str | None = None
     source: str = "fot"
     provenance: dict[str, Any] = field(default_factory=dict)
-    #: rows that do not follow the row before them, because rows were lost between the two (a dropped
-    #: frame on the collector's link): no model window may span one. Sorted, each in 1..rows-1.
+    #: rows that do not follow the row before them, because rows are missing between the two (a frame
+    #: lost on the collector's link, a tick the brick skipped or never sent): no model window may span
+    #: one. Sorted, each in 1..rows-1.
     breaks: tuple[int, ...] = ()
 
     def to_json(self) -> dict[str, Any]:
@@ -489,8 +490,8 @@ def _meta_for(path: Path, system: SystemDescription, rx: re.Pattern[str] | None)
             raise LogError(f"{path}: the file name's field {odd[0]} is not a finite number")
         run = fields.pop("run", path.stem)
     spec = system.controller_for(fields)
-    if spec is not None and any(p not in system.version_of(spec) for p in system.versions.params):
-        spec = None  # the version is unknown: a default parameter would pass for the log's own (x = 30)
+    if spec is not None and any(p not in fields for p in system.versions.params):
+        spec = None  # the file name does not say the version: a default would pass for the log's own (x = 30)
     return LogMeta(
         schema=system.schema,
         controller=None if spec is None else spec.to_json(),

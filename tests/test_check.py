@@ -178,3 +178,13 @@ def test_odd_requests_are_refused_naming_what_is_wrong(lane, tmp_path):
     onnx.write_bytes(b"\x08\x07\x12\x04envi")
     with pytest.raises(ValueError, match="an exported ONNX model, not an envi checkpoint"):
         Checkpoint.load(onnx)
+
+
+def test_runs_from_further_starts_count_in_the_outside_figure(lane):
+    """The further starts' simulations feed the real-system estimate, so they are among the runs the
+    'outside the training data' figure is over (they were in neither its count nor its total)."""
+    ckpt, real, _ = lane
+    (row,) = check(
+        ckpt, real[:2], REQS[:1], extra_starts=real[2:4], max_runs=50, batch=50, sims_per_start=3, engine="torch"
+    )
+    assert row.sim_runs == row.simulation["runs"] + (2 + 2) * 3

@@ -89,7 +89,8 @@ def test_help_is_not_an_error_and_shows_defaults():
 
 def test_a_reader_that_stops_early_is_no_error():
     """'envi twin effects | head': the pipe closes before envi is done writing; that is the reader's
-    choice, not a failure (it printed 'error: [Errno 32] Broken pipe' and exited 2)."""
+    choice, said quietly with a shell's SIGPIPE status (it printed 'error: [Errno 32] Broken pipe' and
+    exited 2); not 0, since a command stopped there may not have written what follows its table."""
     import subprocess
     import sys
 
@@ -97,4 +98,4 @@ def test_a_reader_that_stops_early_is_no_error():
         [sys.executable, "-m", "envi_py.cli", "twin", "effects"], stdout=subprocess.PIPE, stderr=subprocess.PIPE
     )
     p.stdout.close()
-    assert p.wait(timeout=120) == 0 and p.stderr.read() == b""
+    assert p.wait(timeout=120) == 141 and p.stderr.read() == b""

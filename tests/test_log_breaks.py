@@ -89,7 +89,7 @@ def test_train_says_which_rows_were_lost(tmp_path, twin_log):
         timeout=300,
     )
     assert out.returncode == 0, out.stderr
-    assert "log_0.csv: rows were lost before row(s) 25; no training window spans them" in out.stderr
+    assert "log_0.csv: rows are missing before row(s) 25; no training window spans them" in out.stderr
 
 
 def test_gail_rolls_out_from_the_pieces_with_their_own_rows(twin_log):
@@ -138,7 +138,7 @@ def test_simulate_says_when_an_initial_window_spans_lost_rows(tmp_path, twin_log
     )
     assert out.returncode == 0, out.stderr
     notes = [ln for ln in out.stderr.splitlines() if "note" in ln]
-    assert len(notes) == 1 and "a.csv: rows were lost before row 3, inside the initial window of 5 rows" in notes[0]
+    assert len(notes) == 1 and "a.csv: rows are missing before row 3, inside the initial window of 5 rows" in notes[0]
 
 
 def test_pieces_keep_their_run_context_and_weigh_as_one_log(twin_log):

@@ -389,7 +389,8 @@ def diagnose(
     """Diagnose ``ckpt`` on ``real`` logs; effects are confirmed on ``confirm`` (default: half of ``real``).
     Gaps are scored on the goals of the model's system (:func:`~.shrink.scoring_of`). ``progress``
     is told each step as it starts (the retraining of the last one takes most of the time).
-    ``keep_models`` receives the retrained models by effect (and the Gaussian refit as "refit").
+    ``keep_models`` receives the retrained models shown to help, by effect (a shrink interval above
+    0), and the Gaussian refit as "refit" when it narrowed the gap.
 
     In stages: the logs' data quality first; then whether the model's class is wrong (a deterministic
     model against runs that vary, :mod:`.stages`), in which case it is refitted with the Gaussian
@@ -418,11 +419,11 @@ def diagnose(
         if refit:
             say("3/6 the model is deterministic and the real runs vary: refitting with a Gaussian head")
             ckpt = refit_gaussian(ckpt, train_logs, val_logs)
-            if keep_models is not None:
-                keep_models["refit"] = ckpt
             res = one_step_residuals(ckpt, choose)
             groups, gaps = _gaps(ckpt, choose, runs, seed)
             after = float(np.mean([g["mean_w1"] for g in gaps]))
+            if keep_models is not None and after < before:  # offered only when it narrowed the gap
+                keep_models["refit"] = ckpt
         stage = {**check, "refit": refit, "mean_w1_before": before, "mean_w1_after": after}
     say("4/6 candidate effects on the residuals")
     findings = run_candidates(res, ckpt, alpha, min_share, logs=choose)

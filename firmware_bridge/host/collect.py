@@ -195,8 +195,9 @@ def provenance(
 
 
 def row_breaks(ticks: Sequence[int]) -> tuple[int, ...]:
-    """The rows whose tick does not follow the previous row's: frames were lost between the two, so
-    training keeps its windows off the gap (:attr:`envi_py.logs.LogMeta.breaks`)."""
+    """The rows whose tick does not follow the previous row's: rows are missing between the two (a
+    frame lost on the link, a tick the brick skipped, or a lock-step tick never sent), so training
+    keeps its windows off the gap (:attr:`envi_py.logs.LogMeta.breaks`)."""
     return tuple(i for i in range(1, len(ticks)) if ticks[i] != ticks[i - 1] + 1)
 
 
