@@ -369,3 +369,17 @@ def test_an_interrupted_fresh_run_keeps_the_earlier_journal(real_logs, tmp_path)
     assert (tmp_path / "e" / "jobs.jsonl").read_bytes() == journal and journal
     again = run_experiment(logs, ["tovk"], tmp_path / "e", executor=LocalExecutor(0), train_kwargs=TINY, **kw)
     assert again["meta"]["jobs_reused"] == again["meta"]["jobs"] == 1
+
+
+def test_the_size_of_a_grid_is_said_before_it_runs():
+    """The README's real-log grid starts 120 trainings; the bar's first estimate follows the fast random
+    baselines. One line says what is about to run, and that GAIL's jobs are slow."""
+    from types import SimpleNamespace
+
+    from envi_py.experiments.run import jobs_summary
+
+    todo = [SimpleNamespace(algorithm=a) for a in ["random"] * 30 + ["bc"] * 30 + ["gail"] * 30 + ["bcxgail"] * 30]
+    line = jobs_summary(todo, 4)
+    assert line.startswith("envi experiment: 120 training(s) to run (30 random, 30 bc, 30 gail, 30 bcxgail), 4 reused")
+    assert "gail and bcxgail take minutes each" in line
+    assert "minutes" not in jobs_summary(todo[:60], 0)

@@ -9,6 +9,7 @@ import math
 import os
 import sys
 import time
+from collections import Counter
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -20,7 +21,7 @@ from ..goals.presets import LANE_KEEPING_BAND, lane_keeping_centre
 from ..logs import Log
 from ..system import SystemDescription, describe_schema
 from .executor import Executor, LocalExecutor
-from .grid import ALGORITHMS, make_jobs
+from .grid import ALGORITHMS, Job, make_jobs
 from .report import write_report
 from .versions import VersionChoice
 from .worker import run_job
@@ -60,6 +61,18 @@ def _read_journal(path: Path) -> dict[str, Any]:
         what = f"{len(damaged)} damaged or unverifiable record(s) (line {shown})"
         print(f"{path}: {what} not reused; their jobs run again", file=sys.stderr)
     return done
+
+
+def jobs_summary(todo: Sequence[Job], reused: int) -> str:
+    """One line on what is about to run: trainings per algorithm, and what is reused from the journal.
+    The progress bar's estimate follows the first jobs done, which may be the fast ones."""
+    per = Counter(job.algorithm for job in todo)
+    slow = [a for a in ("gail", "bcxgail") if a in per]
+    return (
+        f"envi experiment: {len(todo)} training(s) to run ({', '.join(f'{n} {a}' for a, n in per.items())})"
+        + (f", {reused} reused from the journal" if reused else "")
+        + (f"; {' and '.join(slow)} take minutes each, the bar's first estimate does not know it" if slow else "")
+    )
 
 
 def run_experiment(
@@ -107,6 +120,8 @@ def run_experiment(
     prints = [job.fingerprint() for job in jobs]
     results: list[Any] = [done.get(fp) for fp in prints]
     todo = [i for i, r in enumerate(results) if r is None]
+    if progress and todo:  # say the size before the first training, not as a bar that starts with the fast ones
+        print(jobs_summary([jobs[i] for i in todo], len(jobs) - len(todo)), file=sys.stderr)
     own = executor is None
     executor = executor or LocalExecutor()
     t0 = time.perf_counter()
