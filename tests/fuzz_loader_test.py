@@ -11,6 +11,7 @@ import os
 import re
 import shutil
 import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -24,7 +25,19 @@ from envi_py.model import Checkpoint, EnvModel, ModelConfig, TrainingRecord
 
 ROOT = Path(__file__).resolve().parents[1]
 CPP = ROOT / "cpp"
-EIGEN = Path("/usr/include/eigen3")
+
+
+def eigen_include() -> Path | None:
+    """Eigen's headers: the pinned cmeel-eigen wheel that ./dev.sh installs (the engine's own build uses
+    it too, cpp/cmake/EnviEigen.cmake), else a system libeigen3-dev; None when neither is there."""
+    # `python -m cmeel cmake` lists the prefixes of the installed cmeel wheels (nothing when there are none)
+    out = subprocess.run([sys.executable, "-m", "cmeel", "cmake"], capture_output=True, text=True).stdout
+    candidates = [Path(p) / "include" / "eigen3" for p in out.strip().split(os.pathsep) if p]
+    candidates.append(Path("/usr/include/eigen3"))
+    return next((c for c in candidates if (c / "Eigen" / "Core").exists()), None)
+
+
+EIGEN = eigen_include()
 N_FILES = 600
 
 
@@ -69,8 +82,8 @@ def mutate(data: bytes, rng: np.random.Generator, others: list[bytes]) -> bytes:
 @pytest.fixture(scope="module")
 def harness(tmp_path_factory) -> Path:
     gxx = shutil.which("g++")
-    if gxx is None or not (EIGEN / "Eigen" / "Core").exists():
-        pytest.skip("g++ and Eigen (libeigen3-dev) are needed to build the fuzz harness")
+    if gxx is None or EIGEN is None:
+        pytest.skip("g++ and Eigen (the cmeel-eigen wheel or libeigen3-dev) are needed to build the fuzz harness")
     exe = tmp_path_factory.mktemp("fuzz") / "fuzz_loader"
     sources = [CPP / "tests" / "fuzz_loader.cpp"] + sorted((CPP / "src").glob("*.cpp"))
     sources = [s for s in sources if s.name not in ("pymodule.cpp", "envi_sim.cpp", "csvlog.cpp")]

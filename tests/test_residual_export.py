@@ -301,7 +301,9 @@ def test_native_gaussian_residual_with_limit_events_matches_pytorch_with_the_sam
     finally:
         ck.config.round_to = (1.0, 1.0)
     np.testing.assert_array_equal(got[:, :hist], want[:, :hist])
-    np.testing.assert_allclose(got, want, atol=1e-3, rtol=0)
+    # float32 on both sides, summed in different orders (Eigen's AVX-512 kernels, PyTorch's oneDNN): the
+    # speed loop's PID command (about 100) drifts by some 80 float32 steps over 40 closed-loop steps
+    np.testing.assert_allclose(got, want, atol=1e-3, rtol=1e-5)
     sim = want[:, hist:, DISTANCE]
     # the runs exercise the base: limit readings, and in-range readings right after one
     assert (sim == LIMIT).any() and ((sim[:, :-1] == LIMIT) & (sim[:, 1:] < LIMIT)).any()
