@@ -24,7 +24,7 @@ SIZE_OF = {"backlash": replace(TINY, diagnose=48), "lag": replace(TINY, diagnose
 
 @pytest.mark.parametrize("case", CASES, ids=[c.name for c in CASES])
 def test_blind_diagnosis_names_the_withheld_effect(case: Case):
-    r = trial(case, seed=0, size=SIZE_OF.get(case.name, TINY), shrink=False)
+    r = trial(case, seed=0, size=SIZE_OF.get(case.name, TINY), shrink=False, procedure="as-tuned")
     if case.expected is None:
         assert r["significant"] == [], r["findings"]
     else:
@@ -32,7 +32,7 @@ def test_blind_diagnosis_names_the_withheld_effect(case: Case):
 
 
 def test_verification_mode_names_a_worn_battery_and_locates_it_late_in_the_affected_runs():
-    r = trial(BY_NAME["battery"], seed=0, mode="verification", size=TINY, shrink=False)
+    r = trial(BY_NAME["battery"], seed=0, mode="verification", size=TINY, shrink=False, procedure="as-tuned")
     assert r["top"] == "drift", r["findings"]
     assert r["where"]["run_auc"] > 0.8
     assert r["where"]["worst_fifth"] == 4
@@ -41,7 +41,7 @@ def test_verification_mode_names_a_worn_battery_and_locates_it_late_in_the_affec
 def test_verification_mode_names_a_lagging_actuator_by_its_what_if():
     """Trained on a clean robot, verified on one whose steering lags: the residual is all misfit,
     which the pair tests cannot see; feeding the model lagged commands removes most of it."""
-    r = trial(BY_NAME["lag"], seed=0, mode="verification", size=TINY, shrink=False)
+    r = trial(BY_NAME["lag"], seed=0, mode="verification", size=TINY, shrink=False, procedure="as-tuned")
     assert r["top"] == "memory_delay", r["findings"]
     assert r["findings"]["memory_delay"]["what_if"] > 0.5, r["findings"]
     # retraining on the clean logs cannot add the lag; a lag or delay layer fitted on the logs the
@@ -52,14 +52,21 @@ def test_verification_mode_names_a_lagging_actuator_by_its_what_if():
 
 
 def test_adding_the_diagnosed_noise_shrinks_the_gap():
-    r = trial(BY_NAME["noise"], seed=0, size=TINY, shrink=True)
+    r = trial(BY_NAME["noise"], seed=0, size=TINY, shrink=True, procedure="as-tuned")
     s = r["shrink"]
     assert s["effect"] == "noise" and s["after"] < 0.8 * s["before"], s
     assert not s["unchanged"] and 0 < s["shrink_ci"][0] <= s["shrink"] <= s["shrink_ci"][1], s
 
 
 def _result(case: str, expected: str | None, top: str | None, mode: str = "withheld") -> dict:
-    return {"case": case, "expected": expected, "top": top, "significant": [top] if top else [], "mode": mode}
+    return {
+        "procedure": "shipped",
+        "case": case,
+        "expected": expected,
+        "top": top,
+        "significant": [top] if top else [],
+        "mode": mode,
+    }
 
 
 def test_score_counts_the_confusion_matrix_top1_and_false_alarms():
@@ -112,6 +119,8 @@ def test_cli_writes_the_report_and_resumes(tmp_path, capsys):
         "4",
         "--runs",
         "2",
+        "--procedure",
+        "as-tuned",
         "--out",
         str(tmp_path),
     ]
@@ -155,8 +164,11 @@ def test_a_robot_that_never_leaves_its_setpoint_has_no_gap_to_attribute(monkeypa
     assert "no closed-loop gap to attribute" in d.verdict()
 
 
-def _world_result(world, case, expected, top, mode="withheld", seed=0, novel=False, head="deterministic"):
+def _world_result(
+    world, case, expected, top, mode="withheld", seed=0, novel=False, head="deterministic", procedure="shipped"
+):
     return {
+        "procedure": procedure,
         "world": world,
         "case": case,
         "seed": seed,
@@ -246,7 +258,7 @@ def test_the_layer_table_counts_coverage_and_the_floor():
         return r
 
     lines = layer_table([row(2, True, True, 0.8), row(3, False, True, 0.6), row(1, False, False, 0.4)])
-    line = next(x for x in lines if x.startswith("| diffdrive | delay |"))
+    line = next(x for x in lines if x.startswith("| shipped | diffdrive | delay |"))
     assert "| 3 | delay 2 ticks [2, 2]; delay 3 ticks [3, 3]; delay 1 ticks [1, 1] | delay 2 |" in line
     assert "| 1/3 (33%, 1%-91%) | 2/3 (67%, 9%-99%) | +60% [+50%, +70%] |" in line
 
@@ -260,3 +272,44 @@ def test_a_fix_is_said_as_the_train_options_that_make_it():
     assert train_options({"context": True}) == "--context"
     assert train_options({"context": False}) == "--no-context"
     assert train_options({"round_to": (1.0,)}) == "(API: round_to=[1.0])"
+
+
+def test_the_shipped_procedure_trains_with_the_defaults_and_refits_a_model_too_certain_for_the_world():
+    """What a user runs: envi train's defaults (output rounded to the declared resolution) and the
+    staged diagnosis, which refits a deterministic model of a world that varies (the differential-drive
+    robot's wheel slip) with a Gaussian head before ranking the rest. As tuned, the same trial keeps
+    the deterministic model, which leads with noise and names the unrounded output's quantisation."""
+    shipped = trial(BY_NAME["lag"], seed=0, size=TINY, shrink=False, world="diffdrive")
+    assert shipped["procedure"] == "shipped" and shipped["stage"] == {"refit": True}, shipped
+    assert shipped["top"] == "memory_delay" and "quantisation" not in shipped["significant"], shipped
+    tuned = trial(BY_NAME["lag"], seed=0, size=TINY, shrink=False, world="diffdrive", procedure="as-tuned")
+    assert tuned["procedure"] == "as-tuned" and tuned["stage"] == {"refit": False}, tuned
+    assert tuned["top"] == "noise" and "quantisation" in tuned["significant"], tuned
+    with pytest.raises(ValueError, match="procedure must be one of shipped, as-tuned"):
+        trial(BY_NAME["noise"], seed=0, size=TINY, procedure="tuned")
+
+
+def test_results_of_one_procedure_are_never_taken_for_the_other(tmp_path, capsys):
+    """A results file resumes per procedure (older results, without one, were as tuned), and two
+    procedures print side by side in the cross-world table."""
+    from envi_py.diagnose.validate import _key
+
+    legacy = _world_result("steered", "jitter", "jitter", "jitter")
+    del legacy["procedure"]
+    assert _key(legacy)[0] == "as-tuned" and _key(_world_result("steered", "jitter", "jitter", None))[0] == "shipped"
+    rows = [
+        _world_result(w, "jitter", "jitter", "jitter" if pr == "as-tuned" else None, procedure=pr)
+        for pr in ("shipped", "as-tuned")
+        for w in ("steered", "diffdrive")
+    ]
+    (tmp_path / "results.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    args = ["diagnose", "validate", "--cases", "jitter", "--seeds", "1", "--mode", "withheld", "--out", str(tmp_path)]
+    assert main(args + ["--world", "steered", "diffdrive", "--procedure", "shipped", "as-tuned"]) == 0
+    out = capsys.readouterr().out
+    assert (
+        "| case | kind | shipped steered (tuned) withheld | shipped diffdrive withheld | "
+        "as-tuned steered (tuned) withheld | as-tuned diffdrive withheld |" in out
+    )
+    missed, right = "0/1 (0%, 0%-98%)", "1/1 (100%, 3%-100%)"
+    assert f"| jitter | effect | {missed} | {missed} | {right} | {right} |" in out
+    assert len((tmp_path / "results.jsonl").read_text().splitlines()) == len(rows)  # nothing was rerun

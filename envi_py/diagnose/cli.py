@@ -77,6 +77,7 @@ def _cmd_validate(args: argparse.Namespace) -> int:
     if not 0 < args.lr < 1e3:
         raise ValueError(f"--lr must be a positive learning rate below 1000, got {args.lr}")
     worlds = list(dict.fromkeys(args.world))
+    procedures = list(dict.fromkeys(args.procedure))
     known = {c.name: c for c in ALL_CASES}
     unknown = set(args.cases or ()) - set(known)
     if unknown:
@@ -94,13 +95,13 @@ def _cmd_validate(args: argparse.Namespace) -> int:
     )
     out = Path(args.out)
     seeds = range(args.first_seed, args.first_seed + args.seeds)
-    results = run_validation(out, cases, seeds, args.mode, size, args.shrink_seeds, args.jobs, worlds)
-    scores = [score(results, m, w) for w in worlds for m in args.mode]
+    results = run_validation(out, cases, seeds, args.mode, size, args.shrink_seeds, args.jobs, worlds, procedures)
+    scores = [score(results, m, w, pr) for pr in procedures for w in worlds for m in args.mode]
     md = to_markdown(scores, size)
-    if len(worlds) > 1:
-        md = cross_table(results, args.mode, worlds) + "\n\n" + md
+    if len(worlds) > 1 or len(procedures) > 1:
+        md = cross_table(results, args.mode, worlds, procedures) + "\n\n" + md
     else:
-        md += "\n".join(layer_table(results, worlds))
+        md += "\n".join(layer_table(results, worlds, procedures))
     atomic_write_text(out / "report.md", md + "\n")
     atomic_write_text(out / "scores.json", json.dumps([asdict(s) for s in scores], indent=1) + "\n")
     print(md)
@@ -172,6 +173,15 @@ def register(sub: Any) -> None:
         default=["steered"],
         help="world families: steered (the line follower every threshold was chosen on), diffdrive (a "
         "differential-drive robot on a curved track, never used to choose one); two print the cross-world table",
+    )
+    v.add_argument(
+        "--procedure",
+        nargs="+",
+        choices=("shipped", "as-tuned"),
+        default=["shipped"],
+        help="shipped (default): models trained with envi train's defaults and diagnosed in stages, as a user "
+        "gets them; as-tuned: as the rules were chosen (output neither rounded nor clamped, no Gaussian refit); "
+        "two print them side by side",
     )
     v.add_argument("--seeds", type=int, default=20, help="seeds per case (default 20)")
     v.add_argument("--first-seed", type=int, default=0)

@@ -50,6 +50,12 @@ WORLDS: tuple[str, ...] = ("steered", "diffdrive")
 TUNED_ON = "steered"
 #: What a trial on a novel effect should report.
 NONE_OF = "none of the candidates"
+#: How a trial trains its model and diagnoses it. ``shipped``: as a user's ``envi train`` and ``envi
+#: diagnose`` do (the training defaults: output rounded to the declared resolution and clamped to the
+#: observed range, the default model selection; and the staged refit with a Gaussian head when a
+#: deterministic model meets runs that vary). ``as-tuned``: as the rules were chosen
+#: (:func:`validation_training`, no refit), to reproduce the figures measured that way.
+PROCEDURES: tuple[str, ...] = ("shipped", "as-tuned")
 #: A PID steering law: its commands vary continuously, so a dead band in the steering shows.
 #: (Under bang-bang control backlash only scales every reversal by the same amount, which a model
 #: of commanded angles learns as it is: there is nothing left to diagnose.)
@@ -234,12 +240,17 @@ def trial(
     shrink: bool = True,
     world: str = TUNED_ON,
     layers: bool = True,
+    procedure: str = "shipped",
 ) -> dict[str, Any]:
     """One blind diagnosis of one case and seed in one world family; plain data for the results file.
     In the verification mode an effect case also fits the diagnosed candidate's effect layers
-    (``layers``; :mod:`.layers`): retraining on the clean logs cannot add the effect there."""
+    (``layers``; :mod:`.layers`): retraining on the clean logs cannot add the effect there.
+    ``procedure``: one of :data:`PROCEDURES`."""
     if world not in case.worlds:
         raise ValueError(f"case {case.name!r} cannot be injected in the {world!r} world")
+    if procedure not in PROCEDURES:
+        raise ValueError(f"procedure must be one of {', '.join(PROCEDURES)}, got {procedure!r}")
+    shipped = procedure == "shipped"
     import torch
 
     from ..train import train
@@ -259,7 +270,7 @@ def trial(
         lr=size.lr,
         head=case.head,
         history=case.history or size.history,
-        **validation_training(),
+        **({} if shipped else validation_training()),
     )
     d = diagnose(
         ckpt,
@@ -269,12 +280,12 @@ def trial(
         runs=size.runs,
         top=1,
         retrain=shrink and mode == "withheld" and case.expected is not None,
-        refit=False,  # the staged refit is scored by its own tests (tests/test_diagnose_stages.py)
+        refit=shipped,
         seed=seed,
     )
     sig = [f.candidate for f in d.significant]
     out: dict[str, Any] = {
-        **_identity(case, seed, mode, world),
+        **_identity(case, seed, mode, world, procedure),
         "top": sig[0] if sig else None,
         "significant": sig,
         "findings": {
@@ -286,6 +297,8 @@ def trial(
         "gap_ratio": d.gaps[0]["gaps"][0]["ratio"],
         "gap_goal": d.gaps[0]["gaps"][0]["goal"],
         "gap_p": d.gaps[0]["gaps"][0]["p"],
+        # the model class stage (:mod:`.stages`): None when the model was not too certain for the world
+        "stage": None if d.stage is None else {"refit": d.stage["refit"]},
     }
     if d.shrink:
         b, a = d.shrink["before"], d.shrink["after"][0]
@@ -309,10 +322,11 @@ def trial(
     return out
 
 
-def _identity(case: Case, seed: int, mode: str, world: str) -> dict[str, Any]:
+def _identity(case: Case, seed: int, mode: str, world: str, procedure: str) -> dict[str, Any]:
     """The fields that say which trial a result is and what it should have found: one owner, so a
     failed trial's record (:func:`_run_one`) keys and scores exactly like a finished one's."""
     return {
+        "procedure": procedure,
         "world": world,
         "case": case.name,
         "seed": seed,
@@ -323,19 +337,20 @@ def _identity(case: Case, seed: int, mode: str, world: str) -> dict[str, Any]:
     }
 
 
-def _key(r: dict[str, Any]) -> tuple[str, str, str, int]:
-    """A trial's identity; results written before there were two worlds are the tuned world's."""
-    return r.get("world", TUNED_ON), r["mode"], r["case"], int(r["seed"])
+def _key(r: dict[str, Any]) -> tuple[str, str, str, str, int]:
+    """A trial's identity; results written before there were two worlds are the tuned world's, and
+    those written before there were two procedures were trained and diagnosed as tuned."""
+    return r.get("procedure", "as-tuned"), r.get("world", TUNED_ON), r["mode"], r["case"], int(r["seed"])
 
 
-def _run_one(args: tuple[Case, int, str, Size, bool, str]) -> dict[str, Any]:
+def _run_one(args: tuple[Case, int, str, Size, bool, str, str]) -> dict[str, Any]:
     """One trial; a failure is recorded as a miss with its message, never lost or fatal to the rest."""
-    case, seed, mode = args[:3]
+    case, seed, mode, size, shrink, world, procedure = args
     try:
-        return trial(*args)
+        return trial(case, seed, mode, size, shrink, world, procedure=procedure)
     except Exception as exc:  # noqa: BLE001 - any failure of the diagnosis is a validation outcome
         return {
-            **_identity(case, seed, mode, args[5]),
+            **_identity(case, seed, mode, world, procedure),
             "top": None,
             "significant": [],
             "findings": {},
@@ -352,10 +367,12 @@ def run_validation(
     shrink_seeds: int = 5,
     jobs: int = 1,
     worlds: Sequence[str] = (TUNED_ON,),
+    procedures: Sequence[str] = ("shipped",),
 ) -> list[dict[str, Any]]:
-    """Every (world, mode, case, seed) trial, appended to ``out/results.jsonl`` as it finishes (a
-    rerun resumes); the retraining step runs on the first ``shrink_seeds`` seeds of each case. A case
-    runs only in the worlds that can inject it."""
+    """Every (procedure, world, mode, case, seed) trial, appended to ``out/results.jsonl`` as it
+    finishes (a rerun resumes; a result of another procedure is never taken for this one's); the
+    retraining step runs on the first ``shrink_seeds`` seeds of each case. A case runs only in the
+    worlds that can inject it."""
     out.mkdir(parents=True, exist_ok=True)
     path = out / "results.jsonl"
     done = {}
@@ -366,12 +383,13 @@ def run_validation(
                 done[_key(r)] = r
     seeds = list(seeds)
     todo = [
-        (c, s, m, size, i < shrink_seeds, w)
+        (c, s, m, size, i < shrink_seeds, w, pr)
+        for pr in procedures
         for w in worlds
         for m in modes
         for c in cases
         for i, s in enumerate(seeds)
-        if (w, m, c.name, s) not in done and (m == "withheld" or c.verification) and w in c.worlds
+        if (pr, w, m, c.name, s) not in done and (m == "withheld" or c.verification) and w in c.worlds
     ]
     atomic_write_text(out / "size.json", json.dumps(asdict(size), indent=1) + "\n")
     with path.open("a") as fh:
@@ -387,8 +405,8 @@ def run_validation(
                 fh.write(json.dumps(r) + "\n")
                 fh.flush()
                 done[_key(r)] = r
-    wanted = {(w, m, c.name) for w in worlds for m in modes for c in cases}
-    return [r for k, r in sorted(done.items()) if k[:3] in wanted and k[3] in seeds]
+    wanted = {(pr, w, m, c.name) for pr in procedures for w in worlds for m in modes for c in cases}
+    return [r for k, r in sorted(done.items()) if k[:4] in wanted and k[4] in seeds]
 
 
 @dataclass
@@ -408,6 +426,8 @@ class Score:
     where: dict[str, dict[str, float]] = field(default_factory=dict)
     false_alarm_by_case: dict[str, float] = field(default_factory=dict)
     world: str = TUNED_ON
+    procedure: str = "shipped"
+    refitted: float = float("nan")  # trials whose deterministic model was refitted with a Gaussian head first
     novel_none: float = float("nan")  # novel-effect trials that name no candidate
     novel_none_by_case: dict[str, float] = field(default_factory=dict)
 
@@ -416,9 +436,14 @@ class Score:
         return bool(self.novel_none_by_case)
 
 
-def score(results: Sequence[dict[str, Any]], mode: str, world: str = TUNED_ON) -> Score:
-    """The trials of one mode in one world family, aggregated."""
-    rs = [r for r in results if r["mode"] == mode and r.get("world", TUNED_ON) == world]
+def _procedure(r: dict[str, Any]) -> str:
+    """A result's procedure; results written before there were two were trained and diagnosed as tuned."""
+    return r.get("procedure", "as-tuned")
+
+
+def score(results: Sequence[dict[str, Any]], mode: str, world: str = TUNED_ON, procedure: str = "shipped") -> Score:
+    """The trials of one procedure and mode in one world family, aggregated."""
+    rs = [r for r in results if r["mode"] == mode and r.get("world", TUNED_ON) == world and _procedure(r) == procedure]
     labels = list(dict.fromkeys(r["case"] for r in rs))
     columns = [c.name for c in CANDIDATES] + ["none"]
     conf = [[0] * len(columns) for _ in labels]
@@ -470,6 +495,8 @@ def score(results: Sequence[dict[str, Any]], mode: str, world: str = TUNED_ON) -
         where=where,
         false_alarm_by_case=fa_by_case,
         world=world,
+        procedure=procedure,
+        refitted=float(np.mean([bool((r.get("stage") or {}).get("refit")) for r in rs])) if rs else float("nan"),
         novel_none=float(np.mean([r["top"] is None for r in novel])) if novel else float("nan"),
         novel_none_by_case=novel_by_case,
     )
@@ -488,10 +515,16 @@ def to_markdown(scores: Sequence[Score], size: Size) -> str:
     ]
     for s in scores:
         lines += [
-            f"## World `{s.world}`, mode `{s.mode}`",
+            f"## World `{s.world}`, mode `{s.mode}`, procedure `{s.procedure}`",
             "",
             f"Top-1 accuracy over effect cases: **{s.top1:.0%}**; false-alarm rate on negative controls: "
             f"**{s.false_alarm:.0%}**."
+            + (
+                f" The model class stage refitted a deterministic model with a Gaussian head first in "
+                f"{s.refitted:.0%} of the trials; their findings are those of the refit."
+                if s.procedure == "shipped"
+                else ""
+            )
             + (f" Novel effects reported as {NONE_OF}: **{s.novel_none:.0%}**." if s.novel_by_case_any else "")
             + (f" {s.errors} trial(s) failed (scored as misses; see `results.jsonl`)." if s.errors else ""),
             "",
@@ -560,31 +593,45 @@ def _outcome(r: dict[str, Any]) -> bool:
     return r["top"] is None if r["expected"] is None else r["top"] == r["expected"]
 
 
-def cross_table(results: Sequence[dict[str, Any]], modes: Sequence[str], worlds: Sequence[str] = WORLDS) -> str:
-    """The cross-world table: per case and per (world, mode) how many trials were right (effect
-    named first; nothing named for negative controls and novel effects), then the summary figures
-    of the done-when, each with its count and a 95% Clopper-Pearson interval. Thresholds were chosen
-    on :data:`TUNED_ON`; the other worlds' columns are the fair estimate."""
-    cols = [(w, m) for w in worlds for m in modes]
+def cross_table(
+    results: Sequence[dict[str, Any]],
+    modes: Sequence[str],
+    worlds: Sequence[str] = WORLDS,
+    procedures: Sequence[str] = ("shipped",),
+) -> str:
+    """The cross-world table: per case and per (procedure, world, mode) how many trials were right
+    (effect named first; nothing named for negative controls and novel effects), then the summary
+    figures of the done-when, each with its count and a 95% Clopper-Pearson interval. Thresholds were
+    chosen on :data:`TUNED_ON`; the other worlds' columns are the fair estimate."""
+    cols = [(pr, w, m) for pr in procedures for w in worlds for m in modes]
     cases = list(dict.fromkeys(r["case"] for r in results))
     kind = {c.name: ("novel" if c.novel else "effect" if c.expected else "negative") for c in ALL_CASES}
 
-    def pick(w: str, m: str, pred: Any) -> list[bool]:
-        return [_outcome(r) for r in results if r.get("world", TUNED_ON) == w and r["mode"] == m and pred(r)]
+    def pick(pr: str, w: str, m: str, pred: Any) -> list[bool]:
+        return [
+            _outcome(r)
+            for r in results
+            if _procedure(r) == pr and r.get("world", TUNED_ON) == w and r["mode"] == m and pred(r)
+        ]
 
-    head = " | ".join(f"{w}{' (tuned)' if w == TUNED_ON else ''} {m}" for w, m in cols)
+    head = " | ".join(
+        f"{pr + ' ' if len(procedures) > 1 else ''}{w}{' (tuned)' if w == TUNED_ON else ''} {m}" for pr, w, m in cols
+    )
     lines = [
         "# Cross-world validation",
         "",
         f"Every threshold and rule of the diagnosis was chosen on `{TUNED_ON}`; the other world family never "
         "informed one. A cell is right/trials (rate, 95% Clopper-Pearson interval): the expected candidate "
-        f"ranked first; for negative controls and novel effects, no candidate named ({NONE_OF}).",
+        f"ranked first; for negative controls and novel effects, no candidate named ({NONE_OF}). Procedure: "
+        + ", ".join(f"`{pr}`" for pr in procedures)
+        + " (`shipped`: trained with `envi train`'s defaults and diagnosed in stages as `envi diagnose` does; "
+        "`as-tuned`: as the rules were chosen, no rounding or clamping, no refit).",
         "",
         f"| case | kind | {head} |",
         "|---|---|" + "---|" * len(cols),
     ]
     for c in cases:
-        cells = [_rate(pick(w, m, lambda r, c=c: r["case"] == c)) for w, m in cols]
+        cells = [_rate(pick(pr, w, m, lambda r, c=c: r["case"] == c)) for pr, w, m in cols]
         lines.append(f"| {c} | {kind.get(c, '?')} | " + " | ".join(cells) + " |")
     summary = [
         ("top-1 over effect cases", lambda r: r["expected"] is not None),
@@ -604,8 +651,8 @@ def cross_table(results: Sequence[dict[str, Any]], modes: Sequence[str], worlds:
     ]
     lines += ["", f"| summary | {head} |", "|---|" + "---|" * len(cols)]
     for name, pred in summary:
-        lines.append(f"| {name} | " + " | ".join(_rate(pick(w, m, pred)) for w, m in cols) + " |")
-    lines += layer_table(results, worlds)
+        lines.append(f"| {name} | " + " | ".join(_rate(pick(pr, w, m, pred)) for pr, w, m in cols) + " |")
+    lines += layer_table(results, worlds, procedures)
     seeds = sorted({int(r["seed"]) for r in results})
     errors = sum("error" in r for r in results)
     lines += [
@@ -617,12 +664,14 @@ def cross_table(results: Sequence[dict[str, Any]], modes: Sequence[str], worlds:
     return "\n".join(lines)
 
 
-def layer_table(results: Sequence[dict[str, Any]], worlds: Sequence[str] = WORLDS) -> list[str]:
+def layer_table(
+    results: Sequence[dict[str, Any]], worlds: Sequence[str] = WORLDS, procedures: Sequence[str] = ("shipped",)
+) -> list[str]:
     """Markdown lines: per world and case, the verification-mode trials whose diagnosed candidate had
     an effect layer: the fitted parameters, how often the interval covers the injected value (where
     the units correspond), how often the layered model is within 1.5x the fair floor on the
     confirmation logs, and the median shrink with the median of its bootstrap interval's ends."""
-    rows = [r for r in results if "layer" in r and r.get("world", TUNED_ON) in worlds]
+    rows = [r for r in results if "layer" in r and r.get("world", TUNED_ON) in worlds and _procedure(r) in procedures]
     if not rows:
         return []
     lines = [
@@ -630,19 +679,21 @@ def layer_table(results: Sequence[dict[str, Any]], worlds: Sequence[str] = WORLD
         "Shrink where the gap is (verification mode; effect layer of the diagnosed candidate fitted on the "
         "choose logs, gap re-measured on the confirmation logs):",
         "",
-        "| world | case | trials | fitted (interval) | injected | interval covers | within 1.5x floor | "
+        "| procedure | world | case | trials | fitted (interval) | injected | interval covers | within 1.5x floor | "
         "median shrink [median CI] |",
-        "|---|---|---:|---|---|---|---|---|",
+        "|---|---|---|---:|---|---|---|---|---|",
     ]
-    for w in worlds:
-        for c in dict.fromkeys(r["case"] for r in rows if r.get("world", TUNED_ON) == w):
-            ls = [r["layer"] for r in rows if r.get("world", TUNED_ON) == w and r["case"] == c]
+    for pr, w in [(pr, w) for pr in procedures for w in worlds]:
+        here = [r for r in rows if _procedure(r) == pr and r.get("world", TUNED_ON) == w]
+        for c in dict.fromkeys(r["case"] for r in here):
+            ls = [r["layer"] for r in here if r["case"] == c]
             inj = {f"{x['injected']['kind']} {x['injected']['value']:g}" for x in ls if "injected" in x}
             cov = [x["covered"] for x in ls if "covered" in x]
             lo = float(np.median([x["shrink_ci"][0] for x in ls]))
             hi = float(np.median([x["shrink_ci"][1] for x in ls]))
             lines.append(
-                f"| {w} | {c} | {len(ls)} | {'; '.join(x['fitted'] for x in ls)} | {', '.join(sorted(inj)) or '-'} | "
+                f"| {pr} | {w} | {c} | {len(ls)} | {'; '.join(x['fitted'] for x in ls)} | "
+                f"{', '.join(sorted(inj)) or '-'} | "
                 f"{_rate(cov)} | {_rate([x['within_1.5_floor'] for x in ls])} | "
                 f"{float(np.median([x['shrink'] for x in ls])):+.0%} [{lo:+.0%}, {hi:+.0%}] |"
             )
