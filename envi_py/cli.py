@@ -346,13 +346,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         )
     ckpt = load_model(args)
     init = require_signals(read_logs(args, "init_logs", min_length=ckpt.config.history), ckpt.schema, args.model)
-    for lg in init:  # sigma_0 holds rows on both sides of lost rows: the start is not one the system was in
-        if lg.meta.breaks and lg.meta.breaks[0] < ckpt.config.history:
-            print(
-                f"envi simulate: note: {lg.path or lg.name}: rows are missing before row {lg.meta.breaks[0]}, inside "
-                f"the initial window of {ckpt.config.history} rows its simulations start from",
-                file=sys.stderr,
-            )
+    note_starts_across_breaks("envi simulate", init, ckpt.config.history)
     inside = [lg.path for lg in init if lg.path is not None and lg.path.resolve().parent == out.resolve()]
     if inside:  # --force would delete the very logs the simulation starts from
         raise ValueError(f"--out {out}: holds the initial log {inside[0].name}; simulate into another folder")
@@ -397,6 +391,18 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 
 # ------------------------------------------------------------------------------------ verify
+
+
+def note_starts_across_breaks(command: str, logs: Sequence[Log], history: int) -> None:
+    """Name each log whose initial window (sigma_0, its first ``history`` rows) holds rows on both
+    sides of missing rows: simulations start from a state the system was never in."""
+    for lg in logs:
+        if lg.meta.breaks and lg.meta.breaks[0] < history:
+            print(
+                f"{command}: note: {lg.path or lg.name}: rows are missing before row {lg.meta.breaks[0]}, inside "
+                f"the initial window of {history} rows its simulations start from",
+                file=sys.stderr,
+            )
 
 
 def cmd_verify(args: argparse.Namespace) -> int:
@@ -450,6 +456,7 @@ def cmd_check(args: argparse.Namespace) -> int:
     _at_most(args, max_runs=10_000_000, batch=1_000_000, sims_per_start=100_000)
     ckpt = load_model(args)
     real = require_signals(read_logs(args, "real", min_length=ckpt.config.history + 1), ckpt.schema, args.model)
+    note_starts_across_breaks("envi check", real, ckpt.config.history)  # each real run starts paired simulations
     system = ckpt.system
     # the requirements of the description the user names, not silently the checkpoint's older copy
     reqs = requirements_of(load_system(args.system) if args.system else system, args.require or [], args.probability)

@@ -123,7 +123,7 @@ def test_train_names_the_pauses_in_its_logs(real_dir, tmp_path):
     assert note.startswith("envi train: note: 1 of 3 logs pause inside the log") and "log_10_1.csv" in note
 
 
-def test_simulate_says_when_an_initial_window_spans_lost_rows(tmp_path, twin_log):
+def test_simulate_and_check_say_when_an_initial_window_spans_lost_rows(tmp_path, twin_log):
     from envi_py.train import train
 
     model = train("bc", [twin_log], [], epochs=1, hidden=(8,), history=5, seed=0).save(tmp_path / "m.pt")
@@ -139,6 +139,21 @@ def test_simulate_says_when_an_initial_window_spans_lost_rows(tmp_path, twin_log
     assert out.returncode == 0, out.stderr
     notes = [ln for ln in out.stderr.splitlines() if "note" in ln]
     assert len(notes) == 1 and "a.csv: rows are missing before row 3, inside the initial window of 5 rows" in notes[0]
+    # envi check starts paired simulations from each real run's initial window: the same note
+    out = subprocess.run(
+        [sys.executable, "-m", "envi_py.cli", "check", "--model", str(model), "--real", str(tmp_path / "init")]
+        + ["--require", "max_abs_dev(color, 40) <= 35@0.9", "--max-runs", "40", "--batch", "20"]
+        + ["--sims-per-start", "2", "--engine", "torch"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert out.returncode == 0, out.stderr
+    notes = [ln for ln in out.stderr.splitlines() if "note" in ln]
+    assert notes == [
+        f"envi check: note: {tmp_path / 'init' / 'a.csv'}: rows are missing before row 3, inside the "
+        "initial window of 5 rows its simulations start from"
+    ], out.stderr
 
 
 def test_pieces_keep_their_run_context_and_weigh_as_one_log(twin_log):
