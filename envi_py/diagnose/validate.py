@@ -217,11 +217,12 @@ def _layer_trial(ckpt: Any, case: Case, diag: Sequence[Log], d: Any, size: Size,
 
 
 def validation_training() -> dict[str, Any]:
-    """How the validation trains its models: as the diagnosis' rules were chosen (before stop 21's
-    training defaults): a fixed number of epochs, the raw validation curve of one run per window,
-    output neither rounded to the resolution nor clamped to the observed range, normal step noise.
-    The validation keeps measuring those rules on such models; a model trained with today's defaults
-    changes which candidates a trial names (e.g. a fitted noise layer then comes out about 10 % high)."""
+    """How the ``as-tuned`` procedure trains its models: as the diagnosis' rules were chosen (before
+    stop 21's training defaults): a fixed number of epochs, the raw validation curve of one run per
+    window, output neither rounded to the resolution nor clamped to the observed range, normal step
+    noise. A model trained with today's defaults (the ``shipped`` procedure) changes which candidates a
+    trial names: no "quantisation" of integer readings the model already rounds to, and a fitted noise
+    layer about 10 % high."""
     from ..train.common import SelectionSettings
 
     return {
