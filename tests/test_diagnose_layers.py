@@ -110,3 +110,18 @@ def test_a_fix_the_model_already_has_is_not_a_change(clean_model):
     assert changes_model(clean_model, finding({"head": "gaussian"}))
     assert changes_model(clean_model, finding({"history": 8}))
     assert not changes_model(clean_model, finding({"history": clean_model.config.history}))
+
+
+def test_a_layer_interval_is_made_of_grid_values_and_an_unlimited_saturation_is_one():
+    """Some resamples choose no saturation limit (inf): the interval says so, without NaN or a warning,
+    and never names a value between two grid points that no resample chose."""
+    import warnings
+
+    from envi_py.diagnose.layers import grid_interval
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert grid_interval([51.0] * 190 + [np.inf] * 10) == [51.0, np.inf]
+        # the 97.5 % point falls between the last 2 and the first 4: linear interpolation said 2.05
+        assert grid_interval([2.0] * 195 + [4.0] * 5) == [2.0, 4.0]
+        assert grid_interval([4.0] * 3 + [5.0] * 197) == [5.0, 5.0]  # 3 of 200 lie below the 2.5 % point

@@ -194,6 +194,15 @@ def _key_value(layer: Layer) -> float:
     return layer.high if layer.kind == "saturation" else layer.value
 
 
+def grid_interval(chosen: Sequence[float]) -> list[float]:
+    """The 95 % percentile interval of the grid values the bootstrap resamples chose, itself made of
+    grid values (the 2.5 % point rounded down, the 97.5 % point up): interpolating between grid points
+    would name values no resample chose, and between a saturation limit and "no limit" (inf) gave NaN
+    and a numpy warning in the report."""
+    values = np.asarray(chosen, dtype=np.float64)
+    return [float(np.percentile(values, 2.5, method="lower")), float(np.percentile(values, 97.5, method="higher"))]
+
+
 def fit_layer(ckpt: Checkpoint, kind: str, logs: Sequence[Log], runs: int = 2, seed: int = 0, boot: int = 200) -> Fit:
     """Fit one layer kind on ``logs`` (see the module's docstring); ``runs`` simulations per log."""
     if kind not in LAYERS:
@@ -226,11 +235,7 @@ def fit_layer(ckpt: Checkpoint, kind: str, logs: Sequence[Log], runs: int = 2, s
         ]
         criterion = "mean normalised W1 over the goals, simulated against real runs"
     best = int(np.argmin(full))
-    interval = (
-        [float(np.percentile(chosen, 2.5)), float(np.percentile(chosen, 97.5))]
-        if chosen
-        else [_key_value(grid[best])] * 2
-    )
+    interval = grid_interval(chosen) if chosen else [_key_value(grid[best])] * 2
     return Fit(
         grid[best],
         interval,
