@@ -158,7 +158,7 @@ def register(sub: Any) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress lines on standard error")
     p.set_defaults(func=_cmd_diagnose, parser=p)
 
-    from .size import Size, default_jobs
+    from .size import PROCEDURES, TUNED_ON, WORLDS, Size, default_jobs
 
     modes = p.add_subparsers(dest="diagnose_mode", metavar="validate")
     v = modes.add_parser("validate", help="score the diagnosis on twin data whose effect is known and withheld")
@@ -169,16 +169,16 @@ def register(sub: Any) -> None:
     v.add_argument(
         "--world",
         nargs="+",
-        choices=("steered", "diffdrive"),
-        default=["steered"],
+        choices=WORLDS,
+        default=[TUNED_ON],
         help="world families: steered (the line follower every threshold was chosen on), diffdrive (a "
         "differential-drive robot on a curved track, never used to choose one); two print the cross-world table",
     )
     v.add_argument(
         "--procedure",
         nargs="+",
-        choices=("shipped", "as-tuned"),
-        default=["shipped"],
+        choices=PROCEDURES,
+        default=[PROCEDURES[0]],
         help="shipped (default): models trained with envi train's defaults and diagnosed in stages, as a user "
         "gets them; as-tuned: as the rules were chosen (output neither rounded nor clamped, no Gaussian refit); "
         "two print them side by side",

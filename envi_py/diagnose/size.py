@@ -1,13 +1,24 @@
-"""The size of one validation trial and the default parallelism: light enough for ``--help``.
+"""The validation's choices and defaults: its world families and procedures, the size of one trial and
+the default parallelism, light enough for ``--help``.
 
-Kept apart from :mod:`.validate` so the command line can show these defaults without importing
-torch and the whole diagnosis.
+Kept apart from :mod:`.validate` so the command line can offer these without importing torch and the
+whole diagnosis.
 """
 
 from __future__ import annotations
 
 import os
 from dataclasses import dataclass
+
+#: The world families: the one the diagnosis was tuned on first.
+WORLDS: tuple[str, ...] = ("steered", "diffdrive")
+TUNED_ON = "steered"
+#: How a trial trains its model and diagnoses it. ``shipped``: as a user's ``envi train`` and ``envi
+#: diagnose`` do (the training defaults: output rounded to the declared resolution and clamped to the
+#: observed range, the default model selection; and the staged refit with a Gaussian head when a
+#: deterministic model meets runs that vary). ``as-tuned``: as the rules were chosen
+#: (:func:`~.validate.validation_training`, no refit), to reproduce the figures measured that way.
+PROCEDURES: tuple[str, ...] = ("shipped", "as-tuned")
 
 
 @dataclass(frozen=True)

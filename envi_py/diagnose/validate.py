@@ -42,20 +42,11 @@ from ..atomic import atomic_write_text
 from ..controllers import ControllerSpec
 from ..logs import Log
 from .effects import CANDIDATES
-from .size import Size
+from .size import PROCEDURES, TUNED_ON, WORLDS, Size
 
 LANE = ControllerSpec("lane-keeping", {"x": 30})
-#: The world families: the one the diagnosis was tuned on first.
-WORLDS: tuple[str, ...] = ("steered", "diffdrive")
-TUNED_ON = "steered"
 #: What a trial on a novel effect should report.
 NONE_OF = "none of the candidates"
-#: How a trial trains its model and diagnoses it. ``shipped``: as a user's ``envi train`` and ``envi
-#: diagnose`` do (the training defaults: output rounded to the declared resolution and clamped to the
-#: observed range, the default model selection; and the staged refit with a Gaussian head when a
-#: deterministic model meets runs that vary). ``as-tuned``: as the rules were chosen
-#: (:func:`validation_training`, no refit), to reproduce the figures measured that way.
-PROCEDURES: tuple[str, ...] = ("shipped", "as-tuned")
 #: A PID steering law: its commands vary continuously, so a dead band in the steering shows.
 #: (Under bang-bang control backlash only scales every reversal by the same amount, which a model
 #: of commanded angles learns as it is: there is nothing left to diagnose.)
@@ -339,9 +330,8 @@ def _identity(case: Case, seed: int, mode: str, world: str, procedure: str) -> d
 
 
 def _key(r: dict[str, Any]) -> tuple[str, str, str, str, int]:
-    """A trial's identity; results written before there were two worlds are the tuned world's, and
-    those written before there were two procedures were trained and diagnosed as tuned."""
-    return r.get("procedure", "as-tuned"), r.get("world", TUNED_ON), r["mode"], r["case"], int(r["seed"])
+    """A trial's identity; results written before there were two worlds are the tuned world's."""
+    return _procedure(r), r.get("world", TUNED_ON), r["mode"], r["case"], int(r["seed"])
 
 
 def _run_one(args: tuple[Case, int, str, Size, bool, str, str]) -> dict[str, Any]:
