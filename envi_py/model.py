@@ -395,21 +395,31 @@ class Checkpoint:
         lim = self.config.limits or [(c.low, c.high) for c in self.schema.states]
         return np.array([lo for lo, _ in lim], dtype=np.float64), np.array([hi for _, hi in lim], dtype=np.float64)
 
-    def post_process(self, states: np.ndarray) -> np.ndarray:
-        """Physical-unit output post-processing declared by the model: clamp, then round."""
+    def post_process(self, states: np.ndarray, rounded: bool = True) -> np.ndarray:
+        """Physical-unit output post-processing declared by the model: clamp, then round (unless not
+        ``rounded``: see :meth:`decode_states`)."""
         cfg = self.config
         if cfg.clamp:
             states = np.clip(states, *self.limits())
-        if cfg.round_to is not None:
+        if rounded and cfg.round_to is not None:
             res = np.asarray(cfg.round_to)
             states = np.round(states / res) * res
         return states
 
-    def decode_states(self, z: np.ndarray, events: np.ndarray | None = None) -> np.ndarray:
+    def decode_states(self, z: np.ndarray, events: np.ndarray | None = None, rounded: bool = True) -> np.ndarray:
         """The model's normalised next states (B, |s|) -> physical states, post-processed; where a
-        limit event happens (``events`` (B, e) from :meth:`EnvModel.step`) the state is its limit."""
+        limit event happens (``events`` (B, e) from :meth:`EnvModel.step`) the state is its limit.
+
+        ``rounded=False`` keeps the clamp but not the rounding to the sensor's resolution: the
+        model's expected reading, which one-step residuals compare with the real one. Rounding is how
+        a simulated state is read; a rounded *prediction* adds its own rounding error (step^2/12 of
+        variance) to every residual, an error of no world, and it drowns small effects: in the tuned
+        twin world (seeds 0-4) a 2-tick delay's median share of the residuals between similar
+        situations was 1.1 % against 4.1 % unrounded, a lag's 0.8 % against 12 %."""
         ns = self.config.n_state
-        s = self.post_process(np.asarray(z, dtype=np.float64) * self.norm.half[:ns] + self.norm.centre[:ns])
+        s = self.post_process(
+            np.asarray(z, dtype=np.float64) * self.norm.half[:ns] + self.norm.centre[:ns], rounded=rounded
+        )
         if events is not None:
             for k, (i, value) in enumerate(self.config.limit_events):
                 s[:, i] = np.where(events[:, k], value, s[:, i])

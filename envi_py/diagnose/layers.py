@@ -121,7 +121,7 @@ def _one_step_sse(ckpt: Checkpoint, logs: Sequence[Log], layer: Layer) -> np.nda
     with torch.no_grad():
         for lg, x in zip(logs, ckpt.dataset(seen).X):
             mean = ckpt.model.heads(torch.from_numpy(np.ascontiguousarray(x)))[0]
-            pred = ckpt.decode_states(mean.numpy().astype(np.float64))
+            pred = ckpt.decode_states(mean.numpy().astype(np.float64), rounded=False)
             out.append(float(np.sum(((lg.states[hist:] - pred) / half) ** 2)))
     return np.array(out)
 

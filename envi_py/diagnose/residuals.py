@@ -37,7 +37,7 @@ class Residuals:
 
     r: np.ndarray  # real next state - predicted mean (physical units)
     pred_std: np.ndarray | None  # predicted standard deviation (Gaussian head), physical units
-    predicted: np.ndarray  # the predicted mean, after the model's post-processing
+    predicted: np.ndarray  # the predicted mean, clamped to the model's range but not rounded
     real_next: np.ndarray
     state: np.ndarray  # last value of this state in the window
     action: np.ndarray  # last value of the action this view looks at (``action_name``)
@@ -189,7 +189,7 @@ def one_step_residuals(ckpt: Checkpoint, logs: Sequence[Log]) -> ResidualSet:
     half = ckpt.norm.half
     for i, (lg, x) in enumerate(zip(logs, data.X)):
         mean, log_std, logit = ckpt.model.heads(torch.from_numpy(np.ascontiguousarray(x)))
-        pred = ckpt.decode_states(mean.numpy().astype(np.float64))  # (n, |s|)
+        pred = ckpt.decode_states(mean.numpy().astype(np.float64), rounded=False)  # (n, |s|)
         n = len(pred)
         real_next = lg.states[hist:]
         std = np.exp(log_std.numpy()) * half[:ns] if log_std is not None else np.zeros((n, ns))
