@@ -280,10 +280,13 @@ def test_the_shipped_procedure_trains_with_the_defaults_and_refits_a_model_too_c
     robot's wheel slip) with a Gaussian head before ranking the rest. As tuned, the same trial keeps
     the deterministic model, which leads with noise and names the unrounded output's quantisation."""
     shipped = trial(BY_NAME["lag"], seed=0, size=TINY, shrink=False, world="diffdrive")
-    assert shipped["procedure"] == "shipped" and shipped["stage"] == {"refit": True}, shipped
+    stage = shipped["stage"]
+    assert shipped["procedure"] == "shipped" and stage["refit"] is True, shipped
+    assert stage["mean_w1_before"] > 0 and stage["mean_w1_after"] > 0, stage
     assert shipped["top"] == "memory_delay" and "quantisation" not in shipped["significant"], shipped
     tuned = trial(BY_NAME["lag"], seed=0, size=TINY, shrink=False, world="diffdrive", procedure="as-tuned")
-    assert tuned["procedure"] == "as-tuned" and tuned["stage"] == {"refit": False}, tuned
+    assert tuned["procedure"] == "as-tuned" and tuned["stage"]["refit"] is False, tuned
+    assert tuned["stage"]["mean_w1_before"] > 0 and tuned["stage"]["mean_w1_after"] is None, tuned
     assert tuned["top"] == "noise" and "quantisation" in tuned["significant"], tuned
     with pytest.raises(ValueError, match="procedure must be one of shipped, as-tuned"):
         trial(BY_NAME["noise"], seed=0, size=TINY, procedure="tuned")

@@ -289,8 +289,10 @@ def trial(
         "gap_ratio": d.gaps[0]["gaps"][0]["ratio"],
         "gap_goal": d.gaps[0]["gaps"][0]["goal"],
         "gap_p": d.gaps[0]["gaps"][0]["p"],
-        # the model class stage (:mod:`.stages`): None when the model was not too certain for the world
-        "stage": None if d.stage is None else {"refit": d.stage["refit"]},
+        # the model class stage (:mod:`.stages`): None when the model was not too certain for the world;
+        # the goals' mean normalised W1 before and after the refit (None without one), so a rule on
+        # how much the refit alone closes the gap can be judged from the results
+        "stage": None if d.stage is None else {k: d.stage[k] for k in ("refit", "mean_w1_before", "mean_w1_after")},
     }
     if d.shrink:
         b, a = d.shrink["before"], d.shrink["after"][0]
