@@ -15,11 +15,31 @@ import numpy as np
 BENCH = Path(__file__).resolve().parents[1] / "benchmarks" / "fidelity_real.py"
 
 
-def test_the_smoke_run_scores_every_version_over_several_simulations(real_dir, tmp_path, monkeypatch):
+def load_bench(monkeypatch):
     spec = importlib.util.spec_from_file_location("fidelity_real", BENCH)
     bench = importlib.util.module_from_spec(spec)
     monkeypatch.setitem(sys.modules, "fidelity_real", bench)  # its dataclasses look their module up there
     spec.loader.exec_module(bench)
+    return bench
+
+
+def test_the_headline_interval_resamples_the_trained_models(monkeypatch):
+    bench = load_bench(monkeypatch)
+
+    def cells(per_model):
+        return [{"per_x": {x: {"kld": v} for x in bench.ALL_X}} for v in per_model]
+
+    same = bench.mean_kld_interval(cells([1.3] * 6))
+    assert np.allclose(same, 1.3)  # no spread between models, none in the headline
+    lo, hi = bench.mean_kld_interval(cells([1.0, 1.5, 2.0, 16.0, 0.8, 1.2]))
+    headline = float(np.exp(np.mean(np.log([1.0, 1.5, 2.0, 16.0, 0.8, 1.2]))))
+    assert lo < headline < hi and hi > 2 * lo  # one model at 16 makes a headline from 6 models uncertain
+    assert all(math.isnan(v) for v in bench.mean_kld_interval(cells([1.0, 2.0])))  # too few to resample
+    assert all(math.isnan(v) for v in bench.mean_kld_interval(cells([1.0, 2.0, math.inf])))
+
+
+def test_the_smoke_run_scores_every_version_over_several_simulations(real_dir, tmp_path, monkeypatch):
+    bench = load_bench(monkeypatch)
     out = tmp_path / "f.json"
     assert bench.main(["--quick", "--sim-seeds", "3", "--data", str(real_dir), "--out", str(out)]) == 0
     report = json.loads(out.read_text())
@@ -28,6 +48,7 @@ def test_the_smoke_run_scores_every_version_over_several_simulations(real_dir, t
     (dof,) = bc["noise_dof"]
     assert dof and 3 <= dof[0] <= 30  # lane keeping's description fits Student-t tails
     assert set(rows) == {"random", "bc-gaussian", "bc-gaussian:normal-draws"}
+    assert all(math.isnan(v) for v in bc["kld_mean_ci95"])  # one model: no interval, rather than a fake one
     for cell in report["cells"]:
         for x, per in cell["per_x"].items():
             seeds = per["kld_per_sim_seed"]
@@ -37,3 +58,27 @@ def test_the_smoke_run_scores_every_version_over_several_simulations(real_dir, t
     assert paired[0]["train_seconds"] == paired[1]["train_seconds"]  # one training, scored both ways
     assert paired[0]["per_x"]["10"]["kld_per_sim_seed"] != paired[1]["per_x"]["10"]["kld_per_sim_seed"]
     assert report["real_vs_real"]["10"]["shifts"] == 40
+
+
+def test_a_seed_ensemble_draws_each_run_from_one_of_the_folds_models(real_dir, tmp_path, monkeypatch):
+    bench = load_bench(monkeypatch)
+    calls = []
+    real_simulate = bench.simulate_versions
+
+    def recording(ckpt, logs, **kw):
+        calls.append((id(ckpt), len(logs)))
+        return real_simulate(ckpt, logs, **kw)
+
+    monkeypatch.setattr(bench, "simulate_versions", recording)
+    out = tmp_path / "e.json"
+    argv = ["--algorithms", "bc-gaussian", "--n", "3", "--folds", "1", "--seeds", "2", "--epochs", "2"]
+    assert bench.main([*argv, "--ensemble", "--sim-seeds", "1", "--data", str(real_dir), "--out", str(out)]) == 0
+    report = json.loads(out.read_text())
+    (ens,) = [c for c in report["cells"] if c["algorithm"] == "bc-gaussian:seed-ensemble"]
+    assert ens["members"] == 2 and all(per["runs"] == [10, 10] for per in ens["per_x"].values())
+    singles = [c for c in report["cells"] if c["algorithm"] == "bc-gaussian"]
+    assert ens["train_seconds"] == sum(c["train_seconds"] for c in singles)
+    # 2 members and their normal-draw twins: whole test blocks (5 versions x 4); the ensemble: 5 blocks split in 2
+    whole, split = calls[:20], calls[20:]
+    assert all(n == 10 for _, n in whole)
+    assert len({who for who, _ in split}) == 2 and sum(n for _, n in split) == 5 * 10
