@@ -284,6 +284,7 @@ def test_the_shipped_procedure_trains_with_the_defaults_and_refits_a_model_too_c
     assert shipped["procedure"] == "shipped" and stage["refit"] is True, shipped
     assert stage["mean_w1_before"] > 0 and stage["mean_w1_after"] > 0, stage
     assert shipped["top"] == "memory_delay" and "quantisation" not in shipped["significant"], shipped
+    assert shipped["gap_significant"] is True, shipped  # a finding is named only beyond a significant gap
     tuned = trial(BY_NAME["lag"], seed=0, size=TINY, shrink=False, world="diffdrive", procedure="as-tuned")
     assert tuned["procedure"] == "as-tuned" and tuned["stage"]["refit"] is False, tuned
     assert tuned["stage"]["mean_w1_before"] > 0 and tuned["stage"]["mean_w1_after"] is None, tuned

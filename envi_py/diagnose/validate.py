@@ -289,6 +289,9 @@ def trial(
         "gap_ratio": d.gaps[0]["gaps"][0]["ratio"],
         "gap_goal": d.gaps[0]["gaps"][0]["goal"],
         "gap_p": d.gaps[0]["gaps"][0]["p"],
+        # the closed-loop gap test the findings were gated on (of the refit, when the stage refitted):
+        # with "stage", whether a refit alone left no gap can be read from the results
+        "gap_significant": bool(d.gap_test["significant"]),
         # the model class stage (:mod:`.stages`): None when the model was not too certain for the world;
         # the goals' mean normalised W1 before and after the refit (None without one), so a rule on
         # how much the refit alone closes the gap can be judged from the results
