@@ -105,6 +105,10 @@ CSV_CASES: dict[str, Callable[[], bytes]] = {
     "column twice": lambda: "\n".join(["time,color,color"] + LINES[1:]).encode(),
     "header name blank": lambda: "\n".join(["time,,angle"] + LINES[1:]).encode(),
     "shorter than the history": lambda: "\n".join(LINES[: HISTORY - 2]).encode(),
+    "header only": lambda: (LINES[0] + "\n").encode(),
+    "column the system does not declare": lambda: "\n".join(
+        [LINES[0] + ",foo"] + [line + ",1" for line in LINES[1:]]
+    ).encode(),
     "empty file": lambda: b"",
     "NUL bytes": lambda: "\n".join(LINES).encode().replace(b"\n4", b"\n\x004", 1),
     "not UTF-8": lambda: "\n".join(LINES).encode().replace(b"color", b"col\xf6r", 1),
@@ -394,3 +398,38 @@ def test_metrics_json_is_strict(model, init_log, tmp_path):
 
     out = json.loads(done.stdout, parse_constant=refuse)
     assert len(out["per_run"]) == 3 and out["config"]["centre"] == 40.0
+
+
+def test_both_readers_take_the_columns_the_system_description_declares(tmp_path):
+    """Without a sidecar a log holds what the model's recorded system description declares: its
+    states and actions, its logged columns (required), and may hold its ignored ones; any other
+    column is refused by both readers, as a missing logged one is."""
+    from dataclasses import replace
+
+    from envi_py.system import Channel, lane_keeping
+
+    base = lane_keeping()
+    system = replace(base, schema=replace(base.schema, logged=(Channel("steer_p", "deg"),)), ignore=("note",))
+    model = export(replace(paper_ckpt(), system=system), tmp_path / "sys.onnx")
+    rows = [f"{line},{k % 7},x" for k, line in enumerate(LINES[1:])]
+
+    def both(header: str, body: list[str], name: str) -> tuple[str | None, subprocess.CompletedProcess]:
+        folder = tmp_path / name
+        folder.mkdir()
+        path = folder / "log_30_0.csv"
+        path.write_text("\n".join([header, *body]) + "\n")
+        try:
+            load_logs([path], system, min_length=HISTORY)
+            python = None
+        except ValueError as err:
+            python = str(err)
+        return python, run_sim(model, [path], folder)
+
+    python, done = both(LINES[0] + ",steer_p,note", rows, "declared")
+    assert python is None and done.returncode == 0, (python, done.stderr)
+    python, done = both(LINES[0] + ",steer_p,foo", rows, "undeclared")
+    assert python is not None and "unexpected column(s) foo" in python
+    assert "unexpected column(s) foo" in assert_refused(done, tmp_path / "undeclared", "log_30_0.csv")
+    python, done = both(LINES[0] + ",note", [r.rsplit(",", 2)[0] + ",x" for r in rows], "no-logged")
+    assert python is not None and "missing column(s) steer_p" in python
+    assert "missing column(s) steer_p" in assert_refused(done, tmp_path / "no-logged", "log_30_0.csv")

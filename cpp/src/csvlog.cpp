@@ -229,6 +229,13 @@ std::vector<LogChannel> channel_list(const Json& schema, const char* key) {
   return out;
 }
 
+// The model's recorded system description (metadata envi.system), null when it has none.
+Json system_of(const Model& m) {
+  for (const auto& kv : m.metadata)
+    if (kv.first == "envi.system") return Json::parse(kv.second);
+  return Json();
+}
+
 // The model's states and actions with their ranges, and whether each saturates (its envi.schema).
 std::vector<LogChannel> model_channels(const Model& m) {
   std::vector<LogChannel> out;
@@ -366,6 +373,15 @@ InitialWindow read_initial_window(const std::string& path, const Model& model) {
   struct stat st {};
   const bool has_side = ::lstat(side.c_str(), &st) == 0;
   std::vector<LogChannel> channels = model_channels(model), declared = channels;
+  // The system description the model was trained on (envi.system; null in older exports): as
+  // envi_py.logs reads a log, its logged columns belong to the log and its ignored ones may be there.
+  const Json system = system_of(model);
+  std::vector<std::string> ignored;
+  if (!system.is_null()) {
+    if (const Json* ig = system.find("ignore"); ig && ig->type == Json::Type::Array)
+      for (const Json& name : ig->array)
+        if (name.type == Json::Type::String) ignored.push_back(name.string);
+  }
   long last_break = 0;
   if (has_side) {
     Sidecar meta = read_sidecar(side);
@@ -379,6 +395,10 @@ InitialWindow read_initial_window(const std::string& path, const Model& model) {
     declared.insert(declared.end(), meta.logged.begin(), meta.logged.end());
     if (!meta.run_id.empty()) win.run_id = meta.run_id;
     last_break = meta.last_break;
+  } else if (!system.is_null()) {
+    const Json* schema = system.find("schema");
+    if (schema && schema->type == Json::Type::Object)
+      for (const LogChannel& c : channel_list(*schema, "logged")) declared.push_back(c);
   }
   if (!is_run_id(win.run_id)) fail(path, "run_id " + quoted(win.run_id) + " is not a plain name (letters, digits, '.', '_', '-')");
 
@@ -407,10 +427,12 @@ InitialWindow read_initial_window(const std::string& path, const Model& model) {
   for (const auto& c : declared) expected.push_back(c.name);
   for (const auto& w : expected)
     if (std::find(header.begin(), header.end(), w) == header.end()) missing.push_back(w);
-  // Without a sidecar the system's logged and ignored columns are unknown here: extra ones pass.
-  if (has_side)
-    for (const auto& h : header)
-      if (std::find(expected.begin(), expected.end(), h) == expected.end()) extra.push_back(h);
+  // As envi_py.logs: any other column is refused (a model exported without a system description
+  // has no logged or ignored ones).
+  for (const auto& h : header)
+    if (std::find(expected.begin(), expected.end(), h) == expected.end() &&
+        std::find(ignored.begin(), ignored.end(), h) == ignored.end())
+      extra.push_back(h);
   if (!missing.empty() || !extra.empty()) {
     std::vector<std::string> parts;
     if (!missing.empty()) parts.push_back("missing column(s) " + join(missing, ", "));
@@ -436,7 +458,7 @@ InitialWindow read_initial_window(const std::string& path, const Model& model) {
     row_of.push_back(row);
   }
   const long n = long(row_of.size());
-  if (last_break >= n)
+  if (last_break > 0 && last_break >= n)
     fail(path, "its sidecar marks a break at row " + std::to_string(last_break) + ", but the log has " + std::to_string(n) + " rows");
   if (n < std::max(model.history, 1))
     fail(path, std::to_string(n) + " data rows, shorter than the " + std::to_string(model.history) + " the history window needs");

@@ -3,7 +3,9 @@
 //
 // The reader refuses what envi_py.logs.read_log refuses, with the same kind of one-line message
 // naming the file (and row and column): a file that is not a regular UTF-8 text file, a bad
-// header, a short or non-numeric row anywhere in the file, a time that does not increase, a value
+// header (a missing column, or one that neither the sidecar nor the model's recorded system
+// description declares: its logged columns are required, its ignored ones may be there), a short
+// or non-numeric row anywhere in the file, a time that does not increase, a value
 // outside its channel's declared range (a saturating sensor's is clipped), a run id that is not a
 // plain file name, and a sidecar that is not what LogMeta.from_json accepts.
 // tests/test_envi_sim_bad_input.py keeps the two readers from drifting apart.
