@@ -412,6 +412,11 @@ def cmd_verify(args: argparse.Namespace) -> int:
     real = read_logs(args, "real")
     sim = load_logs(args.sim, skip_bad=args.skip_bad)
     unknown = [lg for lg in sim if lg.meta.controller is None]
+    if unknown and len(unknown) == len(sim):  # real logs given as --sim, most likely
+        raise ValueError(
+            f"{unknown[0].path or unknown[0].name}: none of the {len(sim)} --sim log(s) says its controller "
+            "version (no sidecar): --sim takes what envi simulate wrote, real logs go to --real"
+        )
     if unknown:  # a simulated log whose sidecar went missing: its version cannot be told
         print(
             f"envi verify: note: {len(unknown)} simulated run(s) (e.g. {unknown[0].path or unknown[0].name}) do not "

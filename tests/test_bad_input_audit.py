@@ -426,3 +426,11 @@ def test_a_measured_period_a_little_off_the_nominal_is_not_another_period(lane_l
     side = sorted(d.glob("*.meta.json"))[-1]
     side.write_text(side.read_text().replace('"period_ms": 40.0', '"period_ms": 41.0'))
     assert len(load_logs(d)) == len(load_logs(lane_logs))
+
+
+def test_verify_names_real_logs_given_as_simulated_ones(real_dir: Path):
+    """Real logs (no sidecar) given as --sim: one line naming a file and what --sim takes, not a
+    note about unscored runs followed by an error that names nothing."""
+    argv = ["verify", "--real", str(real_dir), "--pattern", "log_{x}_{run}.csv", "--sim", str(real_dir)]
+    line = assert_one_line(*run_cli(argv), "verify", real_dir)
+    assert "no sidecar" in line and "--sim takes what envi simulate wrote" in line
