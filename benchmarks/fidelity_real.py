@@ -244,14 +244,14 @@ def ensemble_cell(
     parts = {x: blocks(by_x[x], fold, args.folds, n, args.val, args.test, x in TRAIN_X) for x in ALL_X}
 
     def simulate(test: list[Log], seed: int) -> list[Log]:
+        """Each test log's runs from one member picked at random (the comparison is of sets of runs:
+        their order does not matter)."""
         pick = np.random.default_rng(seed).integers(0, len(members), len(test))
-        runs: list[Log | None] = [None] * len(test)
+        runs: list[Log] = []
         for m, member in enumerate(members):
-            idx = np.flatnonzero(pick == m).tolist()
-            if idx:
-                sims = simulate_versions(member, [test[i] for i in idx], runs=args.sim_runs, seed=seed + m)
-                for i, lg in zip(idx, sims):
-                    runs[i] = lg
+            starts = [test[i] for i in np.flatnonzero(pick == m)]
+            if starts:
+                runs += simulate_versions(member, starts, runs=args.sim_runs, seed=seed + m, engine="torch")
         return runs
 
     return {
