@@ -410,7 +410,9 @@ def read_log(
     except csv.Error as exc:
         raise LogError(f"{path}: not a valid CSV file ({exc})") from None
     n = data.shape[0]
-    if n < max(min_length, 1):
+    if n == 0:
+        raise LogError(f"{path}: no data rows (only a header)")
+    if n < min_length:
         raise LogError(f"{path}: {n} data rows, shorter than the {min_length} the history window needs")
     dt = np.diff(data[:, 0])
     bad = np.nonzero(dt <= 0)[0]

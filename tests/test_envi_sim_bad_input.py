@@ -125,6 +125,8 @@ def test_a_corrupted_log_is_refused_by_both_readers(case, model, tmp_path):
     assert str(path) in python and "\n" not in python
     native = assert_refused(run_sim(model, [path], tmp_path), tmp_path, str(path))
     assert_same_row(python, native)
+    if case == "header only":  # the problem itself, not a window length or a break that is not there
+        assert "no data rows (only a header)" in python and "no data rows (only a header)" in native
 
 
 def test_the_uncorrupted_log_passes_both_readers(model, tmp_path):

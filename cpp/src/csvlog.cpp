@@ -460,7 +460,8 @@ InitialWindow read_initial_window(const std::string& path, const Model& model) {
   const long n = long(row_of.size());
   if (last_break > 0 && last_break >= n)
     fail(path, "its sidecar marks a break at row " + std::to_string(last_break) + ", but the log has " + std::to_string(n) + " rows");
-  if (n < std::max(model.history, 1))
+  if (n == 0) fail(path, "no data rows (only a header)");
+  if (n < model.history)
     fail(path, std::to_string(n) + " data rows, shorter than the " + std::to_string(model.history) + " the history window needs");
   for (long r = 1; r < n; ++r)
     if (!(data[size_t(r) * width] > data[size_t(r - 1) * width]))
