@@ -229,30 +229,20 @@ std::vector<LogChannel> channel_list(const Json& schema, const char* key) {
   return out;
 }
 
-// The model's recorded system description (metadata envi.system), null when it has none.
-Json system_of(const Model& m) {
-  for (const auto& kv : m.metadata)
-    if (kv.first == "envi.system") return Json::parse(kv.second);
-  return Json();
-}
-
 // The model's states and actions with their ranges, and whether each saturates (its envi.schema).
 std::vector<LogChannel> model_channels(const Model& m) {
   std::vector<LogChannel> out;
   for (const auto& c : m.states) out.push_back({c.name, c.low, c.high, false});
   for (const auto& c : m.actions) out.push_back({c.name, c.low, c.high, false});
-  for (const auto& kv : m.metadata) {
-    if (kv.first != "envi.schema") continue;
-    Json schema = Json::parse(kv.second);
-    size_t k = 0;
-    for (const char* key : {"states", "actions"})
-      if (const Json* list = schema.find(key))
-        for (const Json& c : list->array) {
-          const Json* sat = c.find("saturates");
-          if (k < out.size() && sat && sat->type == Json::Type::Bool) out[k].saturates = sat->boolean;
-          ++k;
-        }
-  }
+  const Json schema = Json::parse(m.metadata_value("envi.schema"));
+  size_t k = 0;
+  for (const char* key : {"states", "actions"})
+    if (const Json* list = schema.find(key))
+      for (const Json& c : list->array) {
+        const Json* sat = c.find("saturates");
+        if (k < out.size() && sat && sat->type == Json::Type::Bool) out[k].saturates = sat->boolean;
+        ++k;
+      }
   return out;
 }
 
@@ -375,13 +365,11 @@ InitialWindow read_initial_window(const std::string& path, const Model& model) {
   std::vector<LogChannel> channels = model_channels(model), declared = channels;
   // The system description the model was trained on (envi.system; null in older exports): as
   // envi_py.logs reads a log, its logged columns belong to the log and its ignored ones may be there.
-  const Json system = system_of(model);
+  const Json system = Json::parse(model.metadata_value("envi.system"));
   std::vector<std::string> ignored;
-  if (!system.is_null()) {
-    if (const Json* ig = system.find("ignore"); ig && ig->type == Json::Type::Array)
-      for (const Json& name : ig->array)
-        if (name.type == Json::Type::String) ignored.push_back(name.string);
-  }
+  if (const Json* ig = system.find("ignore"); ig && ig->type == Json::Type::Array)
+    for (const Json& name : ig->array)
+      if (name.type == Json::Type::String) ignored.push_back(name.string);
   long last_break = 0;
   if (has_side) {
     Sidecar meta = read_sidecar(side);
@@ -395,10 +383,8 @@ InitialWindow read_initial_window(const std::string& path, const Model& model) {
     declared.insert(declared.end(), meta.logged.begin(), meta.logged.end());
     if (!meta.run_id.empty()) win.run_id = meta.run_id;
     last_break = meta.last_break;
-  } else if (!system.is_null()) {
-    const Json* schema = system.find("schema");
-    if (schema && schema->type == Json::Type::Object)
-      for (const LogChannel& c : channel_list(*schema, "logged")) declared.push_back(c);
+  } else if (const Json* schema = system.find("schema"); schema && schema->type == Json::Type::Object) {
+    for (const LogChannel& c : channel_list(*schema, "logged")) declared.push_back(c);
   }
   if (!is_run_id(win.run_id)) fail(path, "run_id " + quoted(win.run_id) + " is not a plain name (letters, digits, '.', '_', '-')");
 

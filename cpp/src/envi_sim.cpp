@@ -195,12 +195,6 @@ Json obj(std::vector<std::pair<std::string, Json>> kv) {
   return j;
 }
 
-std::string metadata(const Model& m, const std::string& key) {
-  for (const auto& kv : m.metadata)
-    if (kv.first == key) return kv.second;
-  return "null";
-}
-
 // Forwards every row to a chunk's trace buffer and/or the metrics.
 class ChunkSink : public Sink {
  public:
@@ -260,7 +254,7 @@ std::string controller_option(const Args& a) {
 // model's only training controller (its envi.controllers metadata). Its numbers must be finite.
 Json controller_spec(const Args& a, const Model& m) {
   if (a.controller.empty() && a.controller_file.empty()) {
-    Json list = Json::parse(metadata(m, "envi.controllers"));
+    Json list = Json::parse(m.metadata_value("envi.controllers"));
     size_t n = list.type == Json::Type::Array ? list.array.size() : 0;
     if (n != 1)
       throw std::invalid_argument(a.model + ": the model records " + std::to_string(n) +
@@ -307,7 +301,7 @@ struct Group {
 // (its description in the metadata names no such preset) declares other goals, which envi verify
 // and envi check score from traces; scoring it with lane metrics would report figures about nothing.
 void check_metrics_apply(const Model& m, const std::string& path) {
-  Json system = Json::parse(metadata(m, "envi.system"));
+  Json system = Json::parse(m.metadata_value("envi.system"));
   if (system.is_null()) return;  // exported before descriptions were recorded: the lane-keeping robot
   const Json* preset = system.find("preset");
   if (preset && !preset->is_null() && preset->as_string() == "lane-keeping") return;
@@ -611,10 +605,10 @@ int run(const Args& a) {
   long replaced = 0;
   std::vector<double> sums(8, 0.0), traces;
   MetricRows mrows;
-  const std::string schema = metadata(m, "envi.schema");
+  const std::string schema = m.metadata_value("envi.schema");
   Json schema_json = Json::parse(schema);
   // a simulated log's provenance, as envi_py.simulate.iter_simulate writes it (without its 'engine')
-  const Json layers = Json::parse(metadata(m, "envi.layers"));
+  const Json layers = Json::parse(m.metadata_value("envi.layers"));
   auto provenance = [&](const std::string& init_log, long replicate) {
     Json p = obj({{"init_log", str(init_log)},
                   {"model_algorithm", str(m.algorithm)},

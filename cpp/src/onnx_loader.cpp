@@ -973,6 +973,12 @@ std::string content_sha256(const uint8_t* data, size_t size) {
   return content_digest(file.graph, file.metadata);
 }
 
+std::string Model::metadata_value(const std::string& key) const {
+  for (const auto& kv : metadata)
+    if (kv.first == key) return kv.second;
+  return "null";
+}
+
 int Model::max_width() const {
   long w = in_features();
   for (const auto* layers : {&trunk, &mean, &log_std, &event})

@@ -107,6 +107,8 @@ struct Model {
   int in_features() const { return window_features() + context_features(); }
   bool gaussian() const { return !log_std.empty(); }
   int max_width() const;
+  // The stored text (JSON) of metadata `key`, "null" when the file has none.
+  std::string metadata_value(const std::string& key) const;
 };
 
 // Parse and compile an ONNX file's bytes; throws ModelError.
