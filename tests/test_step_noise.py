@@ -17,21 +17,12 @@ from envi_py.model import Checkpoint, ModelConfig
 from envi_py.simulate import rollout
 from envi_py.system import TrainingDefaults, load_system
 from envi_py.train import train
-from envi_py.train.step_noise import dof_log_likelihoods, fit_noise_dof
+from envi_py.simulate import simulate_versions
+from envi_py.train.step_noise import CANDIDATES, fit_noise_dof, third_differences
 from envi_py.twin import TwinProfile, generate
 
 from .test_export import paper_ckpt, with_metadata
 from .test_native import LANE, windows
-
-
-@pytest.mark.parametrize("nu, low, high", [(4, 3, 6), (8, 6, 12)])
-def test_the_fit_finds_the_degrees_of_freedom_of_known_errors(nu, low, high):
-    rng = np.random.default_rng(0)
-    errors = stats.t.rvs(df=nu, size=4000, random_state=rng) * np.sqrt((nu - 2) / nu)
-    ll = dof_log_likelihoods(errors)
-    assert low <= max(ll, key=ll.get) <= high
-    normal = dof_log_likelihoods(rng.standard_normal(4000))
-    assert max(normal, key=normal.get) == 0 or max(normal, key=normal.get) >= 20
 
 
 def test_student_t_draws_have_unit_variance_and_heavy_tails():
@@ -89,7 +80,8 @@ def test_training_fits_the_shape_on_the_validation_logs_and_records_it(lane_logs
     ck = train("bc", fit, val, seed=0, epochs=3, hidden=(16,), step_noise="student-t")
     record = ck.record.selection["step_noise"]
     assert record["on"] == "validation" and record["logs"] == [lg.name for lg in val]
-    assert record["states"][0]["windows"] == sum(len(lg) - 10 for lg in val)
+    assert record["states"][0]["real_differences"] == sum(len(lg) - 10 - 3 for lg in val)
+    assert set(record["states"][0]["ks"]) == {str(nu) for nu in CANDIDATES}
     assert ck.config.noise_dof == ((record["states"][0]["dof"],) if record["states"][0]["dof"] else ())
     dof, again = fit_noise_dof(ck, val)
     assert again["states"] == record["states"]
@@ -119,3 +111,40 @@ def test_the_description_sets_the_shape_and_the_command_line_wins(lane_logs, tmp
         assert Checkpoint.load(out).record.hyper["step_noise"] == want
     assert main([*base, "--head", "deterministic", "--step-noise", "student-t", "-o", str(tmp_path / "d.pt")]) == 2
     assert "a Gaussian head's draws" in capsys.readouterr().err
+
+
+@pytest.fixture(scope="module")
+def small_model(lane_logs):
+    fit, val = lane_logs
+    return train("bc", fit, val, seed=0, epochs=20, hidden=(16,), step_noise="gaussian")
+
+
+@pytest.mark.parametrize("truth, low, high", [(3, 3, 4), (0, 12, 0)])
+def test_the_closed_loop_fit_finds_the_shape_of_a_world_that_is_the_model(small_model, lane_logs, truth, low, high):
+    """Logs simulated by the model itself with a known step-noise shape stand for the real ones: the
+    fit, simulating the same model from their sigma_0, finds that shape (a t3 as 3 or 4; normal draws
+    as the normal or a t of 12 or more) and leaves the model's own shape as it was. 160 world logs: with
+    48 the fit took a t4 world for a t12 once in three seeds."""
+    ck = small_model
+    ck.config.noise_dof = (truth,) if truth else ()
+    world = simulate_versions(ck, lane_logs[0] + lane_logs[1], runs=20, seed=123)
+    ck.config.noise_dof = ()
+    dof, record = fit_noise_dof(ck, world)
+    assert ck.config.noise_dof == ()
+    got = dof[0]
+    if truth:
+        assert low <= got <= high, record
+    else:
+        assert got == 0 or got >= low, record
+
+
+def test_third_differences_leave_out_limit_readings_and_breaks():
+    from envi_py.logs import Log, LogMeta
+
+    states = np.array([[0.0], [1.0], [3.0], [6.0], [10.0], [15.0], [255.0], [21.0], [28.0], [36.0]])
+    log = Log(None, np.arange(10) * 40.0, states, np.zeros((10, 1)), LogMeta(breaks=(8,)))
+    # differences start at rows 0..6: those at 5, 6 span the break before row 8, those at 3..6 touch
+    # the 255 of row 6; rows 0..5 are triangular numbers, whose third difference is 0
+    assert third_differences([log], 0, 0, [255.0]).tolist() == [0.0, 0.0, 0.0]
+    assert len(third_differences([log], 0, 0, [])) == 5
+    assert len(third_differences([log], 0, 4, [])) == 1  # from row 4: starts 4..6, not 5 or 6
