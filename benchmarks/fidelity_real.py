@@ -24,7 +24,7 @@ the real-vs-real level is likewise a geometric mean of single comparisons); the 
 of those over the five versions, as in the issue's table. A model whose step noise is a Student-t is
 also scored with normal draws (``<name>:normal-draws``: the same model, paired); with ``--ensemble``
 each fold's models of every training seed are also scored as one seed ensemble
-(``<name>:seed-ensemble``, each run from a member picked at random; paired with its members). The
+(``<name>:seed-ensemble``, as ``envi train --members`` makes it; paired with its members). The
 headline carries a 95 % bootstrap interval over the trained models. W1 per goal metric (the paper's
 eight, divided by their possible range) and training wall time are reported beside it.
 """
@@ -41,7 +41,7 @@ import sys
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 import torch
@@ -50,6 +50,7 @@ from scipy import stats
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from envi_py.logs import Log, load_logs
+from envi_py.model import Checkpoint
 from envi_py.metrics import METRIC_NAMES, MetricConfig, distances, safety_comfort
 from envi_py.simulate import simulate_versions
 from envi_py.system import lane_keeping
@@ -236,24 +237,13 @@ def ensemble_cell(
     args: argparse.Namespace,
     cfg: MetricConfig,
 ) -> dict[str, Any]:
-    """The fold's models of every training seed as one seed ensemble (``--ensemble``): each simulated
-    run is drawn from one member picked at random, so the runs carry the spread between trainings
-    (what the few logs leave undecided) besides each model's step noise. Scored on the same test
-    blocks and simulation seeds as its members: paired with them. Not an envi feature yet; this
-    measures whether it would help."""
+    """The fold's models of every training seed as one seed ensemble (``--ensemble``), as envi ships
+    it (:meth:`Checkpoint.ensemble`, what ``envi train --members`` makes): each simulated run is
+    drawn by one member, so the runs carry the spread between trainings (what the few logs leave
+    undecided) besides each model's step noise. Scored on the same test blocks and simulation seeds
+    as its members: paired with them."""
     parts = {x: blocks(by_x[x], fold, args.folds, n, args.val, args.test, x in TRAIN_X) for x in ALL_X}
-
-    def simulate(test: list[Log], seed: int) -> list[Log]:
-        """Each test log's runs from one member picked at random (the comparison is of sets of runs:
-        their order does not matter)."""
-        pick = np.random.default_rng(seed).integers(0, len(members), len(test))
-        runs: list[Log] = []
-        for m, member in enumerate(members):
-            starts = [test[i] for i in np.flatnonzero(pick == m)]
-            if starts:
-                runs += simulate_versions(member, starts, runs=args.sim_runs, seed=seed + m, engine="torch")
-        return runs
-
+    ensemble = Checkpoint.ensemble(members)
     return {
         "algorithm": f"{name}{ENSEMBLE}",
         "n": n,
@@ -261,7 +251,7 @@ def ensemble_cell(
         "seed": None,
         "members": len(members),
         "train_seconds": train_seconds,  # the members' trainings: what an ensemble costs
-        "per_x": score(None, parts, 0, args, cfg, simulate),
+        "per_x": score(ensemble, parts, 0, args, cfg),
     }
 
 
@@ -271,16 +261,14 @@ def score(
     seed: int,
     args: argparse.Namespace,
     cfg: MetricConfig,
-    simulate: Callable[[list[Log], int], list[Log]] | None = None,
 ) -> dict:
     """Each version's comparison of its test block with as many simulated runs, over ``--sim-seeds``
     simulations: one simulated run per test log is one draw of a noisy statistic (single-seed KLDs
     of one model spread over 0.96-7.2 at x = 10). Their geometric mean is kept, so a model's figure is
     the geometric mean of single 10-vs-10 comparisons, as the real-vs-real level is."""
-    if simulate is None:
 
-        def simulate(test: list[Log], sim_seed: int) -> list[Log]:
-            return simulate_versions(ckpt, test, runs=args.sim_runs, seed=sim_seed, engine="torch")
+    def simulate(test: list[Log], sim_seed: int) -> list[Log]:
+        return simulate_versions(ckpt, test, runs=args.sim_runs, seed=sim_seed, engine="torch")
 
     out = {}
     for x in ALL_X:
@@ -502,7 +490,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument(
         "--ensemble",
         action="store_true",
-        help="also score each fold's models of every --seeds as one seed ensemble (each run from a random member)",
+        help="also score each fold's models of every --seeds as one seed ensemble (envi train --members)",
     )
     p.add_argument("--threads", type=int, default=1, help="torch threads (the machine is shared)")
     p.add_argument("--quick", action="store_true", help="smoke configuration: bc-gaussian, n=3, 1 fold, 20 epochs")

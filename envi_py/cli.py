@@ -33,7 +33,7 @@ from .logs import (
     write_log,
     write_manifest,
 )
-from .system import SystemDescription, load_system
+from .system import MAX_MEMBERS, SystemDescription, load_system
 from .twin.cli import register as register_twin
 
 if TYPE_CHECKING:  # torch is imported only once a command needs a model
@@ -213,11 +213,11 @@ def cmd_train(args: argparse.Namespace) -> int:
     import tempfile
 
     from .diagnose.data_quality import pauses
-    from .train import train
+    from .train import member_state_paths, train
     from .train.common import SelectionSettings
 
-    _positive(args, "epochs", "history", "eval_every", "select_runs")
-    _at_most(args, epochs=1_000_000, history=10_000, eval_every=1_000_000)
+    _positive(args, "epochs", "history", "eval_every", "select_runs", "members")
+    _at_most(args, epochs=1_000_000, history=10_000, eval_every=1_000_000, members=MAX_MEMBERS)
     try:
         hidden = [int(h) for h in args.hidden.split(",")]
     except ValueError:
@@ -278,6 +278,10 @@ def cmd_train(args: argparse.Namespace) -> int:
             kwargs["step_noise"] = args.step_noise
         if args.lr is not None:
             kwargs["lr"] = args.lr
+        if args.members is not None:  # else the system description's [training] default
+            kwargs["members"] = args.members
+    elif args.members not in (None, 1):
+        raise ValueError("--members: the random baseline has no training to repeat")
     if args.algorithm != "random":
         kwargs.update(state_path=state_path(Path(args.output)), resume=args.resume)
     elif args.resume:
@@ -300,14 +304,18 @@ def cmd_train(args: argparse.Namespace) -> int:
     )
     if losses is not None:
         losses.cleanup()
-    if args.algorithm != "random":
-        state_path(Path(args.output)).unlink(missing_ok=True)  # finished: nothing to resume
+    if args.algorithm != "random":  # finished: nothing to resume
+        for done in member_state_paths(state_path(Path(args.output)), ckpt.size):
+            done.unlink(missing_ok=True)
     sel = ckpt.record.selection
     if sel.get("warning"):
         print(f"envi train: warning: {sel['warning']}", file=sys.stderr)
+    epochs = [m.get("best_epoch", "-") for m in sel.get("members", [sel])]
+    what = f", {ckpt.size} members (seeds {args.seed}..{args.seed + ckpt.size - 1})" if ckpt.members else ""
     print(
-        f"trained {args.algorithm} on {len(logs)} logs ({len(val)} validation) in "
-        f"{time.perf_counter() - t0:.1f} s; selected epoch {sel.get('best_epoch', '-')}; saved {path}"
+        f"trained {args.algorithm}{what} on {len(logs)} logs "
+        f"({len(val)} validation) in {time.perf_counter() - t0:.1f} s; selected epoch "
+        f"{', '.join(map(str, epochs))}; saved {path}"
     )
     print("training curves: " + " ".join(str(p) for p in written.values()))
     return 0
@@ -647,8 +655,8 @@ def build_parser() -> argparse.ArgumentParser:
         choices=("gaussian", "student-t"),
         default=None,
         help="a Gaussian head's draws: normal, or a Student-t of the same variance whose tails are fitted "
-        "on the validation logs after training (default: the system description's [training] step_noise: "
-        "student-t for lane keeping, as measured; else gaussian)",
+        "after training, in closed loop on the validation logs (default: the system description's [training] "
+        "step_noise: student-t for lane keeping, as measured; else gaussian)",
     )
     p.add_argument(
         "--multistep",
@@ -670,6 +678,14 @@ def build_parser() -> argparse.ArgumentParser:
         type=int,
         default=10,
         help="validations without a better (smoothed) score before training stops before --epochs; 0: never",
+    )
+    p.add_argument(
+        "--members",
+        type=int,
+        default=None,
+        help="train a seed ensemble of this many models (seeds --seed onwards), each simulated run drawn by "
+        "one of them: runs then carry what the logs leave undecided between trainings (default: the "
+        "system description's [training] members, else 1)",
     )
     p.add_argument("--seed", type=seed_type, default=0, help="seed of initialisation and sampling")
     p.add_argument("--quiet", action="store_true", help="no progress bar")

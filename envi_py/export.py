@@ -233,6 +233,8 @@ def to_onnx(ckpt: Checkpoint) -> onnx.ModelProto:
     context (metadata ``envi.context``) the input ends with it, (N, l*C + 2|s|): each state's mean and
     population sd over sigma_0's l normalised rows (:func:`envi_py.dataset.context_of`)."""
     cfg = ckpt.config
+    if ckpt.members:  # one network per file: never member 0 in the ensemble's name
+        raise ValueError(f"a seed ensemble of {ckpt.size} members: export one member at a time (Checkpoint.member)")
     if cfg.kind != "mlp":
         raise ValueError(f"only MLP models can be exported, this one is {cfg.kind!r}")
     if cfg.extras:

@@ -19,6 +19,13 @@ def main(argv: list[str] | None = None) -> int:
         help="effect layers file (as envi diagnose writes it): embedded, so envi_sim and the native engine "
         "simulate the model with them",
     )
+    ap.add_argument(
+        "--member",
+        type=int,
+        default=None,
+        help="of a seed ensemble (envi train --members), the member to export (0..K-1): a file holds one "
+        "network, and envi_sim runs one model ('envi simulate --engine native' runs the whole ensemble)",
+    )
     args = ap.parse_args(argv)
     from .effect_layers import describe, read_layers
     from .export import OPSET, PARITY_TOL, export
@@ -26,6 +33,13 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         ckpt = Checkpoint.load(args.model)
+        if args.member is not None:
+            ckpt = ckpt.member(args.member)
+        elif ckpt.members:
+            raise ValueError(
+                f"{args.model}: a seed ensemble of {ckpt.size} members; an ONNX file holds one: "
+                f"export each with --member 0..{ckpt.size - 1}"
+            )
         if args.layers:
             ckpt = ckpt.with_layers(read_layers(args.layers))
         path = export(ckpt, args.output, check=not args.no_check)

@@ -263,13 +263,39 @@ class TrainingRecord:
     )
 
 
-def _content_hash(config: dict[str, Any], norm: dict[str, Any], state_dict: dict[str, torch.Tensor]) -> str:
-    """What a checkpoint's numbers hash to: a flipped byte anywhere in the weights is caught on load."""
+def _content_hash(
+    config: dict[str, Any],
+    norm: dict[str, Any],
+    state_dict: dict[str, torch.Tensor],
+    members: Sequence[dict[str, Any]] = (),
+) -> str:
+    """What a checkpoint's numbers hash to: a flipped byte anywhere in the weights is caught on load.
+    An ensemble's further ``members`` (config and state_dict each) are hashed after the first."""
     h = hashlib.sha256(json.dumps({"config": config, "norm": norm}, sort_keys=True, default=str).encode())
-    for k in sorted(state_dict):
-        h.update(k.encode())
-        h.update(state_dict[k].detach().cpu().contiguous().numpy().tobytes())
+    for m, (cfg, sd) in enumerate([(None, state_dict), *((m["config"], m["state_dict"]) for m in members)]):
+        if cfg is not None:
+            h.update(json.dumps({"member": m, "config": cfg}, sort_keys=True, default=str).encode())
+        for k in sorted(sd):
+            h.update(k.encode())
+            h.update(sd[k].detach().cpu().contiguous().numpy().tobytes())
     return h.hexdigest()
+
+
+def _members_agree(first: Checkpoint, members: Sequence[EnvModel]) -> None:
+    """Refuse ensemble members that would not read and say what ``first`` does: one configuration
+    (but for the step-noise shape each fits after training); schema and normaliser are shared."""
+    base = replace(first.config, noise_dof=())
+    for k, m in enumerate(members):
+        if replace(m.config, noise_dof=()) != base:
+            raise ValueError(f"member {k} reads or says other things than member 0 (another configuration)")
+
+
+def _env_model(config: dict[str, Any], state_dict: dict[str, torch.Tensor]) -> EnvModel:
+    """A saved model's network: its config (lists as tuples) and weights."""
+    cfg = dict(config, hidden=tuple(config["hidden"]), extras=tuple(config.get("extras", ())))
+    model = EnvModel(ModelConfig(**cfg))
+    model.load_state_dict(state_dict)
+    return model
 
 
 def load_torch_file(path: Path, missing: str, foreign: str, *, reason: bool = True) -> Any:
@@ -300,6 +326,14 @@ class Checkpoint:
 
     ``layers`` are effect layers simulated around the learnt model (:mod:`envi_py.effect_layers`):
     they are not saved with it (a layers file travels beside it, and the export embeds them).
+
+    ``members`` makes it a seed ensemble: models of one configuration trained on the same logs from
+    different seeds (``model`` is the first), each simulated run drawn by one member
+    (:func:`envi_py.simulate.rollout`). Why: where logs are few the trainings disagree, and a single
+    model's runs carry its own step noise but not that disagreement; on the real lane-keeping logs
+    three members' runs scored a KLD 0.59-0.92x their members' at n = 1-20 (README, "Fidelity on the
+    real logs"). Empty for a single model. One-step consumers (training, the diagnosis, HIL) use
+    :meth:`member` to pick one.
     """
 
     model: EnvModel
@@ -308,10 +342,48 @@ class Checkpoint:
     record: TrainingRecord
     system: SystemDescription | None = None
     layers: tuple[Layer, ...] = ()
+    members: tuple[EnvModel, ...] = ()
 
     @property
     def config(self) -> ModelConfig:
         return self.model.config
+
+    @property
+    def size(self) -> int:
+        """How many models simulate runs: the ensemble's members, 1 for a single model."""
+        return max(1, len(self.members))
+
+    def member(self, k: int) -> Checkpoint:
+        """Member ``k`` as a single model (normaliser, schema, record and layers shared, not copied)."""
+        if not 0 <= k < self.size:
+            raise ValueError(f"member {k}: the model has {self.size} member(s), numbered 0..{self.size - 1}")
+        return replace(self, model=(self.members or (self.model,))[k], members=())
+
+    @staticmethod
+    def ensemble(checkpoints: Sequence[Checkpoint]) -> Checkpoint:
+        """One seed ensemble of single models trained on the same logs, in the order given. They must
+        read and say the same (schema, normaliser, configuration but for the fitted step-noise shape);
+        the record is the first's, with each member's seed and selection under ``selection["members"]``."""
+        if not checkpoints:
+            raise ValueError("an ensemble needs at least one member")
+        first = checkpoints[0]
+        if len(checkpoints) == 1:
+            return first
+        for k, ck in enumerate(checkpoints):
+            if ck.members:
+                raise ValueError(f"member {k} is itself an ensemble")
+            if ck.schema.to_json() != first.schema.to_json() or ck.norm.to_json() != first.norm.to_json():
+                raise ValueError(f"member {k} reads or says other things than member 0 (trained on other logs?)")
+        _members_agree(first, [ck.model for ck in checkpoints])
+        record = replace(first.record, hyper={**first.record.hyper, "members": len(checkpoints)})
+        record.selection = {
+            **first.record.selection,
+            "members": [{"seed": ck.record.seed, **ck.record.selection} for ck in checkpoints],
+        }
+        warnings = [f"member {k}: {w}" for k, ck in enumerate(checkpoints) if (w := ck.record.selection.get("warning"))]
+        if warnings:
+            record.selection["warning"] = "; ".join(warnings)
+        return replace(first, record=record, members=tuple(ck.model for ck in checkpoints))
 
     def with_layers(self, layers: Sequence[Layer]) -> Checkpoint:
         """The same learnt model (shared, not copied) simulated with ``layers`` around it."""
@@ -466,6 +538,8 @@ class Checkpoint:
         """One step of the model on its input (B, in_features): the physical next states (B, |s|),
         sampled when the head is Gaussian and a generator is given, else the mean (and limit
         events where likelier than not)."""
+        if self.members:  # never member 0 silently: which member steps a run is the caller's draw
+            raise ValueError(f"an ensemble of {self.size} members steps one member at a time (Checkpoint.member)")
         z, events = self.model.eval().step(x, generator)
         return self.decode_states(z.numpy(), None if events is None else events.numpy())
 
@@ -497,9 +571,11 @@ class Checkpoint:
     def check_finite(self, where: str) -> None:
         """Weights and normaliser must be finite, with non-empty ranges: a model with a NaN weight
         would be scored as a perfect steady state."""
-        for k, v in self.model.state_dict().items():
-            if not torch.isfinite(v).all():
-                raise ValueError(f"{where}: damaged model: weight {k!r} holds NaN or inf")
+        for m, model in enumerate(self.members or (self.model,)):
+            for k, v in model.state_dict().items():
+                if not torch.isfinite(v).all():
+                    who = f"member {m}'s weight" if self.members else "weight"
+                    raise ValueError(f"{where}: damaged model: {who} {k!r} holds NaN or inf")
         if not (
             np.isfinite(self.norm.low).all()
             and np.isfinite(self.norm.high).all()
@@ -514,6 +590,10 @@ class Checkpoint:
         cfg = asdict(self.config)
         norm = self.norm.to_json()
         state = {k: v.detach().clone() for k, v in self.model.state_dict().items()}
+        others = [
+            {"config": asdict(m.config), "state_dict": {k: v.detach().clone() for k, v in m.state_dict().items()}}
+            for m in self.members[1:]
+        ]
         blob = {
             "format": CHECKPOINT_FORMAT,
             "version": CHECKPOINT_VERSION,
@@ -523,7 +603,8 @@ class Checkpoint:
             "system": None if self.system is None else json.dumps(self.system.to_json()),
             "record": asdict(self.record),
             "state_dict": state,
-            "sha256": _content_hash(cfg, norm, state),
+            "members": others,  # the ensemble's further members (none for a single model)
+            "sha256": _content_hash(cfg, norm, state, others),
         }
         return atomic_write(path, lambda fh: torch.save(blob, fh))  # a reader never sees half a model
 
@@ -540,11 +621,11 @@ class Checkpoint:
         try:
             cfg = blob["config"]
             want = blob.get("sha256")
-            if want is not None and _content_hash(cfg, blob["norm"], blob["state_dict"]) != want:
+            others = blob.get("members") or []
+            if want is not None and _content_hash(cfg, blob["norm"], blob["state_dict"], others) != want:
                 raise ValueError("its content does not match its hash (a changed or corrupted file)")
-            cfg = dict(cfg, hidden=tuple(cfg["hidden"]), extras=tuple(cfg.get("extras", ())))
-            model = EnvModel(ModelConfig(**cfg))
-            model.load_state_dict(blob["state_dict"])
+            model = _env_model(cfg, blob["state_dict"])
+            members = (model, *(_env_model(m["config"], m["state_dict"]) for m in others)) if others else ()
             rec = TrainingRecord(**blob["record"])
             system = blob.get("system")
             ckpt = Checkpoint(
@@ -553,7 +634,10 @@ class Checkpoint:
                 LogSchema.from_json(blob["schema"]),
                 rec,
                 None if system is None else SystemDescription.from_json(json.loads(system)),
+                members=tuple(m.eval() for m in members),
             )
+            if members:
+                _members_agree(ckpt, members)
         except (KeyError, TypeError, RuntimeError, ValueError, AttributeError) as exc:
             raise ValueError(f"{path}: damaged envi checkpoint ({exc})") from None
         ckpt.check_finite(str(path))

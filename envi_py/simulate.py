@@ -8,7 +8,7 @@ is the reference; the native runtime implements the same loop and is tested agai
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -79,8 +79,14 @@ def rollout(
     ``mean`` simulates a stochastic model by its mean instead (no draws, limit events where likelier
     than not): one deterministic trajectory per window, what the model expects rather than what it samples.
     The checkpoint's effect layers (:mod:`envi_py.effect_layers`) act at every step, their draws
-    seeded apart from the model's.
+    seeded apart from the model's. A seed ensemble's runs are shared out among its members
+    (:func:`ensemble_rollout`).
     """
+    if ckpt.members:
+        members = [ckpt.member(m) for m in range(ckpt.size)]
+        return ensemble_rollout(
+            [lambda i, n, r, s, m=m: rollout(m, controller, i, n, r, s, mean) for m in members], init, steps, runs, seed
+        )
     cfg = ckpt.config
     k, hist, chans = window_shape(ckpt, init)
     if steps < 0:
@@ -109,6 +115,59 @@ def rollout(
         if view is not out:
             view[:, hist + t, :ns], view[:, hist + t, ns:] = s, layers.commands(out[:, hist + t, ns:])
         window.push(view[:, hist + t : hist + t + 1], hist + t)
+    return out
+
+
+#: (initial windows (K, l, C), steps, runs per window, seed) -> runs (K*runs, l+steps, C): one
+#: engine's rollout of one model
+Roll = Callable[[np.ndarray, int, int, int], np.ndarray]
+
+
+_MASK = (1 << 64) - 1
+
+
+def _splitmix64(state: int) -> tuple[int, int]:
+    """SplitMix64's next (state, value), as ``cpp/include/envi/ensemble.hpp`` computes it."""
+    state = (state + 0x9E3779B97F4A7C15) & _MASK
+    z = ((state ^ (state >> 30)) * 0xBF58476D1CE4E5B9) & _MASK
+    z = ((z ^ (z >> 27)) * 0x94D049BB133111EB) & _MASK
+    return state, z ^ (z >> 31)
+
+
+def members_of_runs(members: int, batch: int, seed: int) -> np.ndarray:
+    """Which member simulates each of ``batch`` runs: each member an equal share (to within one run),
+    in a seeded random order. Balanced rather than drawn independently, so 10 runs of 3 members are
+    never all of one; random so that which run a member gets does not follow the window order. A
+    Fisher-Yates shuffle of ``g mod members`` driven by SplitMix64, the very draws of ``envi_sim``'s
+    twin (``cpp/include/envi/ensemble.hpp``), so both give each run to the same member."""
+    pick = np.arange(batch) % members
+    state = int(seed) & _MASK
+    for i in range(batch - 1, 0, -1):
+        state, value = _splitmix64(state)
+        j = value % (i + 1)
+        pick[i], pick[j] = pick[j], pick[i]
+    return pick
+
+
+def ensemble_rollout(rolls: Sequence[Roll], init: np.ndarray, steps: int, runs: int, seed: int) -> np.ndarray:
+    """:func:`rollout`'s contract for a seed ensemble, ``rolls`` being each member's: run
+    ``k*runs + r`` from window k is simulated by the member :func:`members_of_runs` picks, each
+    member's runs together in one call with their own seed. Any engine's rollout fits, so the PyTorch
+    and native engines split runs alike."""
+    batch = len(init) * runs
+    if batch == 0:  # no run to share out: an empty batch behaves as a single model's does
+        return rolls[0](init, steps, runs, seed)
+    pick = members_of_runs(len(rolls), batch, seed)
+    out: np.ndarray | None = None
+    for m, roll in enumerate(rolls):
+        idx = np.flatnonzero(pick == m)
+        if not len(idx):
+            continue
+        part = roll(np.ascontiguousarray(init[idx // runs]), steps, 1, int(seed) + 15485863 * (m + 1))
+        if out is None:
+            out = np.empty((batch, *part.shape[1:]))
+        out[idx] = part
+    assert out is not None  # batch >= 1: some member ran
     return out
 
 
@@ -181,11 +240,13 @@ def iter_simulate(
     """
     hist = ckpt.config.history
     engine = choose_engine(ckpt, controller, engine, mean)
+    roll: Roll
     if engine == "native":
         from . import native
 
-        compiled = native.load(native.mean_model(ckpt) if mean else ckpt)
-        roll = lambda init, n, r, s: native.rollout(compiled, controller, init, n, r, s)  # noqa: E731
+        compiled = [native.load(native.mean_model(m) if mean else m) for m in map(ckpt.member, range(ckpt.size))]
+        rolls: list[Roll] = [lambda init, n, r, s, c=c: native.rollout(c, controller, init, n, r, s) for c in compiled]
+        roll = rolls[0] if len(rolls) == 1 else lambda init, n, r, s: ensemble_rollout(rolls, init, n, r, s)
     else:
         roll = lambda init, n, r, s: rollout(ckpt, controller, init, n, r, s, mean)  # noqa: E731
     by_len: dict[int, list[int]] = {}
@@ -222,6 +283,7 @@ def iter_simulate(
                             "seed": seed,
                             "replicate": r,
                             "engine": engine,
+                            **({"members": ckpt.size} if ckpt.members else {}),
                             **({"mean": True} if mean else {}),
                             **({"layers": layers_json(ckpt.layers)} if ckpt.layers else {}),
                         },

@@ -20,8 +20,9 @@ model can always say which signals it reads and writes. It declares
   everything that trains: demo, experiment) uses unless told otherwise: ``residual`` (the mean head
   predicts the change from the last reading), ``input_noise`` (behaviour cloning's window
   perturbation, in typical logged steps), ``step_noise`` (a Gaussian head's draws: ``gaussian``,
-  or ``student-t`` with tails fitted after training) and ``context`` (sigma_0's per-state mean and
-  spread as an input all run long, so a run keeps what its start showed of it).
+  or ``student-t`` with tails fitted after training), ``context`` (sigma_0's per-state mean and
+  spread as an input all run long, so a run keeps what its start showed of it) and ``members`` (a
+  seed ensemble of that many trainings, each simulated run drawn by one of them).
 
 The lane-keeping robot and the car following a lead vehicle are shipped descriptions
 (``envi_py/systems/*.toml``); ``envi init --logs DIR`` drafts one from a folder of logs.
@@ -172,6 +173,8 @@ class Versions:
 
 #: the shapes a Gaussian head's step noise may take (:mod:`envi_py.train.step_noise`)
 STEP_NOISES = ("gaussian", "student-t")
+#: most members a seed ensemble may have (each is a whole training)
+MAX_MEMBERS = 32
 
 
 @dataclass(frozen=True)
@@ -183,6 +186,7 @@ class TrainingDefaults:
     input_noise: float = 0.0
     step_noise: str = "gaussian"
     context: bool = False
+    members: int = 1
 
     def for_algorithm(self, algorithm: str) -> dict[str, Any]:
         """The keyword arguments ``algorithm``'s trainer takes from these defaults: the residual head
@@ -196,6 +200,8 @@ class TrainingDefaults:
             out["step_noise"] = self.step_noise
         if algorithm in ("bc", "gail", "bcxgail") and self.context:
             out["context"] = True
+        if algorithm in ("bc", "gail", "bcxgail") and self.members > 1:
+            out["members"] = self.members
         return out
 
     def to_json(self) -> dict[str, Any]:
@@ -204,6 +210,7 @@ class TrainingDefaults:
             "input_noise": self.input_noise,
             "step_noise": self.step_noise,
             "context": self.context,
+            "members": self.members,
         }
 
 
@@ -222,7 +229,10 @@ def _training(d: Any) -> TrainingDefaults:
     step_noise = d.get("step_noise", "gaussian")
     if step_noise not in STEP_NOISES:
         raise ValueError(f"[training] step_noise must be one of {', '.join(STEP_NOISES)}, not {step_noise!r:.40}")
-    return TrainingDefaults(residual, float(noise), step_noise, context)
+    members = d.get("members", 1)
+    if isinstance(members, bool) or not isinstance(members, int) or not 1 <= members <= MAX_MEMBERS:
+        raise ValueError(f"[training] members must be a whole number in 1..{MAX_MEMBERS}, not {members!r:.40}")
+    return TrainingDefaults(residual, float(noise), step_noise, context, members)
 
 
 @dataclass(frozen=True)
@@ -510,7 +520,7 @@ TOML_KEYS: dict[str, tuple[str, ...]] = {
     "[versions]": ("pattern", "params", "map"),
     "[controller]": ("name", "params"),
     "[[requirements]]": ("name", "expr", "kind", "probability"),
-    "[training]": ("residual", "input_noise", "step_noise", "context"),
+    "[training]": ("residual", "input_noise", "step_noise", "context", "members"),
 }
 
 

@@ -60,13 +60,13 @@ def test_the_smoke_run_scores_every_version_over_several_simulations(real_dir, t
     assert report["real_vs_real"]["10"]["shifts"] == 40
 
 
-def test_a_seed_ensemble_draws_each_run_from_one_of_the_folds_models(real_dir, tmp_path, monkeypatch):
+def test_a_seed_ensemble_is_the_folds_models_as_envi_ships_them(real_dir, tmp_path, monkeypatch):
     bench = load_bench(monkeypatch)
     calls = []
     real_simulate = bench.simulate_versions
 
     def recording(ckpt, logs, **kw):
-        calls.append((id(ckpt), len(logs)))
+        calls.append((ckpt, len(logs)))
         return real_simulate(ckpt, logs, **kw)
 
     monkeypatch.setattr(bench, "simulate_versions", recording)
@@ -78,7 +78,9 @@ def test_a_seed_ensemble_draws_each_run_from_one_of_the_folds_models(real_dir, t
     assert ens["members"] == 2 and all(per["runs"] == [10, 10] for per in ens["per_x"].values())
     singles = [c for c in report["cells"] if c["algorithm"] == "bc-gaussian"]
     assert ens["train_seconds"] == sum(c["train_seconds"] for c in singles)
-    # 2 members and their normal-draw twins: whole test blocks (5 versions x 4); the ensemble: 5 blocks split in 2
-    whole, split = calls[:20], calls[20:]
-    assert all(n == 10 for _, n in whole)
-    assert len({who for who, _ in split}) == 2 and sum(n for _, n in split) == 5 * 10
+    # 2 members and their normal-draw twins: whole test blocks (5 versions x 4); then the ensemble of
+    # the two members (one checkpoint, the engine shares each block's runs out between them)
+    whole, ensemble = calls[:20], calls[20:]
+    assert all(n == 10 for _, n in whole) and [n for _, n in ensemble] == [10] * 5
+    trained = {id(ck.model) for ck, _ in whole}
+    assert all(ck.size == 2 and len({id(m) for m in ck.members} & trained) == 2 for ck, _ in ensemble)

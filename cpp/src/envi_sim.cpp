@@ -28,6 +28,7 @@
 #include "envi/controller.hpp"
 #include "envi/csvlog.hpp"
 #include "envi/engine.hpp"
+#include "envi/ensemble.hpp"
 #include "envi/json.hpp"
 #include "envi/metrics.hpp"
 #include "envi/model.hpp"
@@ -38,7 +39,8 @@ namespace {
 
 const char* kUsage =
     "usage: envi_sim --model MODEL.onnx --init LOG.csv [LOG.csv ...] [options]\n"
-    "  --model FILE         exported envi model (required)\n"
+    "  --model FILE ...     exported envi model (required); several files are the members of a seed ensemble\n"
+    "                       (envi-export --member k), each run drawn by one of them as envi simulate does\n"
     "  --init LOG.csv ...   real logs whose first `history` rows start the runs (required)\n"
     "  --controller C       a registered name (lane-keeping, bang-bang, pid, combine), a JSON spec\n"
     "                       {\"name\": ..., \"params\": {...}} or @FILE holding one (default: the model's\n"
@@ -63,7 +65,8 @@ const char* kUsage =
     "(cpp/README.md, Limits of envi_sim).\n";
 
 struct Args {
-  std::string model, controller, out, metrics;
+  std::string model, controller, out, metrics;  // model: the first of `models`, which names them in messages
+  std::vector<std::string> models;
   std::string controller_file;  // --controller @FILE: the file the spec in `controller` was read from
   std::vector<std::string> init, params;
   long steps = -1, runs = 1, skip = -1;  // -1: each log's length minus the history; the history
@@ -134,7 +137,7 @@ Args parse(int argc, char** argv) {
       list.push_back(val());
       while (i + 1 < argc && std::strncmp(argv[i + 1], "--", 2) != 0) list.push_back(argv[++i]);
     };
-    if (f == "--model") a.model = val();
+    if (f == "--model") more(a.models);
     else if (f == "--init") more(a.init);
     else if (f == "--controller") a.controller = val();
     else if (f == "--param") more(a.params);
@@ -157,7 +160,8 @@ Args parse(int argc, char** argv) {
     else if (f == "-h" || f == "--help") { std::cout << kUsage; std::exit(0); }
     else throw std::invalid_argument("unknown option " + std::string(argv[i]) + " (see --help)");
   }
-  if (a.model.empty() || a.init.empty()) throw std::invalid_argument("--model and --init are required (see --help)");
+  if (a.models.empty() || a.init.empty()) throw std::invalid_argument("--model and --init are required (see --help)");
+  a.model = a.models[0];
   if (a.metrics_only && a.metrics.empty()) throw std::invalid_argument("--metrics-only needs --metrics FILE (or -)");
   if (!a.metrics_only && a.out.empty() && a.metrics.empty()) throw std::invalid_argument("nothing to write: give --out and/or --metrics");
   if (!a.params.empty() && (a.controller.empty() || a.controller[0] == '{' || a.controller[0] == '@'))
@@ -352,7 +356,8 @@ std::string parent_of(std::string path) {
 // 64 bits, the buffers envi_sim keeps at once must fit in physical memory, so must the metrics
 // document's rows in the reader that loads it, and what envi_sim must at least write (a log per
 // run, a metrics row per run) must fit in the destination's free space.
-void check_capacity(const Args& a, const Model& m, const std::vector<Group>& groups, bool want_logs, bool want_metrics) {
+void check_capacity(const Args& a, const Model& m, const std::vector<Group>& groups, bool want_logs, bool want_metrics,
+                    bool streamed, int members) {
   const long l = m.history, c = m.channels();
   long windows = 0, total = 0;
   for (const Group& g : groups) windows += long(g.windows.size());
@@ -376,10 +381,12 @@ void check_capacity(const Args& a, const Model& m, const std::vector<Group>& gro
     const double engine = double(full.threads) * full.block * (16.0 * m.max_width() + 8.0 * m.in_features() + 24.0 * c);
     double group = engine + chunk * 8 * 8;  // a chunk's metric rows
     if (want_logs) group += chunk * double(length) * double(c) * 8 + double(length) * 8;  // traces, times
+    // an ensemble: each run's member, and a member's runs with a copy of each one's initial window
+    if (members > 1) group += double(group_runs) * (4.0 + (8.0 + 8.0 * double(l) * double(c)) / members);
     held = std::max(held, group);
     logs_bytes += double(group_runs) * (double(length) * double(c + 1) * 2 + 200);  // >= 1 digit and 1 separator a cell
   }
-  if (want_metrics && groups.size() > 1) held += double(total) * 8 * 8;  // kept in window order until the end
+  if (want_metrics && !streamed) held += double(total) * 8 * 8;  // kept in window order until the end
   const double memory = double(::sysconf(_SC_PHYS_PAGES)) * double(::sysconf(_SC_PAGE_SIZE));
   if (memory > 0 && held > memory)
     throw std::invalid_argument(runs + (a.steps >= 0 ? " --steps " + std::to_string(a.steps) : std::string()) + " needs " +
@@ -526,10 +533,29 @@ void check_out_folder(const std::string& out, bool force, const std::vector<std:
   if (::access(parent.c_str(), W_OK) != 0) throw std::invalid_argument("--out " + out + ": cannot create (" + std::strerror(errno) + ")");
 }
 
+// The models of --model: one, or the members of a seed ensemble, which must read and say the same
+// (what envi_py.model.Checkpoint.ensemble requires of its members); only their weights and fitted
+// step-noise shapes may differ.
+std::vector<Model> load_members(const std::vector<std::string>& paths) {
+  static const char* kShared[] = {"envi.schema", "envi.normaliser", "envi.history", "envi.period_ms", "envi.head",
+                                  "envi.post",   "envi.limit_events", "envi.residual", "envi.layers", "envi.context",
+                                  "envi.system"};
+  std::vector<Model> out;
+  for (const auto& p : paths) out.push_back(load_model_file(p));
+  for (size_t k = 1; k < out.size(); ++k)
+    for (const char* key : kShared)
+      if (dump(Json::parse(out[k].metadata_value(key))) != dump(Json::parse(out[0].metadata_value(key))))
+        throw std::invalid_argument("--model " + paths[k] + ": its " + key + " differs from " + paths[0] +
+                                    "'s; the models given together must be members of one seed ensemble");
+  return out;
+}
+
 int run(const Args& a) {
-  require_regular_file("--model", a.model);
+  for (const auto& p : a.models) require_regular_file("--model", p);
   for (const auto& p : a.init) require_regular_file("--init", p);
-  Model m = load_model_file(a.model);
+  const std::vector<Model> members = load_members(a.models);
+  const Model& m = members[0];
+  const int M = int(members.size());
   if (!a.metrics.empty()) check_metrics_apply(m, a.model);
   Json spec = controller_spec(a, m);
   Controller ctrl;
@@ -570,14 +596,16 @@ int run(const Args& a) {
                                       "'s; their simulated logs in --out would overwrite each other");
     check_out_folder(a.out, a.force, a.init);
   }
-  check_capacity(a, m, groups, want_logs, want_metrics);
+  // metric rows are written as they come only when they come in window order: one length of
+  // initial log and one model (an ensemble's members each take their share of the runs in turn)
+  const bool streamed = groups.size() == 1 && M == 1;
+  check_capacity(a, m, groups, want_logs, want_metrics, streamed, M);
   const long K = long(windows.size()), R = K * a.runs;
 
   std::ofstream metrics_file;
   std::ostream* mout = nullptr;
   // per-run metric rows in window order; written as they come when there is one group of windows
   std::vector<double> all_metrics;
-  const bool streamed = groups.size() == 1;
   if (want_metrics) {
     if (a.metrics == "-") mout = &std::cout;
     else {
@@ -594,7 +622,8 @@ int run(const Args& a) {
     for (int k = 0; k < 8; ++k) *mout << (k ? ", " : "") << '"' << kMetricNames[k] << '"';
     *mout << "], \"config\": {\"centre\": " << json_number(mcfg.centre) << ", \"band\": " << json_number(mcfg.band)
           << ", \"skip\": " << mcfg.skip << ", \"channel\": " << mcfg.channel << "}, \"model\": " << json_quote(a.model)
-          << ", \"controller\": " << ctrl.to_json() << ", \"windows\": " << K << ", \"runs_per_window\": " << a.runs
+          << (M > 1 ? ", \"members\": " + std::to_string(M) : std::string()) << ", \"controller\": " << ctrl.to_json()
+          << ", \"windows\": " << K << ", \"runs_per_window\": " << a.runs
           << ", \"steps\": " << steps << ", \"seed\": " << a.seed << ",\n\"per_run\": [";
     if (!streamed) all_metrics.assign(size_t(R) * 8, 0.0);
   }
@@ -615,69 +644,91 @@ int run(const Args& a) {
                   {"seed", num(double(a.seed), true)},
                   {"replicate", num(double(replicate), true)}});
     if (!m.layers.empty()) p.object.emplace_back("layers", layers);
+    if (M > 1) p.object.emplace_back("members", num(double(M), true));
     return p;
   };
   int threads_used = 1;
   long written = 0;  // metric rows written so far (streamed)
   for (const Group& grp : groups) {
     const long length = l + grp.steps, KG = long(grp.windows.size()), RG = KG * a.runs;
-    std::vector<double> init;
-    for (long k : grp.windows) init.insert(init.end(), windows[size_t(k)].values.begin(), windows[size_t(k)].values.end());
-    Job job;
-    job.init = init.data();
-    job.windows = KG;
-    job.runs = a.runs;
-    job.steps = grp.steps;
-    job.seed = a.seed + 7919 * uint64_t(grp.steps);  // as envi_py.simulate.simulate_logs seeds a length group
-    job.threads = a.threads;
-    job.block = a.block;
-    const Plan full = plan(job);
-    threads_used = std::max(threads_used, full.threads);
-    const long chunk = chunk_runs(length, c, full, want_logs);
-    for (long first = 0; first < RG; first += chunk) {
-      Job part = job;
-      part.first_run = first;
-      part.n_runs = std::min(chunk, RG - first);
-      Plan p = plan(part);
-      if (want_logs) traces.assign(size_t(part.n_runs) * size_t(length) * size_t(c), 0.0);
-      mrows.rows.assign(size_t(part.n_runs) * 8, 0.0);
-      mrows.chunk_first = first;
-      std::unique_ptr<MetricsSink> ms;
-      if (want_metrics)
-        ms = std::make_unique<MetricsSink>(mcfg, int(c), p.threads, p.block, [](void* ctx, long f, int n, const double* v) {
-          auto* r = static_cast<MetricRows*>(ctx);
-          std::memcpy(r->rows.data() + (f - r->chunk_first) * 8, v, sizeof(double) * 8 * size_t(n));
-        }, &mrows);
-      ChunkSink sink(want_logs ? traces.data() : nullptr, length, int(c), first, p.threads, ms.get());
-      simulate(m, ctrl, part, sink);
-      for (long i = 0; i < part.n_runs; ++i) {
-        long g = first + i, k = grp.windows[size_t(g / a.runs)], r = g % a.runs;
-        if (want_metrics) {
-          const double* row = mrows.rows.data() + size_t(i) * 8;
-          for (int j = 0; j < 8; ++j) sums[size_t(j)] += row[j];
-          if (streamed) {
-            *mout << (written++ ? ",\n[" : "\n[");
-            for (int j = 0; j < 8; ++j) *mout << (j ? ", " : "") << json_number(row[j]);
-            *mout << "]";
-          } else {
-            std::copy_n(row, 8, all_metrics.data() + size_t(k * a.runs + r) * 8);
-          }
+    const uint64_t group_seed = a.seed + 7919 * uint64_t(grp.steps);  // as envi_py.simulate.iter_simulate seeds a length group
+    // an ensemble's runs as envi_py.simulate.ensemble_rollout shares them out: member mi simulates
+    // the group's runs g with pick[g] == mi, one run per window row, with its own seed
+    const std::vector<int> pick = M > 1 ? members_of_runs(M, RG, group_seed) : std::vector<int>();
+    for (int mi = 0; mi < M; ++mi) {
+      std::vector<long> mine;  // the group's runs this member simulates (a single model: all, unlisted)
+      for (long g = 0; g < RG && M > 1; ++g)
+        if (pick[size_t(g)] == mi) mine.push_back(g);
+      if (M > 1 && mine.empty()) continue;
+      std::vector<double> init;
+      Job job;
+      if (M == 1) {
+        for (long k : grp.windows) init.insert(init.end(), windows[size_t(k)].values.begin(), windows[size_t(k)].values.end());
+        job.windows = KG;
+        job.runs = a.runs;
+        job.seed = group_seed;
+      } else {
+        for (long g : mine) {
+          const auto& v = windows[size_t(grp.windows[size_t(g / a.runs)])].values;
+          init.insert(init.end(), v.begin(), v.end());
         }
-        if (want_logs) {
-          const InitialWindow& w = windows[size_t(k)];
-          double period = l > 1 ? median_period(w.time) : (m.period_ms > 0 ? m.period_ms : 40.0);
-          std::vector<double> time(w.time);
-          for (long t = 1; t <= grp.steps; ++t) time.push_back(w.time.back() + period * double(t));
-          std::string run_id = w.run_id + "-sim" + std::to_string(r);
-          Json meta = obj({{"schema_version", num(1, true)},
-                           {"states", schema_json.at("states")},
-                           {"actions", schema_json.at("actions")},
-                           {"controller", ctrl_json},
-                           {"period_ms", num(period)},
-                           {"run_id", str(run_id)},
-                           {"source", str("sim")},
-                           {"provenance", provenance(w.name, r)}});
-          write_log(staging->dir(), run_id, m, meta, time, traces.data() + size_t(i) * size_t(length) * size_t(c), length);
+        job.windows = long(mine.size());
+        job.runs = 1;
+        job.seed = group_seed + 15485863 * uint64_t(mi + 1);  // as ensemble_rollout seeds a member
+      }
+      job.init = init.data();
+      job.steps = grp.steps;
+      job.threads = a.threads;
+      job.block = a.block;
+      const long RJ = job.windows * job.runs;
+      const Plan full = plan(job);
+      threads_used = std::max(threads_used, full.threads);
+      const long chunk = chunk_runs(length, c, full, want_logs);
+      for (long first = 0; first < RJ; first += chunk) {
+        Job part = job;
+        part.first_run = first;
+        part.n_runs = std::min(chunk, RJ - first);
+        Plan p = plan(part);
+        if (want_logs) traces.assign(size_t(part.n_runs) * size_t(length) * size_t(c), 0.0);
+        mrows.rows.assign(size_t(part.n_runs) * 8, 0.0);
+        mrows.chunk_first = first;
+        std::unique_ptr<MetricsSink> ms;
+        if (want_metrics)
+          ms = std::make_unique<MetricsSink>(mcfg, int(c), p.threads, p.block, [](void* ctx, long f, int n, const double* v) {
+            auto* r = static_cast<MetricRows*>(ctx);
+            std::memcpy(r->rows.data() + (f - r->chunk_first) * 8, v, sizeof(double) * 8 * size_t(n));
+          }, &mrows);
+        ChunkSink sink(want_logs ? traces.data() : nullptr, length, int(c), first, p.threads, ms.get());
+        simulate(members[size_t(mi)], ctrl, part, sink);
+        for (long i = 0; i < part.n_runs; ++i) {
+          long g = M == 1 ? first + i : mine[size_t(first + i)], k = grp.windows[size_t(g / a.runs)], r = g % a.runs;
+          if (want_metrics) {
+            const double* row = mrows.rows.data() + size_t(i) * 8;
+            for (int j = 0; j < 8; ++j) sums[size_t(j)] += row[j];
+            if (streamed) {
+              *mout << (written++ ? ",\n[" : "\n[");
+              for (int j = 0; j < 8; ++j) *mout << (j ? ", " : "") << json_number(row[j]);
+              *mout << "]";
+            } else {
+              std::copy_n(row, 8, all_metrics.data() + size_t(k * a.runs + r) * 8);
+            }
+          }
+          if (want_logs) {
+            const InitialWindow& w = windows[size_t(k)];
+            double period = l > 1 ? median_period(w.time) : (m.period_ms > 0 ? m.period_ms : 40.0);
+            std::vector<double> time(w.time);
+            for (long t = 1; t <= grp.steps; ++t) time.push_back(w.time.back() + period * double(t));
+            std::string run_id = w.run_id + "-sim" + std::to_string(r);
+            Json meta = obj({{"schema_version", num(1, true)},
+                             {"states", schema_json.at("states")},
+                             {"actions", schema_json.at("actions")},
+                             {"controller", ctrl_json},
+                             {"period_ms", num(period)},
+                             {"run_id", str(run_id)},
+                             {"source", str("sim")},
+                             {"provenance", provenance(w.name, r)}});
+            write_log(staging->dir(), run_id, m, meta, time, traces.data() + size_t(i) * size_t(length) * size_t(c), length);
+          }
         }
       }
     }

@@ -9,6 +9,7 @@
 
 #include "envi/controller.hpp"
 #include "envi/engine.hpp"
+#include "envi/ensemble.hpp"
 #include "envi/metrics.hpp"
 #include "envi/model.hpp"
 #include "envi/peak.hpp"
@@ -198,6 +199,9 @@ PYBIND11_MODULE(ENVI_MODULE_NAME, mod) {
             return content_sha256(reinterpret_cast<const uint8_t*>(s.data()), s.size());
           },
           py::arg("onnx_bytes"), "The content hash of an ONNX file as the loader computes it (envi.content_sha256).");
+  mod.def("members_of_runs", &members_of_runs, py::arg("members"), py::arg("batch"), py::arg("seed"),
+          "Which member of a seed ensemble simulates each run, as envi_sim shares them out (the twin of "
+          "envi_py.simulate.members_of_runs).");
   mod.def("simd", [] { return std::string(Eigen::SimdInstructionSetsInUse()); },
           "Vector instruction sets this build of the engine uses.");
 }

@@ -395,8 +395,13 @@ def diagnose(
     In stages: the logs' data quality first; then whether the model's class is wrong (a deterministic
     model against runs that vary, :mod:`.stages`), in which case it is refitted with the Gaussian
     head (unless ``refit`` is False) and the rest is the diagnosis of the refit. Before any stage, a
-    controller version with too few logs to measure its gap is refused (:func:`require_runs`)."""
+    controller version with too few logs to measure its gap is refused (:func:`require_runs`).
+    A seed ensemble is diagnosed through its first member: the diagnosis reads one model's one-step
+    residuals and retrains one model, so its gaps are that member's."""
     say = progress or (lambda _text: None)
+    if ckpt.members:
+        say(f"a seed ensemble of {ckpt.size} members: diagnosing member 0, one model")
+        ckpt = ckpt.member(0)
     choose, confirm_l = (list(real), list(confirm)) if confirm else split_choose_confirm(real, seed)
     require_runs(ckpt, choose, "the logs that choose the effect" + ("" if confirm else " (half of the real logs)"))
     if retrain:  # the confirmation logs are simulated only to measure a retrained model's gap

@@ -50,22 +50,29 @@ class CheckpointModel:
     Windows go through the checkpoint's own encode/decode (``encode_rows``, ``next_state``), the
     ones every simulation engine uses, so a HIL run and a simulation of the same model see the same
     environment. A context vector, when the model has one, comes from the first window (sigma_0).
+    A seed ensemble's members take the runs in turn (run r is member r mod K), as a simulation
+    shares its runs out among them.
     """
 
     def __init__(self, ckpt, description: str = "") -> None:
         import torch
 
-        self.ckpt = ckpt
+        self.ensemble = ckpt
+        self.ckpt = ckpt.member(0)
         self.history = ckpt.config.history
         self.description = description or f"envi checkpoint ({ckpt.record.algorithm})"
         self._torch = torch
         self._context = None
         self._step = 0
+        self._runs = 0
 
     def reset(self) -> None:
-        """A new run: the next window is sigma_0 again (row index 0, fresh context)."""
+        """A new run: the next window is sigma_0 again (row index 0, fresh context), stepped by the
+        ensemble's next member."""
         self._context = None
         self._step = 0
+        self._runs += 1
+        self.ckpt = self.ensemble.member(self._runs % self.ensemble.size)
 
     def __call__(self, window: np.ndarray) -> float:
         torch = self._torch
