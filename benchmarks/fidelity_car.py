@@ -117,7 +117,9 @@ CONFIGS: dict[str, tuple[str, dict[str, Any]]] = {
     "bc-res-lr3e-4": ("bc", {"residual": True, "lr": 3e-4}),
     "bc-res-noise05": ("bc", {"residual": True, "input_noise": 0.5}),  # no collapse onto the clamp at 4 seeds
     "bc-res-wide": ("bc", {"residual": True, "hidden": (512, 512)}),
-    "default-context": ("bc", {"context": True}),  # the description's defaults plus sigma_0's per-run context
+    "default-context": ("bc", {"context": True}),
+    # the description's defaults as a seed ensemble of 4 (envi train --members 4): each run from one member
+    "default-ens4": ("bc", {"members": 4}),  # the description's defaults plus sigma_0's per-run context
     # twice the selection's simulated runs per validation log, twice its patience: a less noisy choice of epoch
     "bc-res-sel": ("bc", {"residual": True, "selection": SelectionSettings(runs=10, patience=20)}),
     TWIN: ("none", {}),
@@ -199,10 +201,11 @@ def model_of(name: str, args: argparse.Namespace, train_logs: list[Log], system:
         return Checkpoint.load(args.load_dir / f"{name}.pt"), float("nan")
     val_logs = versions_logs(5, 200, tuple(CAR_TRAINED))
     t0 = time.perf_counter()
-    if name != "default":  # the plain model plus the config's own changes
+    if name not in ("default", "default-ens4"):  # the plain model plus the config's own changes
         plain = {"residual": False, "input_noise": 0.0} if algorithm == "bc" else {"residual": False}
         extra = {**plain, **extra}
-    ckpt = train(algorithm, train_logs, val_logs, system=system, seed=args.seed, epochs=args.epochs, **extra)
+    jobs = os.cpu_count() or 1  # an ensemble's members trained at once
+    ckpt = train(algorithm, train_logs, val_logs, system=system, seed=args.seed, epochs=args.epochs, jobs=jobs, **extra)
     seconds = time.perf_counter() - t0
     if args.save_dir is not None:
         ckpt.save(args.save_dir / f"{name}.pt")

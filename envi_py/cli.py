@@ -216,8 +216,8 @@ def cmd_train(args: argparse.Namespace) -> int:
     from .train import member_state_paths, train
     from .train.common import SelectionSettings
 
-    _positive(args, "epochs", "history", "eval_every", "select_runs", "members")
-    _at_most(args, epochs=1_000_000, history=10_000, eval_every=1_000_000, members=MAX_MEMBERS)
+    _positive(args, "epochs", "history", "eval_every", "select_runs", "members", "jobs")
+    _at_most(args, epochs=1_000_000, history=10_000, eval_every=1_000_000, members=MAX_MEMBERS, jobs=1024)
     try:
         hidden = [int(h) for h in args.hidden.split(",")]
     except ValueError:
@@ -292,7 +292,8 @@ def cmd_train(args: argparse.Namespace) -> int:
     if losses is not None:
         kwargs["curves_dir"] = losses.name  # GAIL's per-epoch losses, merged into the curves below
     t0 = time.perf_counter()
-    ckpt = train(args.algorithm, logs, val, system=system_of(args), **kwargs)
+    jobs = args.jobs or os.cpu_count() or 1
+    ckpt = train(args.algorithm, logs, val, system=system_of(args), jobs=jobs, **kwargs)
     path = ckpt.save(args.output)
     from .report.training import write_training_outputs
 
@@ -686,6 +687,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="train a seed ensemble of this many models (seeds --seed onwards), each simulated run drawn by "
         "one of them: runs then carry what the logs leave undecided between trainings (default: the "
         "system description's [training] members, else 1)",
+    )
+    p.add_argument(
+        "--jobs",
+        type=int,
+        default=None,
+        help="members trained at once, each in a process of one torch thread (default: the machine's cores)",
     )
     p.add_argument("--seed", type=seed_type, default=0, help="seed of initialisation and sampling")
     p.add_argument("--quiet", action="store_true", help="no progress bar")

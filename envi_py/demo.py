@@ -16,6 +16,8 @@ version, a lane-keeping demo after a car one two schemas). Other files there sta
 
 from __future__ import annotations
 
+import os
+
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -91,7 +93,9 @@ def run_demo(
         f"(all {len(group_by_controller(logs))} versions, the untrained ones are TMVU)"
     )
     epochs = size.epochs if epochs is None else epochs
-    ckpt = train("bc", train_logs, val_logs, system=desc, seed=seed, epochs=epochs, progress=True)
+    ckpt = train(
+        "bc", train_logs, val_logs, system=desc, seed=seed, epochs=epochs, progress=True, jobs=os.cpu_count() or 1
+    )
     ckpt.save(out / "model.pt")
     engine = choose_engine(ckpt, next(iter(group_by_controller(test_logs))), "auto")
     sims = simulate_versions(ckpt, test_logs, runs=size.sim_runs, seed=seed, engine="auto")

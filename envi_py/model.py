@@ -354,10 +354,16 @@ class Checkpoint:
         return max(1, len(self.members))
 
     def member(self, k: int) -> Checkpoint:
-        """Member ``k`` as a single model (normaliser, schema, record and layers shared, not copied)."""
+        """Member ``k`` as a single model (normaliser, schema and layers shared, not copied), with its
+        own seed and selection as its record (what an export of it says)."""
         if not 0 <= k < self.size:
             raise ValueError(f"member {k}: the model has {self.size} member(s), numbered 0..{self.size - 1}")
-        return replace(self, model=(self.members or (self.model,))[k], members=())
+        if not self.members:
+            return self
+        own = dict(self.record.selection["members"][k])
+        hyper = {key: v for key, v in self.record.hyper.items() if key != "members"}
+        record = replace(self.record, seed=own.pop("seed"), hyper=hyper, selection=own)
+        return replace(self, model=self.members[k], members=(), record=record)
 
     @staticmethod
     def ensemble(checkpoints: Sequence[Checkpoint]) -> Checkpoint:

@@ -190,7 +190,8 @@ class TrainingDefaults:
 
     def for_algorithm(self, algorithm: str) -> dict[str, Any]:
         """The keyword arguments ``algorithm``'s trainer takes from these defaults: the residual head
-        for every learnt model, input noise for behaviour cloning only (its loss, not GAIL's)."""
+        for every learnt model, input noise for behaviour cloning only (its loss, not GAIL's), and
+        the ensemble's members for behaviour cloning only (where they were measured)."""
         out: dict[str, Any] = {}
         if algorithm in ("bc", "gail", "bcxgail") and self.residual:
             out["residual"] = True
@@ -200,7 +201,7 @@ class TrainingDefaults:
             out["step_noise"] = self.step_noise
         if algorithm in ("bc", "gail", "bcxgail") and self.context:
             out["context"] = True
-        if algorithm in ("bc", "gail", "bcxgail") and self.members > 1:
+        if algorithm == "bc" and self.members > 1:  # measured for BC; a GAIL training is 3-30x longer
             out["members"] = self.members
         return out
 

@@ -19,7 +19,7 @@ LANE = ControllerSpec("lane-keeping", {"x": 30})
 @pytest.fixture(scope="module")
 def rounding_model():
     fit = generate(LANE, 12, 100, {}, seed=31, profile=TwinProfile())
-    ckpt = train("bc", fit[:10], fit[10:], seed=0, epochs=10, lr=1e-3, history=4)
+    ckpt = train("bc", fit[:10], fit[10:], seed=0, epochs=10, lr=1e-3, history=4, members=1)  # one model steps
     assert ckpt.config.round_to == (1.0,) and ckpt.config.clamp  # what envi train does by default
     return ckpt, generate(LANE, 6, 100, {"delay": 2}, seed=32, profile=TwinProfile())
 

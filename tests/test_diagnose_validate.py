@@ -278,13 +278,20 @@ def test_the_shipped_procedure_trains_with_the_defaults_and_refits_a_model_too_c
     """What a user runs: envi train's defaults (output rounded to the declared resolution) and the
     staged diagnosis, which refits a deterministic model of a world that varies (the differential-drive
     robot's wheel slip) with a Gaussian head before ranking the rest. As tuned, the same trial keeps
-    the deterministic model, which leads with noise and names the unrounded output's quantisation."""
+    the deterministic model, which leads with noise and names the unrounded output's quantisation.
+
+    Since the Gaussian head's Student-t tails are fitted in closed loop, the refit alone halves this
+    trial's gap (mean normalised W1 0.032 -> 0.015) and what the injected lag leaves at this size (24
+    logs, 2 runs each) is no significant gap: the shipped procedure names nothing, where it named the
+    lag ('memory_delay') with the one-step tail fit. It never names the output's quantisation."""
     shipped = trial(BY_NAME["lag"], seed=0, size=TINY, shrink=False, world="diffdrive")
     stage = shipped["stage"]
     assert shipped["procedure"] == "shipped" and stage["refit"] is True, shipped
-    assert stage["mean_w1_before"] > 0 and stage["mean_w1_after"] > 0, stage
-    assert shipped["top"] == "memory_delay" and "quantisation" not in shipped["significant"], shipped
-    assert shipped["gap_significant"] is True, shipped  # a finding is named only beyond a significant gap
+    assert 0 < stage["mean_w1_after"] < stage["mean_w1_before"], stage  # the refit narrowed the gap
+    assert "quantisation" not in shipped["significant"], shipped
+    assert shipped["gap_significant"] is False and shipped["top"] is None, (
+        shipped
+    )  # named only beyond a significant gap
     tuned = trial(BY_NAME["lag"], seed=0, size=TINY, shrink=False, world="diffdrive", procedure="as-tuned")
     assert tuned["procedure"] == "as-tuned" and tuned["stage"]["refit"] is False, tuned
     assert tuned["stage"]["mean_w1_before"] > 0 and tuned["stage"]["mean_w1_after"] is None, tuned

@@ -20,7 +20,7 @@ from envi_py.logs import load_logs, read_log, write_log
 from envi_py.metrics import driving_metrics
 from envi_py.model import Checkpoint
 from envi_py.simulate import ensemble_rollout, iter_simulate, members_of_runs, rollout, simulate_logs
-from envi_py.system import lane_keeping, shipped
+from envi_py.system import lane_keeping, load_system, shipped
 from envi_py.train import train
 from envi_py.twin import TwinProfile, generate
 from firmware_bridge.host.inject import CheckpointModel
@@ -116,6 +116,9 @@ def test_training_makes_members_from_consecutive_seeds(lane_logs):
     fit, val = lane_logs
     ens = train("bc", fit, val, seed=7, epochs=2, hidden=(8,), members=2, progress=False)
     assert ens.size == 2 and [m["seed"] for m in ens.record.selection["members"]] == [7, 8]
+    second = ens.member(1)  # says what it is: its own seed and selection, not the ensemble's
+    assert second.record.seed == 8 and "members" not in second.record.hyper
+    assert second.record.selection["best_epoch"] == ens.record.selection["members"][1]["best_epoch"]
     alone = train("bc", fit, val, seed=8, epochs=2, hidden=(8,), progress=False)
     for k, v in alone.model.state_dict().items():
         torch.testing.assert_close(ens.members[1].state_dict()[k], v)
@@ -123,11 +126,32 @@ def test_training_makes_members_from_consecutive_seeds(lane_logs):
         train("random", fit, val, members=2)
 
 
+def test_members_trained_at_once_in_worker_processes(lane_logs, capsys):
+    """Two members in two spawned workers: the same seeds and selection as one after another (their
+    weights differ in the last bits: one torch thread each), and progress says which finished."""
+    fit, val = lane_logs
+    both = train("bc", fit, val, seed=3, epochs=2, hidden=(8,), members=2, jobs=2, progress=True)
+    assert "training 2 members (seeds 3..4), 2 at a time" in capsys.readouterr().err
+    alone = train("bc", fit, val, seed=3, epochs=2, hidden=(8,), members=2, progress=False)
+    assert [m["seed"] for m in both.record.selection["members"]] == [3, 4]
+    for a, b in zip(both.members, alone.members):
+        for k, v in a.state_dict().items():
+            torch.testing.assert_close(v, b.state_dict()[k], atol=1e-4, rtol=1e-4)
+
+
+def test_the_description_recommends_members_for_behaviour_cloning_only():
+    lane = load_system("lane-keeping").training
+    assert lane.members == 3 and lane.for_algorithm("bc")["members"] == 3
+    assert "members" not in lane.for_algorithm("bcxgail") and "members" not in lane.for_algorithm("random")
+    assert load_system("car").training.members == 1
+
+
 def test_the_description_sets_members_and_the_command_line_wins(lane_logs, tmp_path, capsys):
     fit, val = lane_logs
     text = shipped()["lane-keeping"].read_text()
     desc = tmp_path / "lk.toml"
-    desc.write_text(text.replace("[training]\n", "[training]\nmembers = 2\n"))
+    assert "\nmembers = 3\n" in text
+    desc.write_text(text.replace("\nmembers = 3\n", "\nmembers = 2\n"))
     for k, lg in enumerate(fit):
         write_log(lg, tmp_path / "fit" / f"f{k}.csv")
     base = ["train", "--logs", str(tmp_path / "fit"), "--system", str(desc), "--epochs", "2", "--hidden", "8"]
@@ -138,7 +162,7 @@ def test_the_description_sets_members_and_the_command_line_wins(lane_logs, tmp_p
     assert Checkpoint.load(tmp_path / "s.pt").size == 1
     assert main([*base, "--members", "0", "-o", str(tmp_path / "z.pt")]) == 2
     assert "--members must be at least 1" in capsys.readouterr().err
-    desc.write_text(text.replace("[training]\n", "[training]\nmembers = 0\n"))
+    desc.write_text(text.replace("\nmembers = 3\n", "\nmembers = 0\n"))
     assert main([*base, "-o", str(tmp_path / "z.pt")]) == 2
     assert "members must be a whole number in 1..32" in capsys.readouterr().err
 

@@ -10,7 +10,7 @@ from typing import Any
 import pytest
 
 from envi_py.controllers import ControllerSpec
-from envi_py.experiments.executor import DaskExecutor, LocalExecutor
+from envi_py.executor import DaskExecutor, LocalExecutor
 from envi_py.experiments.grid import make_jobs
 from envi_py.experiments.report import paper_accuracy
 from envi_py.experiments.run import run_experiment
@@ -304,7 +304,7 @@ def test_cli_names_the_missing_choice_in_one_line(car_logs, tmp_path, capsys) ->
 
 SCRIPT = """
 import sys, time
-from envi_py.experiments.executor import LocalExecutor
+from envi_py.executor import LocalExecutor
 ex = LocalExecutor(1)
 jobs = ex.map(time.sleep, [60])
 next(jobs, None)

@@ -77,7 +77,7 @@ def lane_logs():
 
 def test_training_fits_the_shape_on_the_validation_logs_and_records_it(lane_logs, tmp_path):
     fit, val = lane_logs
-    ck = train("bc", fit, val, seed=0, epochs=3, hidden=(16,), step_noise="student-t")
+    ck = train("bc", fit, val, seed=0, epochs=3, hidden=(16,), step_noise="student-t", members=1)  # one model's fit
     record = ck.record.selection["step_noise"]
     assert record["on"] == "validation" and record["logs"] == [lg.name for lg in val]
     assert record["states"][0]["real_differences"] == sum(len(lg) - 10 - 3 for lg in val)
@@ -97,7 +97,7 @@ def test_training_fits_the_shape_on_the_validation_logs_and_records_it(lane_logs
 
 
 def test_the_description_sets_the_shape_and_the_command_line_wins(lane_logs, tmp_path, capsys):
-    assert load_system("lane-keeping").training == TrainingDefaults(step_noise="student-t")
+    assert load_system("lane-keeping").training == TrainingDefaults(step_noise="student-t", members=3)
     assert load_system("car").training.step_noise == "gaussian"
     assert TrainingDefaults(step_noise="student-t").for_algorithm("random") == {}
     from envi_py.logs import write_log

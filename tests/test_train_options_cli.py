@@ -63,7 +63,7 @@ def test_the_system_description_sets_the_defaults_and_the_command_line_wins(car_
         ck = Checkpoint.load(out)
         assert ck.config.residual is residual and ck.record.hyper["input_noise"] == noise, extra
     assert load_system("car").training == TrainingDefaults(residual=True, input_noise=0.5)
-    assert load_system("lane-keeping").training == TrainingDefaults(step_noise="student-t")
+    assert load_system("lane-keeping").training == TrainingDefaults(step_noise="student-t", members=3)
     assert TrainingDefaults(True, 0.5).for_algorithm("gail") == {"residual": True}  # input noise is BC's loss
     assert TrainingDefaults(True, 0.5).for_algorithm("random") == {}
 

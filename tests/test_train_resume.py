@@ -181,7 +181,7 @@ def test_envi_train_resume_continues_a_killed_gail_training(tmp_path, monkeypatc
         assert torch.equal(v, _weights(resumed)[k]), k
     assert resumed.record.selection == whole.record.selection
 
-    bc_args = [a if a != "gail" else "bc" for a in args]
+    bc_args = [*(a if a != "gail" else "bc" for a in args), "--jobs", "1"]  # in this process: the kill is patched here
     _kill_at_second_save(monkeypatch)
     with pytest.raises(Killed):
         main([*bc_args, "-o", str(tmp_path / "b.pt")])

@@ -28,11 +28,6 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
     if Path(args.out).exists() and not Path(args.out).is_dir():
         raise ValueError(f"--out {args.out}: exists and is not a folder")
     ckpt = Checkpoint.load(args.model)
-    if ckpt.members:  # said whether or not --quiet: the figures below are one member's
-        print(
-            f"envi diagnose: note: {args.model} is a seed ensemble of {ckpt.size} members; diagnosing member 0",
-            file=sys.stderr,
-        )
     hist = ckpt.config.history
 
     def model_logs(attr: str) -> list[Log]:

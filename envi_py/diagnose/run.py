@@ -399,9 +399,8 @@ def diagnose(
     A seed ensemble is diagnosed through its first member: the diagnosis reads one model's one-step
     residuals and retrains one model, so its gaps are that member's."""
     say = progress or (lambda _text: None)
-    if ckpt.members:
-        say(f"a seed ensemble of {ckpt.size} members: diagnosing member 0, one model")
-        ckpt = ckpt.member(0)
+    which = f" of member 0 of the seed ensemble of {ckpt.size} (one model)" if ckpt.members else ""
+    ckpt = ckpt.member(0)
     choose, confirm_l = (list(real), list(confirm)) if confirm else split_choose_confirm(real, seed)
     require_runs(ckpt, choose, "the logs that choose the effect" + ("" if confirm else " (half of the real logs)"))
     if retrain:  # the confirmation logs are simulated only to measure a retrained model's gap
@@ -412,7 +411,7 @@ def diagnose(
     n_train = len(train_logs) + len(val_logs)
     say(f"1/6 data quality of {len(choose) + len(confirm_l)} diagnosed and {n_train} training logs")
     quality = _quality(ckpt, choose + confirm_l, list(train_logs) + list(val_logs))
-    say(f"2/6 one-step residuals on {len(choose)} logs")
+    say(f"2/6 one-step residuals{which} on {len(choose)} logs")
     res = one_step_residuals(ckpt, choose)
     say(f"3/6 closed-loop gaps: {runs} simulated runs per log, against the fair floor")
     groups, gaps = _gaps(ckpt, choose, runs, seed)

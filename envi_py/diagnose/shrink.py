@@ -71,13 +71,14 @@ def train_options(fix: dict[str, Any]) -> str:
 
 
 def retrain_with(ckpt: Checkpoint, finding: Finding, train_logs: Sequence[Log], val_logs: Sequence[Log]) -> Checkpoint:
-    """The same training as ``ckpt`` with the finding's model change applied."""
+    """The same training as ``ckpt`` with the finding's model change applied: one model, as the
+    diagnosis reads one (a seed ensemble is diagnosed through its first member)."""
     rec = ckpt.record
     cfg = _config_of(ckpt)
     cfg.update(finding.fix)
     keys = ("epochs", "lr", "eval_every", "multistep", "input_noise", "step_noise")
     hyper = {k: rec.hyper[k] for k in keys if k in rec.hyper}
-    return train(rec.algorithm, train_logs, val_logs, seed=rec.seed, **hyper, **cfg)
+    return train(rec.algorithm, train_logs, val_logs, seed=rec.seed, members=1, **hyper, **cfg)
 
 
 def simulate_groups(ckpt: Checkpoint, logs: Sequence[Log], runs: int, seed: int) -> list[Group]:

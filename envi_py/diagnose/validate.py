@@ -262,6 +262,7 @@ def trial(
         lr=size.lr,
         head=case.head,
         history=case.history or size.history,
+        members=1,  # the model the diagnosis reads: a default ensemble is diagnosed through this, its first member
         **({} if shipped else validation_training()),
     )
     d = diagnose(

@@ -9,7 +9,7 @@ from typing import Any
 
 def _cmd(args: argparse.Namespace) -> int:
     from ..cli import _at_most, _positive, read_logs, system_of
-    from .executor import make_executor
+    from ..executor import make_executor
     from .run import run_experiment
     from .versions import VersionChoice
 

@@ -20,7 +20,7 @@ from ..files import read_text
 from ..goals.presets import LANE_KEEPING_BAND, lane_keeping_centre
 from ..logs import Log
 from ..system import SystemDescription, describe_schema
-from .executor import Executor, LocalExecutor
+from ..executor import Executor, LocalExecutor
 from .grid import ALGORITHMS, Job, make_jobs
 from .report import write_report
 from .versions import VersionChoice

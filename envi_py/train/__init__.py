@@ -7,9 +7,11 @@
 from __future__ import annotations
 
 import sys
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
+from ..executor import LocalExecutor
 from ..logs import Log
 from ..model import Checkpoint
 from ..system import MAX_MEMBERS, STEP_NOISES, SystemDescription, describe_schema
@@ -40,6 +42,7 @@ def train(
     train_logs: Sequence[Log],
     val_logs: Sequence[Log] = (),
     system: SystemDescription | None = None,
+    jobs: int = 1,
     **kwargs: Any,
 ) -> Checkpoint:
     """Train with the named algorithm. The system description the logs were read with is recorded
@@ -48,7 +51,11 @@ def train(
     unless ``kwargs`` say otherwise. ``step_noise="student-t"`` fits a Gaussian head's tails after
     training (:mod:`.step_noise`). ``members=K`` trains K models from seeds ``seed``..``seed+K-1``
     and returns them as one seed ensemble (:meth:`Checkpoint.ensemble`); a resumable training keeps
-    one state file per member (``<state>.member<k>`` beyond the first)."""
+    one state file per member (``<state>.member<k>`` beyond the first), and GAIL's loss curves are
+    the first member's. ``jobs`` above 1 trains up to that many members at once, each in a spawned
+    process of one torch thread (:class:`~envi_py.executor.LocalExecutor`): measured on this 2-core
+    machine, two such trainings at n = 20 took 34 s together against 32 s for one on two threads;
+    a member's weights then differ in the last bits from a one-process training of its seed."""
     if not train_logs:
         raise ValueError("no training logs")
     system = system or describe_schema(train_logs[0].meta.schema)
@@ -63,16 +70,58 @@ def train(
         raise ValueError("the random baseline has no training to repeat: members must be 1")
     seed, state = kwargs.pop("seed", 0), kwargs.pop("state_path", None)
     states = None if state is None else member_state_paths(Path(state), members)
-    ckpts = []
+    plans = []
     for k in range(members):
+        own = {**kwargs, "seed": seed + k}
         if states is not None:
-            kwargs["state_path"] = states[k]
-        if members > 1 and kwargs.get("progress"):
-            print(f"member {k + 1} of {members} (seed {seed + k})", file=sys.stderr)
-        ckpt = get_trainer(name)(train_logs, val_logs, system=system, seed=seed + k, **kwargs)
-        with_step_noise(ckpt, step_noise, val_logs, train_logs)
-        ckpts.append(ckpt)
-    return Checkpoint.ensemble(ckpts)
+            own["state_path"] = states[k]
+            if k > 0 and own.get("resume") and not states[k].exists():
+                own["resume"] = False  # a member the killed training never reached starts afresh
+        if k > 0:
+            own.pop("curves_dir", None)  # one file of loss curves: the first member's
+        plans.append(MemberPlan(name, train_logs, val_logs, system, step_noise, own))
+    workers = min(max(1, jobs), members)
+    if workers == 1:
+        ckpts = []
+        for k, plan in enumerate(plans):
+            if members > 1 and kwargs.get("progress"):
+                print(f"member {k + 1} of {members} (seed {seed + k})", file=sys.stderr)
+            ckpts.append(train_member(plan))
+        return Checkpoint.ensemble(ckpts)
+    progress = bool(kwargs.get("progress"))
+    if progress:
+        print(f"training {members} members (seeds {seed}..{seed + members - 1}), {workers} at a time", file=sys.stderr)
+    done: dict[int, Checkpoint] = {}
+    pool = LocalExecutor(workers)
+    try:
+        for k, ckpt in pool.map(train_member, [replace(p, kwargs={**p.kwargs, "progress": False}) for p in plans]):
+            done[k] = ckpt
+            if progress:
+                epoch = ckpt.record.selection.get("best_epoch", "-")
+                print(f"member {k + 1} of {members} (seed {seed + k}) trained: epoch {epoch}", file=sys.stderr)
+    finally:
+        pool.close()
+    return Checkpoint.ensemble([done[k] for k in range(members)])
+
+
+@dataclass(frozen=True)
+class MemberPlan:
+    """One training of :func:`train`: what a worker process needs to train one member."""
+
+    algorithm: str
+    train_logs: Sequence[Log]
+    val_logs: Sequence[Log]
+    system: SystemDescription
+    step_noise: str
+    kwargs: dict[str, Any]
+
+
+def train_member(plan: MemberPlan) -> Checkpoint:
+    """One model, its step-noise shape fitted: a member of :func:`train`'s ensemble (a module-level
+    function, so a spawned worker can run it)."""
+    ckpt = get_trainer(plan.algorithm)(plan.train_logs, plan.val_logs, system=plan.system, **plan.kwargs)
+    with_step_noise(ckpt, plan.step_noise, plan.val_logs, plan.train_logs)
+    return ckpt
 
 
 def member_state_paths(state: Path, members: int) -> list[Path]:

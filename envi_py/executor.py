@@ -1,4 +1,5 @@
-"""One interface to run the grid's independent jobs: local processes by default, Dask on request.
+"""One interface to run independent jobs (an experiment grid's trainings, a seed ensemble's members):
+local processes by default, Dask on request.
 
 ``executor.map(fn, items)`` yields results as jobs finish (with the item's index), so the caller
 shows progress and then orders the results; the same command scales from this machine to a
