@@ -121,3 +121,28 @@ def test_runaway_states_spare_the_no_echo_reading_and_catch_a_collapse_onto_the_
     assert [diverged_fraction([r], runaway, observed, None, 0.05) for r in one] == [0.0, 0.0, 1.0]
     # a sensor saturating at its low end is spared there instead
     assert runaway_states(states, clamp, [(1, 12.0)])[1].low == -math.inf
+
+
+def test_selection_with_the_clamp_limits_flags_a_distance_collapsed_onto_its_clamp():
+    """What closed-loop selection scores a car model with (``divergence_limits``): runs whose distance
+    rests on the 12 cm clamp make the epoch diverged, which the declared ranges never did, while runs
+    holding the no-echo 255 as real ones do stay fine."""
+    from envi_py.train.bc import train_bc
+    from envi_py.train.common import divergence_limits
+    from envi_py.twin.car import generate_car_versions
+
+    ckpt = train_bc(generate_car_versions(6, seed=5, versions=[0, 2]), epochs=1, seed=0, hidden=(8,))
+    assert ckpt.config.limit_events == ((1, 255.0),)
+    limits = divergence_limits(ckpt)
+    low = float(ckpt.limits()[0][1])
+    assert limits[1].low == low and limits[1].high == math.inf and limits[0] == ckpt.schema.states[0]
+    rng = np.random.default_rng(4)
+    real = versions(rng, lead_gone=4)
+    collapsed = versions(rng, lead_gone=4)
+    for runs in collapsed.values():
+        runs.signals["distance"][:10, 40:] = low  # a quarter of the runs collapse onto the clamp
+    observed = {"color": (0.0, 100.0), "distance": (low, 255.0)}
+    assert not selection_score(real, collapsed, CAR.schema, observed=observed).diverged
+    flagged = selection_score(real, collapsed, CAR.schema, observed=observed, limits=limits)
+    assert flagged.diverged and flagged.sim_divergence == pytest.approx(0.25) and flagged.real_divergence == 0.0
+    assert not selection_score(real, versions(rng, lead_gone=4), CAR.schema, observed=observed, limits=limits).diverged

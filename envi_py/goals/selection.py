@@ -95,11 +95,14 @@ def selection_score(
     sustain: int | None = None,
     margin: float = 0.05,
     tolerance: float = 0.05,
+    limits: Sequence[Channel] | None = None,
 ) -> SelectionScore:
     """Score simulated runs against real runs of the same controller versions (keys).
 
     ``observed``: each state's range in the training data (default: the real runs given);
-    ``sustain``: samples a divergence must last (default a tenth of the scored run, at least 2)."""
+    ``sustain``: samples a divergence must last (default a tenth of the scored run, at least 2);
+    ``limits``: the states with the limits a diverged run rests at (default: the schema's declared
+    ranges; :func:`runaway_states` gives the simulator's clamp)."""
     if not real or set(real) != set(sim):
         raise ValueError(
             f"real and simulated runs must cover the same controller versions; real: "
@@ -129,7 +132,7 @@ def selection_score(
             per_goal[g.name].append(stats.wasserstein_distance(rv, sv) / scale)
     means = {name: float(np.mean(v)) for name, v in per_goal.items()}
     distance = float(np.mean(list(means.values())))
-    states = [channels[n] for n in state_names]
+    states = list(limits) if limits is not None else [channels[n] for n in state_names]
     sim_frac = diverged_fraction(list(sim.values()), states, observed, sustain, margin)
     real_frac = diverged_fraction(list(real.values()), states, observed, sustain, margin)
     diverged = sim_frac > real_frac + tolerance
