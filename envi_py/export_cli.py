@@ -24,7 +24,7 @@ def main(argv: list[str] | None = None) -> int:
         type=int,
         default=None,
         help="of a seed ensemble (envi train --members), the member to export (0..K-1): a file holds one "
-        "network, and envi_sim runs one model ('envi simulate --engine native' runs the whole ensemble)",
+        "network; envi_sim --model m0.onnx m1.onnx ... runs the exported members as the ensemble",
     )
     args = ap.parse_args(argv)
     from .effect_layers import describe, read_layers

@@ -177,6 +177,13 @@ STEP_NOISES = ("gaussian", "student-t")
 MAX_MEMBERS = 32
 
 
+def check_members(members: Any, what: str = "members") -> int:
+    """A seed ensemble's size, refused (naming ``what``) unless a whole number in 1..MAX_MEMBERS."""
+    if isinstance(members, bool) or not isinstance(members, int) or not 1 <= members <= MAX_MEMBERS:
+        raise ValueError(f"{what} must be a whole number in 1..{MAX_MEMBERS}, not {members!r:.40}")
+    return members
+
+
 @dataclass(frozen=True)
 class TrainingDefaults:
     """Model settings a system's description recommends (``[training]``): the defaults of a training
@@ -230,9 +237,7 @@ def _training(d: Any) -> TrainingDefaults:
     step_noise = d.get("step_noise", "gaussian")
     if step_noise not in STEP_NOISES:
         raise ValueError(f"[training] step_noise must be one of {', '.join(STEP_NOISES)}, not {step_noise!r:.40}")
-    members = d.get("members", 1)
-    if isinstance(members, bool) or not isinstance(members, int) or not 1 <= members <= MAX_MEMBERS:
-        raise ValueError(f"[training] members must be a whole number in 1..{MAX_MEMBERS}, not {members!r:.40}")
+    members = check_members(d.get("members", 1), "[training] members")
     return TrainingDefaults(residual, float(noise), step_noise, context, members)
 
 

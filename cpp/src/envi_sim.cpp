@@ -657,9 +657,11 @@ int run(const Args& a) {
     const std::vector<int> pick = M > 1 ? members_of_runs(M, RG, group_seed) : std::vector<int>();
     for (int mi = 0; mi < M; ++mi) {
       std::vector<long> mine;  // the group's runs this member simulates (a single model: all, unlisted)
-      for (long g = 0; g < RG && M > 1; ++g)
-        if (pick[size_t(g)] == mi) mine.push_back(g);
-      if (M > 1 && mine.empty()) continue;
+      if (M > 1) {
+        for (long g = 0; g < RG; ++g)
+          if (pick[size_t(g)] == mi) mine.push_back(g);
+        if (mine.empty()) continue;
+      }
       std::vector<double> init;
       Job job;
       if (M == 1) {

@@ -14,7 +14,7 @@ from typing import Any, Callable, Sequence
 from ..executor import LocalExecutor
 from ..logs import Log
 from ..model import Checkpoint
-from ..system import MAX_MEMBERS, STEP_NOISES, SystemDescription, describe_schema
+from ..system import STEP_NOISES, SystemDescription, check_members, describe_schema
 from .step_noise import with_step_noise
 
 Trainer = Callable[..., Checkpoint]
@@ -63,9 +63,7 @@ def train(
     step_noise = kwargs.pop("step_noise", "gaussian")
     if step_noise not in STEP_NOISES:  # before training, not after it
         raise ValueError(f"step noise must be one of {', '.join(STEP_NOISES)}, not {step_noise!r}")
-    members = kwargs.pop("members", 1)
-    if isinstance(members, bool) or not isinstance(members, int) or not 1 <= members <= MAX_MEMBERS:
-        raise ValueError(f"members must be a whole number in 1..{MAX_MEMBERS}, not {members!r}")
+    members = check_members(kwargs.pop("members", 1))
     if members > 1 and name == "random":
         raise ValueError("the random baseline has no training to repeat: members must be 1")
     seed, state = kwargs.pop("seed", 0), kwargs.pop("state_path", None)
@@ -81,20 +79,15 @@ def train(
             own.pop("curves_dir", None)  # one file of loss curves: the first member's
         plans.append(MemberPlan(name, train_logs, val_logs, system, step_noise, own))
     workers = min(max(1, jobs), members)
-    if workers == 1:
-        ckpts = []
-        for k, plan in enumerate(plans):
-            if members > 1 and kwargs.get("progress"):
-                print(f"member {k + 1} of {members} (seed {seed + k})", file=sys.stderr)
-            ckpts.append(train_member(plan))
-        return Checkpoint.ensemble(ckpts)
-    progress = bool(kwargs.get("progress"))
+    if workers > 1:  # progress bars of workers would interleave
+        plans = [replace(p, kwargs={**p.kwargs, "progress": False}) for p in plans]
+    progress = members > 1 and bool(kwargs.get("progress"))
     if progress:
         print(f"training {members} members (seeds {seed}..{seed + members - 1}), {workers} at a time", file=sys.stderr)
     done: dict[int, Checkpoint] = {}
-    pool = LocalExecutor(workers)
+    pool = LocalExecutor(workers if workers > 1 else 0)  # 0: one after another in this process
     try:
-        for k, ckpt in pool.map(train_member, [replace(p, kwargs={**p.kwargs, "progress": False}) for p in plans]):
+        for k, ckpt in pool.map(train_member, plans):
             done[k] = ckpt
             if progress:
                 epoch = ckpt.record.selection.get("best_epoch", "-")
