@@ -355,13 +355,15 @@ class Checkpoint:
 
     def member(self, k: int) -> Checkpoint:
         """Member ``k`` as a single model (normaliser, schema and layers shared, not copied), with its
-        own seed and selection as its record (what an export of it says)."""
+        own seed and selection as its record and ``hyper["member"]`` saying which of how many it is:
+        what an export of it says, so ``envi_sim`` given some members only can say so."""
         if not 0 <= k < self.size:
             raise ValueError(f"member {k}: the model has {self.size} member(s), numbered 0..{self.size - 1}")
         if not self.members:
             return self
         own = dict(self.record.selection["members"][k])
         hyper = {key: v for key, v in self.record.hyper.items() if key != "members"}
+        hyper["member"] = {"index": k, "of": self.size}
         record = replace(self.record, seed=own.pop("seed"), hyper=hyper, selection=own)
         return replace(self, model=self.members[k], members=(), record=record)
 

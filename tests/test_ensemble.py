@@ -15,7 +15,7 @@ import torch
 from envi_py import native
 from envi_py.cli import main
 from envi_py.export_cli import main as export_main
-from envi_py.export import export
+from envi_py.export import export, read_metadata
 from envi_py.logs import load_logs, read_log, write_log
 from envi_py.metrics import driving_metrics
 from envi_py.model import Checkpoint
@@ -233,3 +233,25 @@ def test_envi_sim_refuses_models_of_different_ensembles_in_one_line(tmp_path, re
     done = subprocess.run(cmd, capture_output=True, text=True, check=False)
     assert done.returncode == 2 and done.stderr.count("\n") == 1 and not done.stdout
     assert "b.onnx: its envi.normaliser differs from" in done.stderr and "one seed ensemble" in done.stderr
+
+
+@pytest.mark.skipif(envi_sim() is None, reason="envi_sim binary not built")
+def test_envi_sim_says_when_it_is_given_some_members_only_and_refuses_one_twice(tmp_path, real_dir):
+    """An exported member records which of how many it is: envi_sim given members 0 and 2 of 3 runs
+    them as an ensemble of two and says so on stderr; member 0 given twice is one line, exit 2."""
+    ens = three()
+    files = [export(ens.member(m), tmp_path / f"m{m}.onnx") for m in range(3)]
+    assert read_metadata(files[2])["envi.hyper"]["member"] == {"index": 2, "of": 3}
+    base = [envi_sim(), "--init", str(real_dir / "log_30_0.csv"), "--controller", "lane-keeping", "--param", "x=30"]
+    base += ["--steps", "20", "--metrics", "-"]
+
+    def run(*models: Path) -> subprocess.CompletedProcess:
+        return subprocess.run([*base, "--model", *map(str, models)], capture_output=True, text=True, check=False)
+
+    some = run(files[0], files[2])
+    assert some.returncode == 0 and json.loads(some.stdout)["per_run"]
+    assert "note: --model gives members 0, 2 of a seed ensemble of 3; the runs are drawn by these 2 only" in some.stderr
+    assert "note" not in run(*files).stderr
+    twice = run(files[0], files[1], files[0])
+    assert twice.returncode == 2 and twice.stderr.count("\n") == 1
+    assert "m0.onnx: member 0 of the seed ensemble, as" in twice.stderr and "give each member once" in twice.stderr

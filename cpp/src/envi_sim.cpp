@@ -533,6 +533,34 @@ void check_out_folder(const std::string& out, bool force, const std::vector<std:
   if (::access(parent.c_str(), W_OK) != 0) throw std::invalid_argument("--out " + out + ": cannot create (" + std::strerror(errno) + ")");
 }
 
+// An exported member says which of how many it is (envi.hyper's "member", envi-export --member): a
+// member given twice is an error, and members given without the rest are run as the ensemble of
+// those given, said on stderr rather than silently (envi simulate draws runs by every member).
+void note_partial_ensemble(const std::vector<Model>& models, const std::vector<std::string>& paths) {
+  std::map<long, size_t> given;  // member index -> its --model position
+  long of = 0;
+  for (size_t k = 0; k < models.size(); ++k) {
+    const Json hyper = Json::parse(models[k].metadata_value("envi.hyper"));
+    const Json* member = hyper.find("member");
+    if (member == nullptr) continue;
+    const long index = long(member->at("index").as_number()), size = long(member->at("of").as_number());
+    if (of != 0 && size != of)
+      throw std::invalid_argument("--model " + paths[k] + ": a member of a seed ensemble of " + std::to_string(size) +
+                                  ", the other members given are of one of " + std::to_string(of));
+    of = size;
+    if (const auto twice = given.find(index); twice != given.end())
+      throw std::invalid_argument("--model " + paths[k] + ": member " + std::to_string(index) + " of the seed ensemble, as " +
+                                  paths[twice->second] + " is; give each member once");
+    given.emplace(index, k);
+  }
+  if (of == 0 || long(given.size()) == of) return;
+  std::string which;
+  for (const auto& [index, k] : given) which += (which.empty() ? "" : ", ") + std::to_string(index);
+  std::cerr << "envi_sim: note: --model gives member" << (given.size() > 1 ? "s " : " ") << which << " of a seed ensemble of "
+            << of << "; the runs are drawn by " << (given.size() > 1 ? "these " + std::to_string(given.size()) : "it")
+            << " only (envi simulate draws them by all " << of << ")\n";
+}
+
 // The models of --model: one, or the members of a seed ensemble, which must read and say the same
 // (what envi_py.model.Checkpoint.ensemble requires of its members); only their weights and fitted
 // step-noise shapes may differ.
@@ -547,6 +575,7 @@ std::vector<Model> load_members(const std::vector<std::string>& paths) {
       if (dump(Json::parse(out[k].metadata_value(key))) != dump(Json::parse(out[0].metadata_value(key))))
         throw std::invalid_argument("--model " + paths[k] + ": its " + key + " differs from " + paths[0] +
                                     "'s; the models given together must be members of one seed ensemble");
+  note_partial_ensemble(out, paths);
   return out;
 }
 
