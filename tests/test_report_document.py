@@ -109,6 +109,26 @@ def test_training_curves_are_written_beside_the_checkpoint(twin_logs, tmp_path) 
     assert '<table class="verdict">' in page and "data:image/png;base64," in page and "model sha256" in page
 
 
+def test_an_ensembles_training_report_shows_every_member(twin_logs, tmp_path) -> None:
+    """Each member is selected on its own curve: the verdict has a row per member (its seed and kept
+    epoch) and the CSV a validation-error column per further member, not member 0's alone."""
+    from envi_py.logs import load_logs
+
+    logs = load_logs(twin_logs)
+    ckpt = train("bc", logs[:3], logs[3:], epochs=4, eval_every=2, hidden=(8,), history=5, seed=5, members=2)
+    path = ckpt.save(tmp_path / "e.pt")
+    out = write_training_outputs(ckpt, path)
+    with out["curves"].open() as f:
+        rows = list(csv.DictReader(f))
+    second = ckpt.record.selection["members"][1]
+    assert [float(r["val_error_member1"]) for r in rows] == pytest.approx([e for _, e in second["curve"]], rel=1e-5)
+    assert [float(r["val_error"]) for r in rows] != [float(r["val_error_member1"]) for r in rows]
+    table = [line.strip("|").split("|") for line in (tmp_path / "e.training.md").read_text().splitlines()]
+    verdict = {cells[0].strip(): [c.strip() for c in cells[1:]] for cells in table if "(seed " in cells[0]}
+    assert list(verdict) == ["0 (seed 5)", "1 (seed 6)"]
+    assert verdict["1 (seed 6)"][4] == str(second["best_epoch"]) and verdict["1 (seed 6)"][0] == "bc"
+
+
 def test_train_tensorboard_without_the_package_names_the_extra(twin_logs, tmp_path, monkeypatch, capsys) -> None:
     real_find = importlib.util.find_spec
     monkeypatch.setattr(importlib.util, "find_spec", lambda n, *a: None if n == "tensorboard" else real_find(n, *a))

@@ -16,6 +16,7 @@ import numpy as np
 
 from .document import Figure
 from .stats import Correlations, fit_percent
+from .training import MEMBER_ERROR
 
 REAL, SIM = "black", "tab:blue"
 
@@ -222,7 +223,8 @@ def training_curves(rows: Sequence[Mapping[str, float]], title: str, name: str =
     series = {k: np.array([float(r.get(k, np.nan)) for r in rows]) for k in keys}
     series = {k: v for k, v in series.items() if np.isfinite(v).any()}
     epochs = np.array([float(r["epoch"]) for r in rows])
-    panels = [k for k in series if k == "val_error"] + [k for k in series if k != "val_error"]
+    members = [k for k in series if k.startswith(MEMBER_ERROR)]  # a seed ensemble's further members
+    panels = [k for k in series if k == "val_error"] + [k for k in series if k != "val_error" and k not in members]
     cols = 1 if len(panels) <= 2 else 2
     rows_n = max(1, -(-len(panels) // cols))
     fig, axes = plt.subplots(
@@ -230,18 +232,30 @@ def training_curves(rows: Sequence[Mapping[str, float]], title: str, name: str =
     )
     for ax, k in zip(axes.flat, panels):
         ok = np.isfinite(series[k])
-        ax.plot(epochs[ok], series[k][ok], marker="." if k == "val_error" else None, lw=1.2)
+        member0 = "member 0" if k == "val_error" and members else None
+        ax.plot(epochs[ok], series[k][ok], marker="." if k == "val_error" else None, lw=1.2, label=member0)
         ax.set_ylabel(k, fontsize=8)
         ax.tick_params(labelsize=7)
         if k == "val_error":
             ax.set_ylabel("closed-loop error\n(mean normalised W1)", fontsize=8)
+            for m in members:
+                ok = np.isfinite(series[m])
+                ax.plot(
+                    epochs[ok], series[m][ok], lw=0.9, alpha=0.6, label=f"member {m.removeprefix('val_error_member')}"
+                )
             chosen = [r["epoch"] for r in rows if r.get("selected")]
             bad = [(r["epoch"], r["val_error"]) for r in rows if r.get("diverged") and np.isfinite(r["val_error"])]
             if bad:
                 ax.plot(*zip(*bad), "x", color="tab:red", ms=7, label="diverged in closed loop")
             if chosen:
-                ax.axvline(chosen[0], color="tab:green", ls="--", lw=1, label=f"selected epoch {chosen[0]:g}")
-            if chosen or bad:
+                ax.axvline(
+                    chosen[0],
+                    color="tab:green",
+                    ls="--",
+                    lw=1,
+                    label=f"selected epoch {chosen[0]:g}" + (" (member 0)" if members else ""),
+                )
+            if chosen or bad or members:
                 ax.legend(fontsize=7)
     for ax in list(axes.flat)[len(panels) :]:
         ax.set_visible(False)

@@ -23,10 +23,16 @@ from .files import ReportFiles, write_files
 TENSORBOARD_HINT = "pip install 'envi[tensorboard]'"
 
 
+#: the column prefix of a seed ensemble's further members' validation errors (member 0's is ``val_error``)
+MEMBER_ERROR = "val_error_member"
+
+
 def curve_rows(selection: dict[str, Any], losses: Sequence[dict[str, Any]] = ()) -> list[dict[str, float]]:
     """One row per epoch that has a number: ``epoch``, ``val_error`` (closed-loop mean normalised W1,
     NaN where not evaluated), ``selected`` (1 at the kept epoch), ``diverged`` (1 where the simulated
-    runs left the real runs' range), and any loss columns of ``losses``."""
+    runs left the real runs' range), and any loss columns of ``losses``. A seed ensemble's selection
+    (``members``) adds ``val_error_member<k>`` for members 1.. : each member is selected on its own
+    curve, and a member that stopped early or diverged must show, not only member 0."""
     rows: dict[int, dict[str, float]] = {}
     for r in losses:
         e = int(float(r["epoch"]))
@@ -34,13 +40,46 @@ def curve_rows(selection: dict[str, Any], losses: Sequence[dict[str, Any]] = ())
         rows[e]["epoch"] = float(e)
     for e, err in selection.get("curve", []):
         rows.setdefault(int(e), {"epoch": float(e)})["val_error"] = float(err)
+    further = selection.get("members", [])[1:]
+    for k, member in enumerate(further, start=1):
+        for e, err in member.get("curve", []):
+            rows.setdefault(int(e), {"epoch": float(e)})[f"{MEMBER_ERROR}{k}"] = float(err)
     best, diverged = selection.get("best_epoch"), set(selection.get("diverged_epochs", []))
     out = []
     for e in sorted(rows):
-        r = {"epoch": float(e), "val_error": math.nan, **rows[e]}
+        r = {
+            "epoch": float(e),
+            "val_error": math.nan,
+            **{f"{MEMBER_ERROR}{k}": math.nan for k in range(1, len(further) + 1)},
+        }
+        r.update(rows[e])
         r["selected"] = 1.0 if best is not None and e == best else 0.0
         r["diverged"] = 1.0 if e in diverged else 0.0
         out.append(r)
+    return out
+
+
+def member_rows(rec: Any) -> list[list[str]]:
+    """The verdict's rows: one per model, each seed ensemble member with its own seed, kept epoch and
+    closed-loop error there (a single model is one row)."""
+    sel = rec.selection
+    members = sel.get("members") or [{"seed": rec.seed, **sel}]
+    out = []
+    for k, m in enumerate(members):
+        curve = dict((int(e), float(err)) for e, err in m.get("curve", []))
+        best = m.get("best_epoch")
+        err = curve.get(int(best)) if best is not None else None
+        out.append(
+            [
+                f"{k} (seed {m.get('seed', rec.seed)})" if len(members) > 1 else f"seed {rec.seed}",
+                rec.algorithm,
+                str(len(rec.data)),
+                str(len(rec.validation)),
+                str(len(curve)),
+                str(best if best is not None else "-"),
+                f"{err:.4f}" if err is not None and math.isfinite(err) else "-",
+            ]
+        )
     return out
 
 
@@ -94,30 +133,35 @@ def training_report(ckpt: Any, model_path: Path, rows: Sequence[dict[str, float]
 
     rec = ckpt.record
     sel = rec.selection
-    evaluated = [r for r in rows if math.isfinite(r.get("val_error", math.nan))]
-    best = [r for r in rows if r.get("selected")]
     verdict = Table(
-        ["algorithm", "training logs", "validation logs", "epochs evaluated", "selected epoch", "closed-loop error"],
         [
-            [
-                rec.algorithm,
-                str(len(rec.data)),
-                str(len(rec.validation)),
-                str(len(evaluated)),
-                str(sel.get("best_epoch", "-")),
-                f"{best[0]['val_error']:.4f}" if best and math.isfinite(best[0].get("val_error", math.nan)) else "-",
-            ]
+            "member" if sel.get("members") else "model",
+            "algorithm",
+            "training logs",
+            "validation logs",
+            "epochs evaluated",
+            "selected epoch",
+            "closed-loop error",
         ],
-        numeric=frozenset({1, 2, 3, 4, 5}),
+        member_rows(rec),
+        numeric=frozenset({2, 3, 4, 5, 6}),
     )
     stopped = f" Training stopped: {sel['stopped']}." if sel.get("stopped") else ""
+    if sel.get("members"):
+        stopped += (
+            " The seed ensemble's members are selected each on its own curve: val_error is member 0's (its"
+            " kept epoch and stop above), val_error_member<k> member k's."
+        )
     guide = [
         Text(
             f"Selection: {sel.get('criterion', '-')}.{stopped}"
             + (f" Warning: {sel['warning']}" if sel.get("warning") else "")
         )
     ]
-    title = f"{rec.algorithm}: {len(rec.data)} training logs, seed {rec.seed}"
+    seeds = [str(m["seed"]) for m in sel.get("members", [])]
+    title = f"{rec.algorithm}: {len(rec.data)} training logs, " + (
+        f"members of seeds {', '.join(seeds)}" if seeds else f"seed {rec.seed}"
+    )
     hyper = Table(["hyper-parameter", "value"], [[k, str(v)] for k, v in rec.hyper.items()])
     return Report(
         f"Training report: {model_path.name}",
