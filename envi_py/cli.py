@@ -33,7 +33,7 @@ from .logs import (
     write_log,
     write_manifest,
 )
-from .system import MAX_MEMBERS, SystemDescription, load_system
+from .system import MAX_HIDDEN, MAX_MEMBERS, SystemDescription, load_system
 from .twin.cli import register as register_twin
 
 if TYPE_CHECKING:  # torch is imported only once a command needs a model
@@ -200,6 +200,17 @@ def _positive(args: argparse.Namespace, *names: str) -> None:
             raise ValueError(f"--{name.replace('_', '-')} must be at least 1, got {v}")
 
 
+def parse_hidden(text: str) -> list[int]:
+    """``--hidden 128,128`` as widths, refused with the value named unless each is in 1..MAX_HIDDEN."""
+    try:
+        hidden = [int(h) for h in text.split(",")]
+    except ValueError:
+        raise ValueError(f"--hidden must be comma-separated widths such as 256,256, got {text!r}") from None
+    if not hidden or any(not 1 <= h <= MAX_HIDDEN for h in hidden):
+        raise ValueError(f"--hidden widths must lie in 1..{MAX_HIDDEN}, got {text!r}")
+    return hidden
+
+
 def _at_most(args: argparse.Namespace, **limits: int) -> None:
     """Upper bounds where a typo would run for ever or exhaust memory."""
     for name, limit in limits.items():
@@ -218,12 +229,7 @@ def cmd_train(args: argparse.Namespace) -> int:
 
     _positive(args, "epochs", "history", "eval_every", "select_runs", "members", "jobs")
     _at_most(args, epochs=1_000_000, history=10_000, eval_every=1_000_000, members=MAX_MEMBERS, jobs=1024)
-    try:
-        hidden = [int(h) for h in args.hidden.split(",")]
-    except ValueError:
-        raise ValueError(f"--hidden must be comma-separated widths such as 256,256, got {args.hidden!r}") from None
-    if not hidden or any(not 1 <= h <= 100_000 for h in hidden):
-        raise ValueError(f"--hidden widths must lie in 1..100000, got {args.hidden!r}")
+    hidden = None if args.hidden is None else parse_hidden(args.hidden)
     if not 0 <= args.play_width <= 1:
         raise ValueError(f"--play-width is a fraction of the action range (0..1), got {args.play_width}")
     if not 0 <= args.multistep <= 1000:
@@ -254,7 +260,6 @@ def cmd_train(args: argparse.Namespace) -> int:
     if args.algorithm != "random":
         kwargs.update(
             epochs=args.epochs,
-            hidden=hidden,
             eval_every=args.eval_every,
             extras=tuple(args.extras),
             play_width=args.play_width,
@@ -280,6 +285,8 @@ def cmd_train(args: argparse.Namespace) -> int:
             kwargs["lr"] = args.lr
         if args.members is not None:  # else the system description's [training] default
             kwargs["members"] = args.members
+        if hidden is not None:  # else the description's, else the trainer's
+            kwargs["hidden"] = hidden
     elif args.members not in (None, 1):
         raise ValueError("--members: the random baseline has no training to repeat")
     if args.algorithm != "random":
@@ -619,7 +626,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--lr", type=float, default=None, help="learning rate (default: the algorithm's: BC 1e-3, GAIL/BCxGAIL 5e-5)"
     )
     p.add_argument("--history", type=int, default=10, help="window length l")
-    p.add_argument("--hidden", default="256,256", help="hidden widths")
+    p.add_argument(
+        "--hidden",
+        default=None,
+        help="hidden widths, comma-separated (default: the system description's [training] hidden, else 256,256)",
+    )
     p.add_argument(
         "--head",
         choices=("deterministic", "gaussian"),

@@ -177,6 +177,10 @@ STEP_NOISES = ("gaussian", "student-t")
 MAX_MEMBERS = 32
 
 
+#: the widest hidden layer a description or ``envi train --hidden`` may ask for
+MAX_HIDDEN = 100_000
+
+
 def check_members(members: Any, what: str = "members") -> int:
     """A seed ensemble's size, refused (naming ``what``) unless a whole number in 1..MAX_MEMBERS."""
     if isinstance(members, bool) or not isinstance(members, int) or not 1 <= members <= MAX_MEMBERS:
@@ -194,11 +198,13 @@ class TrainingDefaults:
     step_noise: str = "gaussian"
     context: bool = False
     members: int = 1
+    hidden: tuple[int, ...] | None = None  # the network's hidden widths; None: the trainer's (256, 256)
 
     def for_algorithm(self, algorithm: str) -> dict[str, Any]:
         """The keyword arguments ``algorithm``'s trainer takes from these defaults: the residual head
         for every learnt model, input noise for behaviour cloning only (its loss, not GAIL's), and
-        the ensemble's members for behaviour cloning only (where they were measured)."""
+        the ensemble's members and the hidden widths for behaviour cloning only (where they were
+        measured)."""
         out: dict[str, Any] = {}
         if algorithm in ("bc", "gail", "bcxgail") and self.residual:
             out["residual"] = True
@@ -210,6 +216,8 @@ class TrainingDefaults:
             out["context"] = True
         if algorithm == "bc" and self.members > 1:  # measured for BC; a GAIL training is 3-30x longer
             out["members"] = self.members
+        if algorithm == "bc" and self.hidden:
+            out["hidden"] = self.hidden
         return out
 
     def to_json(self) -> dict[str, Any]:
@@ -219,6 +227,7 @@ class TrainingDefaults:
             "step_noise": self.step_noise,
             "context": self.context,
             "members": self.members,
+            "hidden": None if self.hidden is None else list(self.hidden),
         }
 
 
@@ -238,7 +247,18 @@ def _training(d: Any) -> TrainingDefaults:
     if step_noise not in STEP_NOISES:
         raise ValueError(f"[training] step_noise must be one of {', '.join(STEP_NOISES)}, not {step_noise!r:.40}")
     members = check_members(d.get("members", 1), "[training] members")
-    return TrainingDefaults(residual, float(noise), step_noise, context, members)
+    hidden = d.get("hidden")
+    if hidden is not None and (
+        not isinstance(hidden, list)
+        or not hidden
+        or any(isinstance(h, bool) or not isinstance(h, int) or not 1 <= h <= MAX_HIDDEN for h in hidden)
+    ):
+        raise ValueError(
+            f"[training] hidden must be a list of widths in 1..{MAX_HIDDEN}, such as [128, 128], not {hidden!r:.40}"
+        )
+    return TrainingDefaults(
+        residual, float(noise), step_noise, context, members, None if hidden is None else tuple(hidden)
+    )
 
 
 @dataclass(frozen=True)
@@ -526,7 +546,7 @@ TOML_KEYS: dict[str, tuple[str, ...]] = {
     "[versions]": ("pattern", "params", "map"),
     "[controller]": ("name", "params"),
     "[[requirements]]": ("name", "expr", "kind", "probability"),
-    "[training]": ("residual", "input_noise", "step_noise", "context", "members"),
+    "[training]": ("residual", "input_noise", "step_noise", "context", "members", "hidden"),
 }
 
 

@@ -63,7 +63,9 @@ def test_the_system_description_sets_the_defaults_and_the_command_line_wins(car_
         ck = Checkpoint.load(out)
         assert ck.config.residual is residual and ck.record.hyper["input_noise"] == noise, extra
     assert load_system("car").training == TrainingDefaults(residual=True, input_noise=0.5)
-    assert load_system("lane-keeping").training == TrainingDefaults(step_noise="student-t", members=3)
+    lane = TrainingDefaults(step_noise="student-t", members=3, hidden=(128, 128))
+    assert load_system("lane-keeping").training == lane
+    assert lane.for_algorithm("gail") == {"step_noise": "student-t"}  # members and widths: measured for BC
     assert TrainingDefaults(True, 0.5).for_algorithm("gail") == {"residual": True}  # input noise is BC's loss
     assert TrainingDefaults(True, 0.5).for_algorithm("random") == {}
 
@@ -77,6 +79,10 @@ def test_the_system_description_sets_the_defaults_and_the_command_line_wins(car_
         ("residual = true", "residuals = true", "unknown key 'residuals' (did you mean 'residual'?"),
         ("input_noise = 0.5", 'input_noise = 0.5\nstep_noise = "laplace"', "step_noise must be one of gaussian"),
         ("input_noise = 0.5", 'input_noise = 0.5\ncontext = "yes"', "context must be true or false"),
+        ("input_noise = 0.5", "input_noise = 0.5\nhidden = 128", "hidden must be a list of widths"),
+        ("input_noise = 0.5", "input_noise = 0.5\nhidden = [128, 0]", "hidden must be a list of widths"),
+        ("input_noise = 0.5", "input_noise = 0.5\nhidden = [true]", "hidden must be a list of widths"),
+        ("input_noise = 0.5", "input_noise = 0.5\nhidden = []", "hidden must be a list of widths"),
     ],
 )
 def test_a_bad_training_table_is_refused_naming_the_file(tmp_path, line, bad, message):
@@ -102,3 +108,17 @@ def test_a_description_asks_for_a_run_context_and_the_command_line_wins(car_dir,
         assert main(argv) == 0, extra
         assert Checkpoint.load(out).config.context is context, extra
     assert load_system("car").training.context is False
+
+
+def test_the_descriptions_hidden_widths_apply_and_the_command_line_wins(tmp_path):
+    """Lane keeping's [training] hidden = [128, 128] shapes a plain BC training on its logs (twin logs:
+    their sidecars name the system); --hidden overrides it."""
+    from envi_py.controllers import ControllerSpec
+    from envi_py.twin import generate, write_logs
+
+    logs = tmp_path / "lane"
+    write_logs(generate(ControllerSpec("lane-keeping", {"x": 30}), 2, 30, seed=0), logs)
+    base = ["train", "--logs", str(logs), "--epochs", "1", "--members", "1", "--quiet"]
+    for extra, widths in (([], (128, 128)), (["--hidden", "8,4"], (8, 4))):
+        assert main([*base, *extra, "-o", str(tmp_path / "m.pt")]) == 0
+        assert Checkpoint.load(tmp_path / "m.pt").config.hidden == widths
