@@ -848,7 +848,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--system", choices=("lane-keeping", "car"), default="lane-keeping", help="which twin system plays the field"
     )
-    p.add_argument("--fast", action="store_true", help="a small demo (fewer logs, 40 epochs): a minute, not ten")
+    p.add_argument("--fast", action="store_true", help="a small demo (fewer logs, 40 epochs): half the time")
     p.add_argument(
         "--out",
         default="demo_out",
