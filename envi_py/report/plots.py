@@ -240,9 +240,7 @@ def training_curves(rows: Sequence[Mapping[str, float]], title: str, name: str =
             ax.set_ylabel("closed-loop error\n(mean normalised W1)", fontsize=8)
             for m in members:
                 ok = np.isfinite(series[m])
-                ax.plot(
-                    epochs[ok], series[m][ok], lw=0.9, alpha=0.6, label=f"member {m.removeprefix('val_error_member')}"
-                )
+                ax.plot(epochs[ok], series[m][ok], lw=0.9, alpha=0.6, label=f"member {m.removeprefix(MEMBER_ERROR)}")
             chosen = [r["epoch"] for r in rows if r.get("selected")]
             bad = [(r["epoch"], r["val_error"]) for r in rows if r.get("diverged") and np.isfinite(r["val_error"])]
             if bad:
