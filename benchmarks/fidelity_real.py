@@ -200,6 +200,8 @@ def run_cell(
     train_logs = [lg for x in TRAIN_X for lg in parts[x].train]
     val_logs = [lg for x in TRAIN_X for lg in parts[x].val]
     kwargs = dict(extra) if algo == "random" or args.epochs is None else {**extra, "epochs": args.epochs}
+    if algo != "random":
+        kwargs["jobs"] = args.jobs
     start = time.perf_counter()
     ckpt = train(algo, train_logs, val_logs, seed=seed, history=args.history, **kwargs)
     train_s = time.perf_counter() - start
@@ -499,6 +501,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         help="also score each fold's models of every --seeds as one seed ensemble (envi train --members)",
     )
     p.add_argument("--threads", type=int, default=1, help="torch threads (the machine is shared)")
+    p.add_argument(
+        "--jobs", type=int, default=1, help="an ensemble's members trained at once (envi train --jobs); timing only"
+    )
     p.add_argument("--quick", action="store_true", help="smoke configuration: bc-gaussian, n=3, 1 fold, 20 epochs")
     p.add_argument("--out", type=Path, help="JSON file to write")
     args = p.parse_args(argv)
@@ -512,8 +517,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         args.n = [int(v) for v in args.n.split(",")]
     except ValueError:
         p.error(f"--n {args.n!r} is not a comma list of integers")
-    if min(args.n) < 1 or min(args.folds, args.seeds, args.sim_runs, args.sim_seeds) < 1 or args.test < 4:
-        p.error("--n, --folds, --seeds, --sim-runs, --sim-seeds must be >= 1 and --test >= 4")
+    if min(args.n) < 1 or min(args.folds, args.seeds, args.sim_runs, args.sim_seeds, args.jobs) < 1 or args.test < 4:
+        p.error("--n, --folds, --seeds, --sim-runs, --sim-seeds, --jobs must be >= 1 and --test >= 4")
     return args
 
 

@@ -33,7 +33,7 @@ from .logs import (
     write_log,
     write_manifest,
 )
-from .system import MAX_HIDDEN, MAX_MEMBERS, SystemDescription, load_system
+from .system import MAX_MEMBERS, SystemDescription, check_hidden, load_system
 from .twin.cli import register as register_twin
 
 if TYPE_CHECKING:  # torch is imported only once a command needs a model
@@ -200,15 +200,13 @@ def _positive(args: argparse.Namespace, *names: str) -> None:
             raise ValueError(f"--{name.replace('_', '-')} must be at least 1, got {v}")
 
 
-def parse_hidden(text: str) -> list[int]:
-    """``--hidden 128,128`` as widths, refused with the value named unless each is in 1..MAX_HIDDEN."""
+def parse_hidden(text: str) -> tuple[int, ...]:
+    """``--hidden 128,128`` as widths, checked as the description's ``[training] hidden`` is."""
     try:
         hidden = [int(h) for h in text.split(",")]
     except ValueError:
         raise ValueError(f"--hidden must be comma-separated widths such as 256,256, got {text!r}") from None
-    if not hidden or any(not 1 <= h <= MAX_HIDDEN for h in hidden):
-        raise ValueError(f"--hidden widths must lie in 1..{MAX_HIDDEN}, got {text!r}")
-    return hidden
+    return check_hidden(hidden, "--hidden")
 
 
 def _at_most(args: argparse.Namespace, **limits: int) -> None:

@@ -188,6 +188,18 @@ def check_members(members: Any, what: str = "members") -> int:
     return members
 
 
+def check_hidden(hidden: Any, what: str = "hidden") -> tuple[int, ...]:
+    """A network's hidden widths, refused (naming ``what``) unless a non-empty list of whole numbers
+    in 1..MAX_HIDDEN: one check for the description's ``[training] hidden`` and ``--hidden``."""
+    if (
+        not isinstance(hidden, (list, tuple))
+        or not hidden
+        or any(isinstance(h, bool) or not isinstance(h, int) or not 1 <= h <= MAX_HIDDEN for h in hidden)
+    ):
+        raise ValueError(f"{what} must be a list of widths in 1..{MAX_HIDDEN}, such as [128, 128], not {hidden!r:.40}")
+    return tuple(hidden)
+
+
 @dataclass(frozen=True)
 class TrainingDefaults:
     """Model settings a system's description recommends (``[training]``): the defaults of a training
@@ -248,17 +260,9 @@ def _training(d: Any) -> TrainingDefaults:
         raise ValueError(f"[training] step_noise must be one of {', '.join(STEP_NOISES)}, not {step_noise!r:.40}")
     members = check_members(d.get("members", 1), "[training] members")
     hidden = d.get("hidden")
-    if hidden is not None and (
-        not isinstance(hidden, list)
-        or not hidden
-        or any(isinstance(h, bool) or not isinstance(h, int) or not 1 <= h <= MAX_HIDDEN for h in hidden)
-    ):
-        raise ValueError(
-            f"[training] hidden must be a list of widths in 1..{MAX_HIDDEN}, such as [128, 128], not {hidden!r:.40}"
-        )
-    return TrainingDefaults(
-        residual, float(noise), step_noise, context, members, None if hidden is None else tuple(hidden)
-    )
+    if hidden is not None:
+        hidden = check_hidden(hidden, "[training] hidden")
+    return TrainingDefaults(residual, float(noise), step_noise, context, members, hidden)
 
 
 @dataclass(frozen=True)
