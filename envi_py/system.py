@@ -196,7 +196,7 @@ def check_hidden(hidden: Any, what: str = "hidden") -> tuple[int, ...]:
         or not hidden
         or any(isinstance(h, bool) or not isinstance(h, int) or not 1 <= h <= MAX_HIDDEN for h in hidden)
     ):
-        raise ValueError(f"{what} must be a list of widths in 1..{MAX_HIDDEN}, such as [128, 128], not {hidden!r:.40}")
+        raise ValueError(f"{what} must be a list of widths, each in 1..{MAX_HIDDEN}, not {hidden!r:.40}")
     return tuple(hidden)
 
 
