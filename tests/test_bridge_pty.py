@@ -266,6 +266,41 @@ def test_hil_actions_are_the_controller_on_injected_colours(sim: BrickSim, tmp_p
         assert np.ptp(lg.states) > 0  # the model did not just emit one constant
 
 
+def test_refused_hil_runs_reserve_nothing_so_the_next_collection_is_clean(
+    sim: BrickSim, tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    """A bad --init-log, a typo in --inject or a run shorter than one tick is one line, exit 2, and
+    leaves no ledger entry behind: a refused run once left a reservation that the next, valid
+    collection into the same folder reported as a lost run (and exited 2)."""
+    ckpt_path = tiny_checkpoint(tmp_path / "tiny.pt")
+    bad_init = tmp_path / "nan.csv"
+    bad_init.write_text("time,color,angle\n" + "".join(f"{40 * i},{'nan' if i == 3 else 50},30\n" for i in range(12)))
+    out = tmp_path / "hil"
+    refusals = [
+        (["--inject", str(ckpt_path), "--init-log", str(bad_init)], "nan.csv"),
+        (["--inject", "no_such_module:fn"], "--inject no_such_module:fn: cannot import"),
+        (["--inject", "firmware_bridge.host.inject:no_such_name"], "cannot import 'no_such_name'"),
+        (["--duration", "10ms"], "shorter than one tick"),
+    ]
+    for extra, said in refusals:
+        rc = collect.main(["--port", str(sim.link), "--duration", "4s", "--out", str(out), "--quiet", *extra])
+        err = capsys.readouterr().err
+        assert rc == 2 and said in err and "Traceback" not in err, err
+        assert len(err.strip().splitlines()) == 1, err
+    assert not (out / LEDGER_NAME).exists() or not (out / LEDGER_NAME).read_text().strip()
+    collect_ok("--port", str(sim.link), "--duration", "1s", "--out", str(out))
+    assert ledger_ends(out)["log_30_0"]["status"] == "complete"  # and no earlier run reported lost
+    err = capsys.readouterr().err
+    assert "unsettled" not in err and " 0 lost run(s)" in err, err
+
+
+@pytest.mark.parametrize("argv", [["--duration", "0s"], ["--duration", "-1"], ["--init-log", "x.csv"]])
+def test_collect_options_refused_before_any_contact(argv: list[str], tmp_path: Path) -> None:
+    with pytest.raises(SystemExit) as exc:
+        collect.main(["--port", "/dev/null/none", "--out", str(tmp_path / "o"), *argv])
+    assert exc.value.code == 2 and not (tmp_path / "o").exists()
+
+
 def test_ctrl_c_leaves_only_complete_files(tmp_path: Path) -> None:
     sim = BrickSim(tmp_path, "--world", "firmware_bridge.host.world:EdgeWorld")  # the stand-in world
     try:

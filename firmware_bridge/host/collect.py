@@ -87,11 +87,10 @@ def connect(link: Link | None, url: str, wait: float, pings: int) -> tuple[Link,
     raise BrickError(f"{url}: the link keeps dropping during the handshake")
 
 
-def initial_window(model: EnvironmentModel, init_log: Path | None, info: BrickInfo) -> np.ndarray:
-    """sigma_0: the first ``history`` rows of ``init_log``, or the robot resting on white."""
-    if init_log is not None:
-        log = read_log(init_log, min_length=model.history)
-        return log.values[: model.history]
+def initial_window(model: EnvironmentModel, init_rows: np.ndarray | None, info: BrickInfo) -> np.ndarray:
+    """sigma_0: ``init_rows`` (the first ``history`` rows of ``--init-log``), or the robot resting on white."""
+    if init_rows is not None:
+        return init_rows
     x = float(info.params.get("x", 0.0))
     return np.tile([[75.0, x]], (model.history, 1))
 
@@ -301,6 +300,12 @@ class Session:
     def __init__(self, args: argparse.Namespace, model: EnvironmentModel | None, bar: tqdm) -> None:
         self.args = args
         self.model = model
+        # read before the ledger is touched: a bad --init-log is refused with nothing reserved
+        self.init_rows = (
+            read_log(args.init_log, min_length=model.history).values[: model.history]
+            if model is not None and args.init_log is not None
+            else None
+        )
         self.bar = bar
         self.mode = P.MODE_FIELD if model is None else (P.MODE_FREE if args.free_running else P.MODE_LOCKSTEP)
         self.prefix = args.prefix or ("log" if model is None else "hil")
@@ -346,13 +351,15 @@ class Session:
             info, clock = self._connect()
             if n == 0:
                 remove_stale_staging(args.out)  # after settling, which may finish a dead collector's staging
-            n_ticks = max(1, round(args.duration * 1000 / info.period_ms))
+            n_ticks = round(args.duration * 1000 / info.period_ms)
+            if n_ticks < 1:  # before the run is reserved: a run of no rows would only be "lost"
+                raise ValueError(f"--duration {args.duration:g} s is shorter than one tick ({info.period_ms} ms)")
             if self.bar.total is None:
                 self.bar.reset(total=n_ticks * args.runs)
             self.bar.set_description(f"run {n + 1}/{args.runs}")
             name = run_name(self.prefix, info, first + n)
+            init = initial_window(self.model, self.init_rows, info) if self.model is not None else None
             start = self.ledger.start(name, first + n, new_run_id(self.ledger, info), n_ticks, P.MODE_NAMES[self.mode])
-            init = initial_window(self.model, args.init_log, info) if self.model is not None else None
             run = Run(
                 self.link,
                 info,
@@ -405,6 +412,10 @@ def checked_args(parser: argparse.ArgumentParser, argv: list[str] | None) -> arg
         parser.error(f"--runs must be at least 1, got {args.runs}")
     if args.pings < 1:
         parser.error(f"--pings must be at least 1, got {args.pings}")
+    if args.inject is None and (args.init_log is not None or args.free_running):
+        parser.error("--init-log and --free-running apply to hardware in the loop only: give --inject too")
+    if not 0 < args.duration <= 86_400:  # a run of 0 s once wrote a one-row log no command could use
+        parser.error(f"--duration must be more than 0 s and at most a day, got {args.duration:g} s")
     if not 0 <= args.reconnect <= 86_400:  # NaN fails too
         parser.error(f"--reconnect is a number of seconds in 0..86400, got {args.reconnect}")
     if args.first_run is not None and args.first_run < 0:

@@ -114,7 +114,10 @@ def load_model(spec: str) -> EnvironmentModel:
     (instantiated without arguments), a model object, or a plain function ``window -> colour``."""
     if ":" in spec and not Path(spec).exists():
         module, _, attr = spec.partition(":")
-        obj = getattr(importlib.import_module(module), attr)
+        try:
+            obj = getattr(importlib.import_module(module), attr)
+        except (ImportError, AttributeError) as exc:  # a typo in --inject: one line, not a traceback
+            raise ValueError(f"--inject {spec}: cannot import {attr!r} from {module!r} ({exc})") from None
         if inspect.isclass(obj):
             obj = obj()
         return obj if hasattr(obj, "history") else CallableModel(obj, description=spec)
