@@ -177,6 +177,10 @@ def cmd_split(args: argparse.Namespace) -> int:
         raise ValueError("the split leaves no training logs")
     out = Path(args.out)
     system = system_of(args)
+    for name in parts:  # all three or none: a folder in the way of the last once left a mix of two splits
+        target = out / f"{name}.json"
+        if target.exists() and not target.is_file():
+            raise ValueError(f"{target}: exists and is not a file; nothing written")
     for name, part in parts.items():
         write_manifest(out / f"{name}.json", part, system)
         per = f" ({len(part) // len(groups)} per version)" if len(groups) > 1 and part else ""

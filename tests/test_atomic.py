@@ -30,3 +30,11 @@ def test_a_failed_write_leaves_the_old_file_and_no_temporary_one(tmp_path, error
     with pytest.raises(type(error)):
         atomic_write(path, half)
     assert path.read_text() == "old\n" and [p.name for p in tmp_path.iterdir()] == ["a.csv"]
+
+
+def test_a_folder_in_the_way_is_named_not_the_temporary_file(tmp_path) -> None:
+    (tmp_path / "a.json").mkdir()
+    with pytest.raises(OSError) as exc:
+        atomic_write_text(tmp_path / "a.json", "{}\n")
+    assert exc.value.filename == str(tmp_path / "a.json") and ".tmp" not in str(exc.value)
+    assert [p.name for p in tmp_path.iterdir()] == ["a.json"]  # no temporary file left behind

@@ -238,6 +238,20 @@ def test_split_rewrites_all_three_manifests(init_logs: Path, tmp_path: Path):
         assert len(json.loads((out / f"{name}.json").read_text())["logs"]) == n
 
 
+@pytest.mark.parametrize("blocked", ["val", "test"])
+def test_split_writes_no_manifest_when_one_cannot_be_written(init_logs: Path, tmp_path: Path, blocked: str):
+    """A folder where a manifest goes: one line naming it, and the earlier split left whole (it once
+    rewrote train.json before failing on test.json, naming a hidden temporary file)."""
+    out = tmp_path / "split"
+    assert run_cli(["split", "--logs", str(init_logs), "--test", "1", "--val", "1", "--out", str(out)])[0] == 0
+    (out / f"{blocked}.json").unlink()
+    (out / f"{blocked}.json").mkdir()
+    before = snapshot(out)
+    code, said, err = run_cli(["split", "--logs", str(init_logs), "--test", "1", "--seed", "5", "--out", str(out)])
+    assert code == 2 and f"{blocked}.json: exists and is not a file" in err and ".tmp" not in err, err
+    assert said == "" and snapshot(out) == before
+
+
 def test_a_second_demo_replaces_its_own_logs_and_keeps_other_files(tmp_path: Path, capsys):
     """A smaller demo after a larger one: its data/ and sim/ hold exactly its own logs (the stale
     ones would otherwise be read back into its training and verification)."""
