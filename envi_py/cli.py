@@ -20,6 +20,7 @@ from .atomic import atomic_write_text
 from .cli_parser import EnviParser
 from .controllers import ControllerSpec, parse_params
 from .dataset import EXTRA_CHANNELS
+from .files import refuse_overwriting
 from .diagnose.cli import register as register_diagnose
 from .experiments.cli import register as register_experiment
 from .logs import (
@@ -226,6 +227,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     import tempfile
 
     from .diagnose.data_quality import pauses
+    from .report.training import training_output_paths, write_training_outputs
     from .train import member_state_paths, train
     from .train.common import SelectionSettings
 
@@ -251,6 +253,11 @@ def cmd_train(args: argparse.Namespace) -> int:
             f"{val[0].path or val[0].name}: columns {','.join(val[0].meta.schema.columns)} differ from the "
             f"training logs' ({logs[0].path or logs[0].name}: {','.join(logs[0].meta.schema.columns)})"
         )
+    output = Path(args.output)
+    given = [*args.logs, *(args.val_logs or []), args.system, args.config]
+    refuse_overwriting(
+        [output, *training_output_paths(output)], [*(lg.path for lg in (*logs, *val)), *given], "--output"
+    )
     for finding in pauses([*logs, *val]):  # what envi diagnose flags first, said before the training
         print(f"envi train: note: {finding.what}", file=sys.stderr)
     gappy = {str(lg.path or lg.name): lg.meta.breaks for lg in (*logs, *val) if lg.meta.breaks}
@@ -304,8 +311,6 @@ def cmd_train(args: argparse.Namespace) -> int:
     jobs = args.jobs or os.cpu_count() or 1
     ckpt = train(args.algorithm, logs, val, system=system_of(args), jobs=jobs, **kwargs)
     path = ckpt.save(args.output)
-    from .report.training import write_training_outputs
-
     written = write_training_outputs(
         ckpt,
         Path(path),

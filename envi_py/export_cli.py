@@ -29,9 +29,11 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     from .effect_layers import describe, read_layers
     from .export import OPSET, PARITY_TOL, export
+    from .files import refuse_overwriting
     from .model import Checkpoint
 
     try:
+        refuse_overwriting([args.output], [args.model, args.layers], "-o")
         ckpt = Checkpoint.load(args.model)
         if args.member is not None:
             ckpt = ckpt.member(args.member)

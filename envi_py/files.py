@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import os
 import stat
+from collections.abc import Iterable
 from pathlib import Path
 
 
@@ -33,3 +34,16 @@ def read_text(path: str | os.PathLike, what: str, error: type[ValueError] = Valu
         raise error(f"{path}: cannot read {what} ({exc.strerror})") from None
     except UnicodeDecodeError as exc:
         raise error(f"{path}: {what} is not UTF-8 text (byte {exc.start})") from None
+
+
+def refuse_overwriting(outputs: Iterable[str | os.PathLike], inputs: Iterable[str | os.PathLike], what: str) -> None:
+    """A ValueError naming the first of ``outputs`` that is one of ``inputs`` (the same file, by any
+    path): ``envi-export m.pt -o m.pt`` or ``envi train -o log_10_0.csv`` once replaced the input
+    they read, exit 0. ``what`` names the option the output came from."""
+    existing = [Path(p) for p in inputs if p and Path(p).exists()]
+    for out in map(Path, outputs):
+        if not out.exists():
+            continue
+        for source in existing:
+            if os.path.samefile(out, source):
+                raise ValueError(f"{what} {out}: is an input of this command ({source}); nothing overwritten")

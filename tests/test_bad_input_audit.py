@@ -212,6 +212,27 @@ def test_an_output_that_is_a_file_is_named_plainly(lane_logs: Path, lane_model: 
     assert f.read_text() == "keep me\n"
 
 
+def test_an_output_that_is_an_input_is_refused_and_the_input_kept(lane_logs: Path, lane_model: Path, tmp_path: Path):
+    """``envi train -o log.csv`` and ``envi-export m.pt -o m.pt`` once replaced the input they read,
+    exit 0 (found by a bad-input sweep): now one line naming the output, nothing written."""
+    from envi_py.export_cli import main as export_main
+
+    logs = tmp_path / "logs"
+    shutil.copytree(lane_logs, logs)
+    first = sorted(logs.glob("*.csv"))[0]
+    before = first.read_bytes()
+    argv = ["train", "--logs", str(logs), "--epochs", "1", "--members", "1", "--history", "5", "-o", str(first)]
+    line = assert_one_line(*run_cli(argv), "train", first)
+    assert "is an input of this command" in line and first.read_bytes() == before
+    model = tmp_path / "m.pt"
+    shutil.copy(lane_model, model)
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+        code = export_main([str(model), "-o", str(tmp_path / "." / "m.pt")])
+    assert code == 2 and "is an input of this command" in err.getvalue() and len(err.getvalue().splitlines()) == 1
+    assert model.read_bytes() == lane_model.read_bytes()
+
+
 def test_where_naming_an_unknown_parameter_says_so(lane_logs: Path, tmp_path: Path):
     """Once 'no logs found matching {'y': [3.0]}', as if the value were wrong."""
     code, err = run_cli(["split", "--logs", str(lane_logs), "--where", "y=3", "--out", str(tmp_path / "o")])

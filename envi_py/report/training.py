@@ -173,6 +173,13 @@ def training_report(ckpt: Any, model_path: Path, rows: Sequence[dict[str, float]
     )
 
 
+def training_output_paths(model_path: Path) -> list[Path]:
+    """The files :func:`write_training_outputs` writes beside ``model_path`` (tensorboard aside)."""
+    stem = model_path.with_suffix("")
+    ends = (".curves.csv", ".training.html", ".training.md", ".training.json")
+    return [stem.with_name(stem.name + end) for end in ends]
+
+
 def write_training_outputs(
     ckpt: Any, model_path: Path, losses_csv: Path | None = None, tensorboard: Path | None = None
 ) -> dict[str, Path]:
@@ -180,7 +187,7 @@ def write_training_outputs(
     with ``tensorboard`` the scalars in that folder."""
     rows = curve_rows(ckpt.record.selection, read_loss_csv(losses_csv) if losses_csv else [])
     stem = model_path.with_suffix("")
-    out = {"curves": write_curves_csv(rows, stem.with_name(stem.name + ".curves.csv"))}
+    out = {"curves": write_curves_csv(rows, training_output_paths(model_path)[0])}
     files: ReportFiles = write_files(
         training_report(ckpt, model_path, rows), model_path.parent, stem.name + ".training"
     )
