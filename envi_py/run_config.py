@@ -90,10 +90,12 @@ def _convert(action: argparse.Action, value: Any, where: str) -> Any:
         raise ValueError(f"{where}: takes one value, not a list")
     out = []
     for item in items:
-        if isinstance(item, (dict, list)) or (isinstance(item, float) and not math.isfinite(item)):
+        # a bool is an int to Python: ``epochs = true`` once trained "True" epochs and recorded it
+        bad = isinstance(item, (dict, list, bool)) or (isinstance(item, float) and not math.isfinite(item))
+        if bad:
             raise ValueError(f"{where}: {item!r:.40} is not a value this option takes")
         v = item
-        if action.type is not None and not isinstance(item, bool):
+        if action.type is not None:
             try:
                 v = action.type(str(item))
             except (TypeError, ValueError, argparse.ArgumentTypeError) as exc:

@@ -50,6 +50,8 @@ def test_the_command_line_wins_over_the_file(tmp_path, logs_dir):
         ('[split]\ntrain = "many"\n', "[split] train: "),
         ('[split]\nmode = "sideways"\n', "is not one of random, blocks"),
         ("[split]\ntotal = 1\n", "must be true or false"),
+        ("[split]\ntrain = true\n", "[split] train: True is not a value this option takes"),
+        ("[split]\npattern = false\n", "[split] pattern: False is not a value"),
         ("[train]\nepochs = 3\n", "no [split] table"),
         ("[split\n", "not a readable TOML run file"),
     ],
