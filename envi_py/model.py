@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import platform
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field, replace
@@ -107,6 +108,16 @@ class ModelConfig:
             raise ValueError(f"model kind must be 'mlp' or 'random', not {self.kind!r}")
         if self.history < 1:
             raise ValueError("history must be at least 1")
+        # post-processing a damaged file could hold: reversed limits once pinned every state to one edge
+        if self.round_to is not None and (
+            len(self.round_to) != self.n_state or not all(math.isfinite(r) and r > 0 for r in self.round_to)
+        ):
+            raise ValueError(f"round_to must give each of the {self.n_state} states a resolution > 0: {self.round_to}")
+        if self.limits is not None and (
+            len(self.limits) != self.n_state
+            or not all(math.isfinite(lo) and math.isfinite(hi) and lo <= hi for lo, hi in self.limits)
+        ):
+            raise ValueError(f"limits must give each of the {self.n_state} states a finite low <= high: {self.limits}")
         if "play" in self.extras and not self.play_width > 0:
             raise ValueError("the 'play' channel needs a play_width > 0 (a fraction of the action range)")
 
@@ -261,6 +272,11 @@ class TrainingRecord:
             "python": platform.python_version(),
         }
     )
+
+    def __post_init__(self) -> None:
+        ok = isinstance(self.period_ms, (int, float)) and not isinstance(self.period_ms, bool)
+        if self.period_ms is not None and not (ok and 0 < self.period_ms < 1e6):  # NaN fails too
+            raise ValueError(f"period_ms must be a positive number of milliseconds, not {self.period_ms!r}")
 
 
 def _content_hash(

@@ -42,6 +42,32 @@ def test_checkpoint_round_trip(tmp_path):
     assert back.record.versions["torch"] == str(torch.__version__)
 
 
+@pytest.mark.parametrize(
+    "part, key, value, says",
+    [
+        ("config", "limits", [(100.0, 0.0)], "limits must give each of the 1 states a finite low <= high"),
+        ("config", "limits", [(float("nan"), 1.0)], "finite low <= high"),
+        ("config", "round_to", [-1.0], "round_to must give each of the 1 states a resolution > 0"),
+        ("record", "period_ms", 0.0, "period_ms must be a positive number of milliseconds"),
+        ("record", "period_ms", float("nan"), "period_ms must be a positive number"),
+    ],
+)
+def test_damaged_post_processing_is_refused_on_loading(tmp_path, part, key, value, says):
+    """Values a consistent content hash can still carry (the record is not hashed): reversed limits
+    once pinned every simulated state to one edge, and a bad period or resolution was taken by one
+    engine and refused, naming no file, by the other."""
+    from envi_py.model import _content_hash
+
+    path = small_ckpt("gaussian", round_to=(1.0,), limits=((0.0, 100.0),)).save(tmp_path / "m.pt")
+    blob = torch.load(path, weights_only=False)
+    blob[part][key] = value
+    blob["sha256"] = _content_hash(blob["config"], blob["norm"], blob["state_dict"], blob.get("members") or [])
+    torch.save(blob, path)
+    with pytest.raises(ValueError, match="m.pt: damaged envi checkpoint") as exc:
+        Checkpoint.load(path)
+    assert says in str(exc.value)
+
+
 def test_loading_never_runs_pickled_code(tmp_path):
     class Evil:
         def __reduce__(self):
