@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Any, Callable, Sequence
 from firmware_bridge.host.brick_sim import register as register_brick_sim
 
 from .atomic import atomic_write_text
-from .cli_parser import EnviParser
+from .cli_parser import EnviParser, seed_type
 from .controllers import ControllerSpec, parse_params
 from .dataset import EXTRA_CHANNELS
 from .files import refuse_overwriting
@@ -39,17 +39,6 @@ from .twin.cli import register as register_twin
 
 if TYPE_CHECKING:  # torch is imported only once a command needs a model
     from .model import Checkpoint
-
-
-def seed_type(text: str) -> int:
-    """A seed: a non-negative integer (numpy's generators refuse others)."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be a non-negative integer, not {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be a non-negative integer, not {value}")
-    return value
 
 
 def parse_where(items: Sequence[str] | None) -> dict[str, list[Any]] | None:

@@ -39,3 +39,19 @@ class EnviParser(argparse.ArgumentParser):
         """``<prog>: error: <message> (see <prog> --help)`` on one line, then exit 2."""
         one_line = " ".join(message.split())
         self.exit(2, f"{self.prog}: error: {one_line} (see {self.prog} --help)\n")
+
+
+#: the largest seed: numpy's legacy generators and torch's take up to 2**32 - 1, and an ensemble of
+#: K members uses seed..seed+K-1 (a larger one was once torch's "Overflow when unpacking long long")
+MAX_SEED = 2**31 - 1
+
+
+def seed_type(text: str) -> int:
+    """``--seed``: a whole number in 0..MAX_SEED, refused by argparse naming the option."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a whole number in 0..{MAX_SEED}, not {text!r}") from None
+    if not 0 <= value <= MAX_SEED:
+        raise argparse.ArgumentTypeError(f"must be a whole number in 0..{MAX_SEED}, not {value}")
+    return value

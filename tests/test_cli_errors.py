@@ -24,7 +24,12 @@ CASES = [
     (ENVI, ["train", "--logs", "x", "--epochs", "1.5", "-o", "m.pt"], "envi train", ["--epochs", "1.5"]),
     (ENVI, ["train", "--logs", "x"], "envi train", ["required", "--output"]),
     (ENVI, ["train", "--logs", "x", "--algorithm", "ppo", "-o", "m.pt"], "envi train", ["invalid choice", "ppo"]),
-    (ENVI, ["split", "--logs", "x", "--seed", "-1", "--out", "o"], "envi split", ["--seed", "non-negative"]),
+    (ENVI, ["split", "--logs", "x", "--seed", "-1", "--out", "o"], "envi split", ["--seed", "0..2147483647"]),
+    # every command's seed, checked as it is read (diagnose once failed 4.5 s in, naming no option)
+    (ENVI, ["twin", "generate", "--seed", "-1", "--out", "o"], "envi twin generate", ["--seed", "-1"]),
+    (ENVI, ["diagnose", "--model", "m.pt", "--real", "x", "--seed", "-1"], "envi diagnose", ["--seed", "-1"]),
+    (ENVI, ["experiment", "tovk", "--logs", "x", "--seed", "-1", "--out", "o"], "envi experiment", ["--seed"]),
+    (ENVI, ["train", "--logs", "x", "--seed", "1" + "0" * 20, "-o", "m.pt"], "envi train", ["--seed", "0..2147483647"]),
     (
         ENVI,
         ["simulate", "--model", "m.pt", "--init-logs", "x", "--engine", "gpu", "--out", "o"],

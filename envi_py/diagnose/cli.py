@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from ..atomic import atomic_write_text
+from ..cli_parser import seed_type
 
 
 def _cmd_diagnose(args: argparse.Namespace) -> int:
@@ -148,7 +149,7 @@ def register(sub: Any) -> None:
         help="a deterministic model whose runs vary far less than the real ones is diagnosed as it is, "
         "not refitted with a Gaussian head first",
     )
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=seed_type, default=0)
     p.add_argument(
         "--out",
         default="diagnosis",
@@ -184,7 +185,7 @@ def register(sub: Any) -> None:
         "two print them side by side",
     )
     v.add_argument("--seeds", type=int, default=20, help="seeds per case (default 20)")
-    v.add_argument("--first-seed", type=int, default=0)
+    v.add_argument("--first-seed", type=seed_type, default=0)
     v.add_argument(
         "--mode",
         nargs="+",

@@ -6,6 +6,8 @@ import argparse
 from pathlib import Path
 from typing import Any
 
+from ..cli_parser import seed_type
+
 
 def _cmd(args: argparse.Namespace) -> int:
     from ..cli import _at_most, _positive, read_logs, system_of
@@ -119,7 +121,7 @@ def register(sub: Any) -> None:
         default="random",
         help="'authors': their sorted-order 5-fold split (first n train, last 10 test)",
     )
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=seed_type, default=0)
     p.add_argument(
         "--workers", type=int, default=None, help="local worker processes (default: all cores; 0: in this process)"
     )

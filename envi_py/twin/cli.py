@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 from typing import Callable
 
+from envi_py.cli_parser import seed_type
 from envi_py.controllers import ControllerSpec, parse_params
 from envi_py.files import read_text
 from envi_py.logs import group_by_param, load_logs, refuse_earlier_logs, remove_logs
@@ -280,7 +281,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         default=None,
         help="on top of the profile's: delay=2,noise=1.5,jitter.pause_prob=0.01,glitch; =0 turns one off",
     )
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=seed_type, default=0)
     p.add_argument("--profile", default=None, help="profile JSON (default: the shipped calibrated one)")
     p.add_argument(
         "--out",
@@ -305,7 +306,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--key", default="x", help="controller parameter that tells the versions apart")
     p.add_argument("--budget", type=float, default=420.0, help="search time in seconds (above 0)")
     p.add_argument("--quick", action="store_true", help="a 25 s search (for tests and smoke runs)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=seed_type, default=0)
     p.add_argument("--start", default=None, help="profile JSON to start the search from (e.g. the shipped one)")
     p.add_argument("--quiet", action="store_true")
     p.add_argument("--out", required=True)
