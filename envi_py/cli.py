@@ -20,7 +20,7 @@ from .atomic import atomic_write_text
 from .cli_parser import EnviParser, seed_type
 from .controllers import ControllerSpec, parse_params
 from .dataset import EXTRA_CHANNELS
-from .files import refuse_overwriting
+from .files import output_folder, refuse_overwriting
 from .diagnose.cli import register as register_diagnose
 from .experiments.cli import register as register_experiment
 from .logs import (
@@ -347,9 +347,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     _at_most(args, runs=100_000_000)
     if args.steps is not None and not 0 <= args.steps <= 1_000_000:
         raise ValueError(f"--steps must lie in 0..1000000, got {args.steps}")
-    out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"--out {out}: exists and is not a folder")
+    out = output_folder(args.out)
     refuse_earlier_logs(out, args.force)  # before any work: new runs among old ones read back as one set
     params = parse_params(args.param, "--param")  # a NaN gain once simulated NaN logs
     if args.param and not args.controller:
@@ -421,6 +419,8 @@ def cmd_verify(args: argparse.Namespace) -> int:
     from .logs import group_by_controller
     from .verify import to_text, verify, write_report
 
+    if args.out:
+        output_folder(args.out)
     real = read_logs(args, "real")
     sim = load_logs(args.sim, skip_bad=args.skip_bad)
     unknown = [lg for lg in sim if lg.meta.controller is None]
@@ -471,6 +471,8 @@ def cmd_check(args: argparse.Namespace) -> int:
         raise ValueError(f"--delta must lie in (0, 0.5), got {args.delta}")
     _positive(args, "max_runs", "batch", "sims_per_start")
     _at_most(args, max_runs=10_000_000, batch=1_000_000, sims_per_start=100_000)
+    if args.out:
+        output_folder(args.out)
     ckpt = load_model(args)
     real = require_signals(read_logs(args, "real", min_length=ckpt.config.history + 1), ckpt.schema, args.model)
     note_starts_across_breaks("envi check", real, ckpt.config.history)  # each real run starts paired simulations

@@ -47,3 +47,12 @@ def refuse_overwriting(outputs: Iterable[str | os.PathLike], inputs: Iterable[st
         for source in existing:
             if os.path.samefile(out, source):
                 raise ValueError(f"{what} {out}: is an input of this command ({source}); nothing overwritten")
+
+
+def output_folder(path: str | os.PathLike, flag: str = "--out") -> Path:
+    """``path`` as a folder a command will write into, refused before any work when a file is there
+    (once found only when the report was written, after all the work)."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise ValueError(f"{flag} {path}: exists and is not a folder")
+    return path

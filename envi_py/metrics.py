@@ -124,8 +124,11 @@ def gaussian_kld(p: np.ndarray, q: np.ndarray, ridge: float = 1e-3) -> float:
     """KL(N_p || N_q) between Gaussian fits of two samples (rows = runs).
 
     ``ridge`` (in squared units) is added to both covariances: a deterministic model can produce a
-    sample with zero spread in one coordinate, whose Gaussian fit is singular.
+    sample with zero spread in one coordinate, whose Gaussian fit is singular. NaN when either
+    sample has fewer than two runs (no spread to fit), said without numpy's warnings.
     """
+    if len(p) < 2 or len(q) < 2:
+        return float("nan")
     k = p.shape[1]
     mp, mq = p.mean(axis=0), q.mean(axis=0)
     sp = np.atleast_2d(np.cov(p, rowvar=False)) + ridge * np.eye(k)

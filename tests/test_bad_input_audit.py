@@ -206,6 +206,9 @@ def test_an_output_that_is_a_file_is_named_plainly(lane_logs: Path, lane_model: 
     for cmd, argv in (
         ("simulate", ["--model", str(lane_model), "--init-logs", str(lane_logs)]),
         ("split", ["--logs", str(lane_logs)]),
+        # verify once found it after all its work, behind numpy warnings; check after its simulations
+        ("verify", ["--real", str(tmp_path / "none"), "--sim", str(tmp_path / "none")]),
+        ("check", ["--model", str(tmp_path / "none.pt"), "--real", str(lane_logs), "--require", "x: P >= 0.5"]),
     ):
         code, err = run_cli([cmd, *argv, "--out", str(f)])
         assert "exists and is not a folder" in assert_one_line(code, err, cmd, f)

@@ -66,6 +66,13 @@ def test_safety_comfort():
     assert sc[1] == np.abs(d3).max()
 
 
+@pytest.mark.filterwarnings("error")  # numpy's "Degrees of freedom <= 0" once reached verify's user
+def test_gaussian_kld_of_a_single_run_is_nan_without_warnings():
+    one, many = np.array([[3.0, 4.0]]), np.random.default_rng(0).normal(size=(5, 2))
+    assert np.isnan(gaussian_kld(one, many)) and np.isnan(gaussian_kld(many, one))
+    assert np.isfinite(gaussian_kld(many, many + 1))
+
+
 def test_gaussian_kld_zero_for_same_and_positive_for_shifted():
     rng = np.random.default_rng(0)
     p = rng.normal(size=(500, 2))

@@ -11,6 +11,7 @@ from typing import Any
 
 from ..atomic import atomic_write_text
 from ..cli_parser import seed_type
+from ..files import output_folder
 
 
 def _cmd_diagnose(args: argparse.Namespace) -> int:
@@ -26,8 +27,7 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
     # sizes and the output before any work (--runs 0 once 'min() arg is an empty sequence' after a stage)
     if args.runs < 1 or args.top < 1:
         raise ValueError(f"--runs and --top must be at least 1, got {args.runs} and {args.top}")
-    if Path(args.out).exists() and not Path(args.out).is_dir():
-        raise ValueError(f"--out {args.out}: exists and is not a folder")
+    output_folder(args.out)
     ckpt = Checkpoint.load(args.model)
     hist = ckpt.config.history
 

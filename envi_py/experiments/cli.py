@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 from typing import Any
 
 from ..cli_parser import seed_type
+from ..files import output_folder
 
 
 def _cmd(args: argparse.Namespace) -> int:
@@ -24,9 +24,7 @@ def _cmd(args: argparse.Namespace) -> int:
         raise ValueError(f"--workers must be at least 0 (0: in this process), got {args.workers}")
     if args.n_test < 2:  # the grid's split needs two (once blamed on the number of logs)
         raise ValueError(f"--n-test must be at least 2 (test logs per version), got {args.n_test}")
-    out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"--out {out}: exists and is not a folder")
+    output_folder(args.out)
     logs = read_logs(args, min_length=args.history + 1)
     versions = VersionChoice(
         tuple(args.train_versions or ()),

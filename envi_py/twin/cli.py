@@ -11,7 +11,7 @@ from typing import Callable
 
 from envi_py.cli_parser import seed_type
 from envi_py.controllers import ControllerSpec, parse_params
-from envi_py.files import read_text
+from envi_py.files import output_folder, read_text
 from envi_py.logs import group_by_param, load_logs, refuse_earlier_logs, remove_logs
 from envi_py.system import lane_keeping, load_system
 
@@ -74,9 +74,7 @@ def _checked(args: argparse.Namespace) -> dict[str, object]:
         raise ValueError(f"--runs and --steps must be at least 1, got {args.runs} and {args.steps}")
     if args.runs * args.steps > MAX_SAMPLES:
         raise ValueError(f"--runs x --steps is at most {MAX_SAMPLES:,} samples, got {args.runs} x {args.steps}")
-    out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"--out {out}: exists and is not a folder")
+    out = output_folder(args.out)
     parse_params(args.world, "--world")
     params = parse_params(args.param, "--param")
     refuse_earlier_logs(out, args.force)
@@ -178,9 +176,7 @@ def _calibration_logs(args: argparse.Namespace) -> list:
     logs with at least two runs of each version (the real-vs-real floor splits them in halves)."""
     if not math.isfinite(args.budget) or args.budget <= 0:
         raise ValueError(f"--budget must be a number of seconds above 0, got {args.budget:g}")
-    out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"--out {out}: exists and is not a folder")
+    output_folder(args.out)
     logs_dir = Path(args.logs)
     if not logs_dir.is_dir():
         what = "no such folder" if not logs_dir.exists() else "not a folder"
