@@ -653,6 +653,13 @@ def _uses_checked(desc: SystemDescription, where: str) -> SystemDescription:
                 )
         for r in desc.requirements:
             parse(r, signals)
+        for what, names in (
+            ("requirement", [r.name for r in desc.requirements]),  # each names one row of envi check's table
+            ("version parameter", list(desc.versions.params)),
+        ):
+            twice = sorted({n for n in names if names.count(n) > 1})
+            if twice:
+                raise ValueError(f"{what} {twice[0]!r} is given twice; names must differ")
         if desc.controller is not None and desc.controller.name not in REGISTRY and ":" not in desc.controller.name:
             raise ValueError(
                 f"unknown controller {desc.controller.name!r}; registered: {', '.join(REGISTRY)}, "

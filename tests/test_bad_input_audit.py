@@ -67,6 +67,9 @@ CAR = shipped()["car"].read_text()
         ('expr = "min(distance) >= 10"', 'kind = "stl"\nexpr = "always[0:10]((color >= 5) and"', "STL syntax"),
         ('expr = "min(distance) >= 10"', 'kind = "stl"\nexpr = "always[0:10](colour >= 5)"', "'colour'"),
         ('kp_steer = "loops.0.params.kp"', 'kp_steer = "loops.9.params.kp"', "does not lead into"),
+        # once accepted: envi check printed two rows under one name
+        ('name = "keeps the lane"', 'name = "no collision"', "requirement 'no collision' is given twice"),
+        ('params = ["kp_steer", "kp_speed"]', 'params = ["kp_steer", "kp_steer"]', "'kp_steer' is given twice"),
     ],
 )
 def test_a_wrong_description_is_refused_when_read_naming_the_file(tmp_path: Path, old: str, new: str, why: str):
