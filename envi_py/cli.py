@@ -345,8 +345,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
     _positive(args, "runs")
     _at_most(args, runs=100_000_000)
-    if args.steps is not None and not 0 <= args.steps <= 1_000_000:
-        raise ValueError(f"--steps must lie in 0..1000000, got {args.steps}")
+    if args.steps is not None and not 1 <= args.steps <= 1_000_000:  # 0 once wrote logs of the window alone
+        raise ValueError(f"--steps must lie in 1..1000000, got {args.steps}")
     out = output_folder(args.out)
     refuse_earlier_logs(out, args.force)  # before any work: new runs among old ones read back as one set
     params = parse_params(args.param, "--param")  # a NaN gain once simulated NaN logs

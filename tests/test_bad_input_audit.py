@@ -202,6 +202,14 @@ def test_simulate_refuses_a_non_finite_gain(
     assert not out.exists()
 
 
+def test_simulate_refuses_zero_steps(lane_logs: Path, lane_model: Path, tmp_path: Path):
+    """``--steps 0`` once exited 0 having written logs of the initial window alone."""
+    out = tmp_path / "o"
+    argv = ["simulate", "--model", str(lane_model), "--init-logs", str(lane_logs), "--steps", "0", "--out", str(out)]
+    assert "--steps must lie in 1..1000000" in assert_one_line(*run_cli(argv), "simulate", "--steps")
+    assert not out.exists()
+
+
 def test_an_output_that_is_a_file_is_named_plainly(lane_logs: Path, lane_model: Path, tmp_path: Path):
     """Once '[Errno 17] File exists: ...' (simulate: after the simulation's work)."""
     f = tmp_path / "afile"
