@@ -153,6 +153,7 @@ def cmd_split(args: argparse.Namespace) -> int:
         v = getattr(args, flag)
         if v is not None and v < 0:
             raise ValueError(f"--{flag} must not be negative, got {v}")
+    out = output_folder(args.out)
     logs = read_logs(args)
     rng = np.random.default_rng(args.seed)
     groups = {"all logs": logs} if args.total else {k.label(): g for k, g in group_by_controller(logs).items()}
@@ -165,7 +166,6 @@ def cmd_split(args: argparse.Namespace) -> int:
             parts[name] += part
     if not parts["train"]:
         raise ValueError("the split leaves no training logs")
-    out = Path(args.out)
     system = system_of(args)
     for name in parts:  # all three or none: a folder in the way of the last once left a mix of two splits
         target = out / f"{name}.json"
