@@ -244,7 +244,7 @@ class Checked:
     def __init__(self, inner: Any, name: str, n_action: int | None) -> None:
         self.inner, self.name, self.n_action = inner, name, n_action
 
-    def _raised(self, what: str, exc: Exception) -> ControllerError:
+    def _raised(self, what: str, exc: BaseException) -> ControllerError:
         return ControllerError(f"controller {self.name!r} raised {type(exc).__name__} in {what}: {exc}")
 
     def reset(self, n: int) -> None:
@@ -252,7 +252,9 @@ class Checked:
             self.inner.reset(n)
         except (WidthError, ControllerError):
             raise
-        except Exception as exc:  # a user's controller: its failure is one error line, not a traceback
+        # a user's controller: its failure is one error line, not a traceback; its sys.exit() too,
+        # which would otherwise end the command with the controller's exit code and no word
+        except (Exception, SystemExit) as exc:
             raise self._raised("reset", exc) from exc
 
     def warmup(self, states: np.ndarray, actions: np.ndarray) -> None:
@@ -264,7 +266,7 @@ class Checked:
                     self.inner(states[:, t])
         except (WidthError, ControllerError):
             raise
-        except Exception as exc:
+        except (Exception, SystemExit) as exc:
             raise self._raised("warmup", exc) from exc
 
     def __call__(self, states: np.ndarray) -> np.ndarray:
@@ -272,7 +274,7 @@ class Checked:
             out = np.asarray(self.inner(states), dtype=np.float64)
         except (WidthError, ControllerError):
             raise
-        except Exception as exc:
+        except (Exception, SystemExit) as exc:
             raise self._raised("a step", exc) from exc
         if out.ndim == 1 and out.shape[0] == states.shape[0]:
             out = out[:, None]

@@ -32,6 +32,9 @@ def nan(states):
 
 def huge(states):
     return np.full((states.shape[0], 1), 1e9)
+
+def exits(states):
+    raise SystemExit(0)
 """
 
 
@@ -68,6 +71,15 @@ def test_a_failed_simulate_force_keeps_the_earlier_logs(setup, user_controllers,
     line = assert_one_line(code, err, "simulate", "review_ctl:raising")
     assert "RuntimeError" in line and "boom at step 3" in line
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before  # nothing lost, nothing half-written
+
+
+def test_a_controller_calling_sys_exit_is_a_controller_error(setup, user_controllers, tmp_path):
+    """A user's controller that called ``sys.exit(0)`` once ended ``envi simulate`` with exit 0 and no
+    word, as if the simulation had succeeded; it is a failed controller like any other."""
+    code, err = _simulate(setup, tmp_path / "sim", "--engine", "torch", "--controller", "review_ctl:exits")
+    line = assert_one_line(code, err, "simulate", "review_ctl:exits")
+    assert "SystemExit" in line
+    assert not (tmp_path / "sim").exists() or not list((tmp_path / "sim").glob("*.csv"))
 
 
 def test_a_successful_simulate_force_replaces_the_earlier_logs(setup, tmp_path):
