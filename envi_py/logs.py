@@ -64,6 +64,23 @@ def safe_run_id(value: Any, where: str) -> str:
     return text
 
 
+#: every key a sidecar may hold: what :meth:`LogMeta.to_json` writes
+SIDECAR_KEYS = frozenset(
+    {
+        "schema_version",
+        "states",
+        "actions",
+        "logged",
+        "controller",
+        "period_ms",
+        "run_id",
+        "source",
+        "provenance",
+        "breaks",
+    }
+)
+
+
 @dataclass
 class LogMeta:
     """What the sidecar records. Everything but the schema is optional for a field log."""
@@ -96,6 +113,12 @@ class LogMeta:
         """A sidecar's content, every field checked for its type: a wrong one is a LogError."""
         if not isinstance(d, dict):
             raise LogError(f"{where}: a sidecar must be a JSON object, not {type(d).__name__}")
+        unknown = sorted(set(d) - SIDECAR_KEYS, key=str)
+        if unknown:  # a misspelt 'period' or 'runid' would otherwise be dropped without a word
+            raise LogError(
+                f"{where}: sidecar key(s) {', '.join(repr(k)[:40] for k in unknown[:3])} unknown; "
+                f"known: {', '.join(sorted(SIDECAR_KEYS))}"
+            )
         version = d.get("schema_version")
         if isinstance(version, bool) or not isinstance(version, int) or version != SCHEMA_VERSION:
             raise LogError(

@@ -223,6 +223,7 @@ SIDECAR_CASES: dict[str, Callable[[dict], str | dict]] = {
     "schema_version 2": lambda d: {**d, "schema_version": 2},
     "schema_version 1.0": lambda d: {**d, "schema_version": 1.0},
     "unknown source": lambda d: {**d, "source": "lab"},
+    "misspelt key": lambda d: {**d, "period": 40},
     "run id with a path": lambda d: {**d, "run_id": "../../etc/x"},
     "run id an object": lambda d: {**d, "run_id": {"a": 1}},
     "period_ms negative": lambda d: {**d, "period_ms": -40},

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from envi_py.logs import LogError, LogMeta, load_logs, pattern_regex, read_log, sidecar_path, write_log
+from envi_py.logs import LogError, LogMeta, SIDECAR_KEYS, load_logs, pattern_regex, read_log, sidecar_path, write_log
 from envi_py.system import lane_keeping
 
 from .conftest import REAL_PATTERN, make_log
@@ -323,6 +323,15 @@ def test_sidecar_fields_are_typed(tmp_path, field, value, why):
     sidecar_path(p).write_text(json.dumps({**LogMeta().to_json(), field: value}))
     with pytest.raises(LogError, match=why):
         read_log(p)
+
+
+def test_a_sidecar_key_the_reader_does_not_know_is_refused_naming_it(tmp_path):
+    """A hand-written sidecar with ``period`` for ``period_ms`` once read as if it gave no period."""
+    p = write(tmp_path, "a.csv", GOOD)
+    sidecar_path(p).write_text(json.dumps({**LogMeta().to_json(), "period": 40}))
+    with pytest.raises(LogError, match=r"a\.meta\.json: sidecar key\(s\) 'period' unknown; known: actions, breaks"):
+        read_log(p)
+    assert set(LogMeta(breaks=(3,)).to_json()) <= SIDECAR_KEYS  # what the writer writes, the reader knows
 
 
 def test_sidecars_refuse_nan_and_deep_nesting(tmp_path):

@@ -18,6 +18,7 @@ namespace {
 constexpr size_t kMaxSidecarBytes = size_t(1) << 20;  // envi_py.logs.MAX_SIDECAR_BYTES
 constexpr int kMaxSidecarDepth = 32;                  // envi_py.logs.MAX_JSON_DEPTH
 const char* const kSources[] = {"fot", "sim", "twin", "hil"};
+const char* const kSidecarKeys[] = {"schema_version", "states", "actions", "logged", "controller", "period_ms", "run_id", "source", "provenance", "breaks"};
 
 [[noreturn]] void fail(const std::string& path, const std::string& what) {
   throw std::runtime_error(path + ": " + what);
@@ -295,6 +296,22 @@ Sidecar read_sidecar(const std::string& path) {
   if (has_nan(d)) fail(path, "sidecar is not valid JSON (NaN is not a value)");
   if (depth(d) > kMaxSidecarDepth) fail(path, "sidecar nested deeper than " + std::to_string(kMaxSidecarDepth) + " levels");
   if (d.type != Json::Type::Object) fail(path, std::string("a sidecar must be a JSON object, not ") + type_name(d));
+  {  // every key a sidecar may hold (Python's logs.SIDECAR_KEYS): a misspelt one is not dropped silently
+    std::vector<std::string> unknown;
+    for (const auto& [key, value] : d.object)
+      if (std::find(std::begin(kSidecarKeys), std::end(kSidecarKeys), key) == std::end(kSidecarKeys)) unknown.push_back(key);
+    if (!unknown.empty()) {
+      std::sort(unknown.begin(), unknown.end());
+      std::string names;
+      for (size_t i = 0; i < std::min<size_t>(3, unknown.size()); ++i)
+        names += (i ? ", '" : "'") + unknown[i].substr(0, 38) + "'";
+      std::vector<std::string> known(std::begin(kSidecarKeys), std::end(kSidecarKeys));
+      std::sort(known.begin(), known.end());
+      std::string all;
+      for (const auto& k : known) all += (all.empty() ? "" : ", ") + k;
+      fail(path, "sidecar key(s) " + names + " unknown; known: " + all);
+    }
+  }
   const Json* version = d.find("schema_version");
   if (!version || version->type != Json::Type::Number || !version->integer || version->number != 1)
     fail(path, "sidecar schema_version " + (version ? dump(*version).substr(0, 40) : std::string("None")) + " is not supported (expected 1)");
