@@ -20,7 +20,7 @@ from .atomic import atomic_write_text
 from .cli_parser import EnviParser, seed_type
 from .controllers import ControllerSpec, parse_params
 from .dataset import EXTRA_CHANNELS
-from .files import output_folder, refuse_overwriting
+from .files import output_folder, refuse_overwriting, refuse_writing_among_logs
 from .diagnose.cli import register as register_diagnose
 from .experiments.cli import register as register_experiment
 from .logs import (
@@ -247,6 +247,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     refuse_overwriting(
         [output, *training_output_paths(output)], [*(lg.path for lg in (*logs, *val)), *given], "--output"
     )
+    refuse_writing_among_logs(training_output_paths(output), [lg.path for lg in (*logs, *val)], f"--output {output}")
     for finding in pauses([*logs, *val]):  # what envi diagnose flags first, said before the training
         print(f"envi train: note: {finding.what}", file=sys.stderr)
     gappy = {str(lg.path or lg.name): lg.meta.breaks for lg in (*logs, *val) if lg.meta.breaks}

@@ -49,6 +49,21 @@ def refuse_overwriting(outputs: Iterable[str | os.PathLike], inputs: Iterable[st
                 raise ValueError(f"{what} {out}: is an input of this command ({source}); nothing overwritten")
 
 
+def refuse_writing_among_logs(
+    outputs: Iterable[str | os.PathLike], logs: Iterable[str | os.PathLike], what: str
+) -> None:
+    """A ValueError when one of ``outputs`` is a CSV file in the folder of one of ``logs``: ``envi train
+    -o logs/m.pt`` once wrote ``logs/m.curves.csv`` there, and every later read of that folder stopped at
+    it as a malformed log."""
+    folders = {Path(p).resolve().parent for p in logs if p}
+    for out in map(Path, outputs):
+        if out.suffix.lower() == ".csv" and out.resolve().parent in folders:
+            raise ValueError(
+                f"{what}: would write {out} among the logs it reads, where later reads of that folder "
+                "would take it for a log; save the model in another folder"
+            )
+
+
 def output_folder(path: str | os.PathLike, flag: str = "--out") -> Path:
     """``path`` as a folder a command will write into, refused before any work when a file is there
     (once found only when the report was written, after all the work)."""

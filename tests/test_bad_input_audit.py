@@ -247,6 +247,20 @@ def test_an_output_that_is_an_input_is_refused_and_the_input_kept(lane_logs: Pat
     assert model.read_bytes() == lane_model.read_bytes()
 
 
+def test_a_model_saved_among_its_logs_is_refused_before_training(lane_logs: Path, tmp_path: Path):
+    """``envi train -o logs/m.pt`` once wrote ``logs/m.curves.csv`` beside the logs, and every later
+    read of that folder stopped at it: now refused before any training, the folder untouched."""
+    logs = tmp_path / "logs"
+    shutil.copytree(lane_logs, logs)
+    before = sorted(p.name for p in logs.iterdir())
+    argv = ["train", "--logs", str(logs), "--epochs", "1", "--members", "1", "--history", "5", "-o", str(logs / "m.pt")]
+    line = assert_one_line(*run_cli(argv), "train", logs / "m.curves.csv")
+    assert "among the logs it reads" in line
+    assert sorted(p.name for p in logs.iterdir()) == before
+    code, _ = run_cli([*argv[:-1], str(logs / "sub" / "m.pt")])  # a subfolder is not read as logs: allowed
+    assert code == 0 and load_logs(logs)
+
+
 def test_where_naming_an_unknown_parameter_says_so(lane_logs: Path, tmp_path: Path):
     """Once 'no logs found matching {'y': [3.0]}', as if the value were wrong."""
     code, err = run_cli(["split", "--logs", str(lane_logs), "--where", "y=3", "--out", str(tmp_path / "o")])
