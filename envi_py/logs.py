@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from .atomic import atomic_write_text
-from .controllers import ControllerSpec
+from .controllers import REGISTRY, ControllerSpec
 from .files import regular_file
 from .system import Channel, LogSchema, SystemDescription, describe_schema, lane_keeping, pattern_regex
 
@@ -132,6 +132,8 @@ class LogMeta:
             controller = None if d.get("controller") is None else ControllerSpec.from_json(d["controller"]).to_json()
             if controller is not None:
                 finite_numbers(controller["params"], "controller params")
+                if controller["name"] in REGISTRY:  # built here: a bad gain stops the read, not a training's end
+                    ControllerSpec.from_json(controller).build(len(schema.states), len(schema.actions))
         except ValueError as exc:
             raise LogError(f"{where}: sidecar {exc}") from None
         period = d.get("period_ms")

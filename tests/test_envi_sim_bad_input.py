@@ -234,6 +234,8 @@ SIDECAR_CASES: dict[str, Callable[[dict], str | dict]] = {
     "no states": lambda d: {**d, "states": []},
     "column named twice": lambda d: {**d, "actions": [{**d["actions"][0], "name": "color"}]},
     "controller params a list": lambda d: {**d, "controller": {"name": "lane-keeping", "params": [1]}},
+    "controller gain a string": lambda d: {**d, "controller": {"name": "lane-keeping", "params": {"x": "ten"}}},
+    "controller reading a state the log lacks": lambda d: {**d, "controller": {"name": "pid", "params": {"input": 3}}},
     "controller params infinite": lambda d: json.dumps(
         {**d, "controller": {"name": "lane-keeping", "params": {"x": float("inf")}}}
     ),

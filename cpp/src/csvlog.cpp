@@ -1,4 +1,5 @@
 #include "envi/csvlog.hpp"
+#include "envi/controller.hpp"
 
 #include <sys/stat.h>
 
@@ -18,6 +19,7 @@ namespace {
 constexpr size_t kMaxSidecarBytes = size_t(1) << 20;  // envi_py.logs.MAX_SIDECAR_BYTES
 constexpr int kMaxSidecarDepth = 32;                  // envi_py.logs.MAX_JSON_DEPTH
 const char* const kSources[] = {"fot", "sim", "twin", "hil"};
+const char* const kRegistry[] = {"bang-bang", "lane-keeping", "pid", "combine"};  // envi_py.controllers.REGISTRY
 const char* const kSidecarKeys[] = {"schema_version", "states", "actions", "logged", "controller", "period_ms", "run_id", "source", "provenance", "breaks"};
 
 [[noreturn]] void fail(const std::string& path, const std::string& what) {
@@ -339,6 +341,15 @@ Sidecar read_sidecar(const std::string& path) {
       if (params && !params->is_null() && params->type != Json::Type::Object)
         throw std::runtime_error("controller " + quoted(name->string) + ": 'params' must be an object");
       if (params && !all_finite(*params)) throw std::runtime_error("controller params hold a non-finite number");
+      // a registered controller is built once here, as Python's reader does: a bad gain or a loop
+      // reading a state the log lacks stops the read (a user's controller, by import path, is not built)
+      if (std::find(std::begin(kRegistry), std::end(kRegistry), name->string) != std::end(kRegistry)) {
+        try {
+          Controller::from_json(*ctrl).check(int(out.states.size()), int(out.actions.size()));
+        } catch (const std::invalid_argument& e) {
+          throw std::runtime_error(e.what());
+        }
+      }
     }
   } catch (const std::runtime_error& e) {
     fail(path, std::string("sidecar ") + e.what());
