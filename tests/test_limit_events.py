@@ -78,6 +78,24 @@ def test_decoding_puts_the_limit_reading_where_an_event_happens(car_ckpt):
     np.testing.assert_allclose(st, s, rtol=0, atol=1e-9)
 
 
+def test_a_saturating_sensor_is_clamped_to_its_in_range_readings(car_ckpt, car_logs):
+    """The value head draws an in-range reading, the event head the no-echo one: clamped to the full
+    observed range (up to 255) a model started with the echo lost drew first readings of 190-250 cm,
+    beyond any the sensor gives (real ones stop at 152)."""
+    distance = np.concatenate([lg.states[:, 1] for lg in car_logs])
+    in_range = distance[distance != 255]
+    low, high = car_ckpt.limits()
+    assert (low[1], high[1]) == (in_range.min(), in_range.max()) and high[1] < 255
+    colour = np.concatenate([lg.states[:, 0] for lg in car_logs])
+    assert (low[0], high[0]) == (colour.min(), colour.max())  # a state without events: its whole range
+    z = np.full((4, 2), 0.99)  # near the normaliser's top: a distance above every in-range reading
+    events = np.array([[False], [True], [False], [True]])
+    s = car_ckpt.decode_states(z, events)
+    np.testing.assert_array_equal(s[:, 1], [high[1], 255.0, high[1], 255.0])
+    st = car_ckpt.decode_states_torch(torch.from_numpy(z), torch.from_numpy(events)).numpy()
+    np.testing.assert_array_equal(st, s)
+
+
 def _with_event_probability(ckpt, logit: float):
     """The checkpoint with its event head answering ``logit`` whatever the window, and a value head
     too sure to reach the limit by itself (so every limit reading is an event)."""
