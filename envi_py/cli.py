@@ -34,7 +34,7 @@ from .logs import (
     write_log,
     write_manifest,
 )
-from .system import MAX_MEMBERS, SystemDescription, check_hidden, load_system
+from .system import MAX_MEMBERS, SystemDescription, check_hidden, describe_schema, load_system
 from .twin.cli import register as register_twin
 
 if TYPE_CHECKING:  # torch is imported only once a command needs a model
@@ -255,6 +255,8 @@ def cmd_train(args: argparse.Namespace) -> int:
         rows = ", ".join(map(str, breaks[:5])) + (f", ... ({len(breaks)} in all)" if len(breaks) > 5 else "")
         note = f"{name}: rows are missing before row(s) {rows}; no training window spans them"
         print(f"envi train: note: {note}", file=sys.stderr)
+    system = system_of(args) or describe_schema(logs[0].meta.schema)  # what train() would take
+    select_runs = args.select_runs or system.training.select_runs  # else the trainer's
     kwargs: dict[str, Any] = {"seed": args.seed, "history": args.history, "progress": not args.quiet}
     if args.algorithm != "random":
         kwargs.update(
@@ -262,7 +264,7 @@ def cmd_train(args: argparse.Namespace) -> int:
             eval_every=args.eval_every,
             extras=tuple(args.extras),
             play_width=args.play_width,
-            selection=SelectionSettings(runs=args.select_runs, patience=args.patience),
+            selection=SelectionSettings(patience=args.patience, **({"runs": select_runs} if select_runs else {})),
         )
         if args.algorithm == "bc":
             kwargs.update(head=args.head, multistep=args.multistep)
@@ -299,7 +301,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         kwargs["curves_dir"] = losses.name  # GAIL's per-epoch losses, merged into the curves below
     t0 = time.perf_counter()
     jobs = args.jobs or os.cpu_count() or 1
-    ckpt = train(args.algorithm, logs, val, system=system_of(args), jobs=jobs, **kwargs)
+    ckpt = train(args.algorithm, logs, val, system=system, jobs=jobs, **kwargs)
     path = ckpt.save(args.output)
     written = write_training_outputs(
         ckpt,
@@ -683,7 +685,13 @@ def build_parser() -> argparse.ArgumentParser:
         "(default: the system description's [training] input_noise, else 0: none)",
     )
     p.add_argument("--eval-every", type=int, default=10, help="epochs between closed-loop validations")
-    p.add_argument("--select-runs", type=int, default=5, help="simulated runs per validation log at each validation")
+    p.add_argument(
+        "--select-runs",
+        type=int,
+        default=None,
+        help="simulated runs per validation log at each validation "
+        "(default: the system description's [training] select_runs, else 5)",
+    )
     p.add_argument(
         "--patience",
         type=int,

@@ -21,8 +21,9 @@ model can always say which signals it reads and writes. It declares
   predicts the change from the last reading), ``input_noise`` (behaviour cloning's window
   perturbation, in typical logged steps), ``step_noise`` (a Gaussian head's draws: ``gaussian``,
   or ``student-t`` with tails fitted after training), ``context`` (sigma_0's per-state mean and
-  spread as an input all run long, so a run keeps what its start showed of it) and ``members`` (a
-  seed ensemble of that many trainings, each simulated run drawn by one of them).
+  spread as an input all run long, so a run keeps what its start showed of it), ``members`` (a
+  seed ensemble of that many trainings, each simulated run drawn by one of them), ``hidden`` (the
+  network's widths) and ``select_runs`` (simulated runs per validation log when choosing the epoch).
 
 The lane-keeping robot and the car following a lead vehicle are shipped descriptions
 (``envi_py/systems/*.toml``); ``envi init --logs DIR`` drafts one from a folder of logs.
@@ -211,6 +212,8 @@ class TrainingDefaults:
     context: bool = False
     members: int = 1
     hidden: tuple[int, ...] | None = None  # the network's hidden widths; None: the trainer's (256, 256)
+    #: simulated runs per validation log at each closed-loop validation; None: the trainer's (5)
+    select_runs: int | None = None
 
     def for_algorithm(self, algorithm: str) -> dict[str, Any]:
         """The keyword arguments ``algorithm``'s trainer takes from these defaults: the residual head
@@ -240,6 +243,7 @@ class TrainingDefaults:
             "context": self.context,
             "members": self.members,
             "hidden": None if self.hidden is None else list(self.hidden),
+            "select_runs": self.select_runs,
         }
 
 
@@ -262,7 +266,12 @@ def _training(d: Any) -> TrainingDefaults:
     hidden = d.get("hidden")
     if hidden is not None:
         hidden = check_hidden(hidden, "[training] hidden")
-    return TrainingDefaults(residual, float(noise), step_noise, context, members, hidden)
+    select_runs = d.get("select_runs")
+    if select_runs is not None and (
+        isinstance(select_runs, bool) or not isinstance(select_runs, int) or not 1 <= select_runs <= 1000
+    ):
+        raise ValueError(f"[training] select_runs must be a whole number in 1..1000, not {select_runs!r:.40}")
+    return TrainingDefaults(residual, float(noise), step_noise, context, members, hidden, select_runs)
 
 
 @dataclass(frozen=True)
@@ -550,7 +559,7 @@ TOML_KEYS: dict[str, tuple[str, ...]] = {
     "[versions]": ("pattern", "params", "map"),
     "[controller]": ("name", "params"),
     "[[requirements]]": ("name", "expr", "kind", "probability"),
-    "[training]": ("residual", "input_noise", "step_noise", "context", "members", "hidden"),
+    "[training]": ("residual", "input_noise", "step_noise", "context", "members", "hidden", "select_runs"),
 }
 
 

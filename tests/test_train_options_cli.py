@@ -8,6 +8,7 @@ import re
 import pytest
 
 from envi_py.cli import main
+from envi_py.logs import load_logs
 from envi_py.model import Checkpoint
 from envi_py.system import SHIPPED_DIR, TrainingDefaults, load_system
 from envi_py.twin.car import generate_car_versions, write_car_logs
@@ -62,7 +63,7 @@ def test_the_system_description_sets_the_defaults_and_the_command_line_wins(car_
         assert main([*base, *extra, "-o", str(out)]) == 0, extra
         ck = Checkpoint.load(out)
         assert ck.config.residual is residual and ck.record.hyper["input_noise"] == noise, extra
-    assert load_system("car").training == TrainingDefaults(residual=True, input_noise=0.5)
+    assert load_system("car").training == TrainingDefaults(residual=True, input_noise=0.5, select_runs=10)
     lane = TrainingDefaults(step_noise="student-t", members=3, hidden=(128, 128))
     assert load_system("lane-keeping").training == lane
     assert lane.for_algorithm("gail") == {"step_noise": "student-t"}  # members and widths: measured for BC
@@ -83,6 +84,9 @@ def test_the_system_description_sets_the_defaults_and_the_command_line_wins(car_
         ("input_noise = 0.5", "input_noise = 0.5\nhidden = [128, 0]", "hidden must be a list of widths"),
         ("input_noise = 0.5", "input_noise = 0.5\nhidden = [true]", "hidden must be a list of widths"),
         ("input_noise = 0.5", "input_noise = 0.5\nhidden = []", "hidden must be a list of widths"),
+        ("select_runs = 10", "select_runs = 0", "select_runs must be a whole number in 1..1000"),
+        ("select_runs = 10", "select_runs = 2.5", "select_runs must be a whole number in 1..1000"),
+        ("select_runs = 10", "select_runs = true", "select_runs must be a whole number in 1..1000"),
     ],
 )
 def test_a_bad_training_table_is_refused_naming_the_file(tmp_path, line, bad, message):
@@ -122,3 +126,21 @@ def test_the_descriptions_hidden_widths_apply_and_the_command_line_wins(tmp_path
     for extra, widths in (([], (128, 128)), (["--hidden", "8,4"], (8, 4))):
         assert main([*base, *extra, "-o", str(tmp_path / "m.pt")]) == 0
         assert Checkpoint.load(tmp_path / "m.pt").config.hidden == widths
+
+
+def test_the_descriptions_validation_runs_apply_and_the_command_line_wins(car_dir, tmp_path):
+    """The car's [training] select_runs = 10 sets the simulated runs per validation log of a training on
+    its logs (API and command line); --select-runs overrides it, and lane keeping keeps the trainer's 5."""
+    from envi_py.train import train
+
+    logs = load_logs(car_dir)
+    ck = train("bc", logs[:2], logs[2:4], system=load_system("car"), epochs=1, hidden=(8,), eval_every=1)
+    assert ck.record.selection["settings"]["runs"] == 10
+    val = tmp_path / "val"
+    write_car_logs(generate_car_versions(1, seed=2, versions=[0]), val)
+    base = ["train", "--logs", str(car_dir), "--val-logs", str(val), "--epochs", "1", "--hidden", "8", "--quiet"]
+    for extra, runs in (([], 10), (["--select-runs", "3"], 3)):
+        out = tmp_path / f"m{len(extra)}.pt"
+        assert main([*base, *extra, "-o", str(out)]) == 0, extra
+        assert Checkpoint.load(out).record.selection["settings"]["runs"] == runs, extra
+    assert load_system("lane-keeping").training.select_runs is None

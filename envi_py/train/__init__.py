@@ -15,6 +15,7 @@ from ..executor import LocalExecutor
 from ..logs import Log
 from ..model import Checkpoint
 from ..system import STEP_NOISES, SystemDescription, check_members, describe_schema
+from .common import SelectionSettings
 from .step_noise import with_step_noise
 
 Trainer = Callable[..., Checkpoint]
@@ -47,9 +48,10 @@ def train(
 ) -> Checkpoint:
     """Train with the named algorithm. The system description the logs were read with is recorded
     in the checkpoint (from their schema when none is given), so the model says what it reads; its
-    ``[training]`` defaults (residual head, input noise, step-noise shape, ensemble members) apply
-    unless ``kwargs`` say otherwise. ``step_noise="student-t"`` fits a Gaussian head's tails after
-    training (:mod:`.step_noise`). ``members=K`` trains K models from seeds ``seed``..``seed+K-1``
+    ``[training]`` defaults (residual head, input noise, step-noise shape, ensemble members, hidden
+    widths, validation runs) apply unless ``kwargs`` say otherwise (``selection`` for the runs).
+    ``step_noise="student-t"`` fits a Gaussian head's tails after training (:mod:`.step_noise`).
+    ``members=K`` trains K models from seeds ``seed``..``seed+K-1``
     and returns them as one seed ensemble (:meth:`Checkpoint.ensemble`); a resumable training keeps
     one state file per member (``<state>.member<k>`` beyond the first), and GAIL's loss curves are
     the first member's. ``jobs`` above 1 trains up to that many members at once, each in a spawned
@@ -60,6 +62,8 @@ def train(
         raise ValueError("no training logs")
     system = system or describe_schema(train_logs[0].meta.schema)
     kwargs = {**system.training.for_algorithm(name), **kwargs}
+    if name != "random" and system.training.select_runs and "selection" not in kwargs:
+        kwargs["selection"] = SelectionSettings(runs=system.training.select_runs)
     step_noise = kwargs.pop("step_noise", "gaussian")
     if step_noise not in STEP_NOISES:  # before training, not after it
         raise ValueError(f"step noise must be one of {', '.join(STEP_NOISES)}, not {step_noise!r}")
