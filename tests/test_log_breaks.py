@@ -83,7 +83,7 @@ def test_train_says_which_rows_were_lost(tmp_path, twin_log):
         write_log(_with_breaks(lg, (25,)) if i == 0 else lg, tmp_path / f"log_{i}.csv")
     out = subprocess.run(
         [sys.executable, "-m", "envi_py.cli", "train", "--logs", str(tmp_path), "--epochs", "2", "--quiet"]
-        + ["--hidden", "8", "-o", str(tmp_path / "m.pt")],
+        + ["--hidden", "8", "-o", str(tmp_path / "model" / "m.pt")],  # not among the logs it reads
         capture_output=True,
         text=True,
         timeout=300,
