@@ -553,8 +553,7 @@ class Checkpoint:
         phys = np.asarray(y, dtype=np.float64) * self.norm.half[:ns] + self.norm.centre[:ns]
         out = np.empty((phys.shape[0], len(self.config.limit_events)), dtype=bool)
         for k, (i, value) in enumerate(self.config.limit_events):
-            res = self.schema.states[i].resolution
-            out[:, k] = np.abs(phys[:, i] - value) <= (res / 2 if res else 1e-6 * max(1.0, abs(value)))
+            out[:, k] = self.schema.states[i].reads(phys[:, i], value)
         return out
 
     @torch.no_grad()

@@ -40,6 +40,8 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Iterable
 
+import numpy as np
+
 from .controllers import REGISTRY, ControllerSpec
 from .files import read_text, regular_file
 
@@ -67,6 +69,13 @@ class Channel:
     high: float = math.inf
     resolution: float | None = None
     saturates: bool = False
+
+    def reads(self, values: Any, level: float) -> np.ndarray:
+        """Where ``values`` are the reading ``level``: within half the declared resolution step, else
+        within 1e-6 of it (relative beyond 1). The one test of "at a limit reading", for the limit
+        events, the event head's targets and the in-range clamp alike."""
+        tol = self.resolution / 2 if self.resolution else 1e-6 * max(1.0, abs(level))
+        return np.abs(np.asarray(values, dtype=np.float64) - level) <= tol
 
     def to_json(self) -> dict[str, Any]:
         d: dict[str, Any] = {"name": self.name, "unit": self.unit, "range": [self.low, self.high]}

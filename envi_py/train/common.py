@@ -85,8 +85,7 @@ def observed_limits(logs: Sequence[Log], events: Sequence[tuple[int, float]] = (
     states = np.concatenate([lg.states for lg in logs])
     out = [(float(lo), float(hi)) for lo, hi in zip(states.min(axis=0), states.max(axis=0))]
     for i, level in events:
-        res = logs[0].meta.schema.states[i].resolution
-        other = states[np.abs(states[:, i] - level) > (res / 2 if res else 1e-6 * max(1.0, abs(level))), i]
+        other = states[~logs[0].meta.schema.states[i].reads(states[:, i], level), i]
         if other.size:
             out[i] = (float(other.min()), float(other.max()))
     return tuple(out)
@@ -100,10 +99,9 @@ def limit_events(logs: Sequence[Log]) -> tuple[tuple[int, float], ...]:
     for i, ch in enumerate(logs[0].meta.schema.states):
         if not ch.saturates:
             continue
-        tol = ch.resolution / 2 if ch.resolution else 0.0
         values = np.concatenate([lg.states[:, i] for lg in logs])
         for limit in (ch.high, ch.low):
-            if np.isfinite(limit) and np.any(np.abs(values - limit) <= tol):
+            if np.isfinite(limit) and np.any(ch.reads(values, limit)):
                 out.append((i, float(limit)))
                 break
     return tuple(out)
