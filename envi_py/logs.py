@@ -129,11 +129,12 @@ class LogMeta:
             raise LogError(f"{where}: sidecar source {source!r:.40} is not one of {', '.join(SOURCES)}")
         try:
             schema = LogSchema.from_json(d)
-            controller = None if d.get("controller") is None else ControllerSpec.from_json(d["controller"]).to_json()
-            if controller is not None:
-                finite_numbers(controller["params"], "controller params")
-                if controller["name"] in REGISTRY:  # built here: a bad gain stops the read, not a training's end
-                    ControllerSpec.from_json(controller).build(len(schema.states), len(schema.actions))
+            spec = None if d.get("controller") is None else ControllerSpec.from_json(d["controller"])
+            controller = None if spec is None else spec.to_json()
+            if spec is not None:
+                finite_numbers(spec.params, "controller params")
+                if spec.name in REGISTRY:  # built here: a bad gain stops the read, not a training's end
+                    spec.build(len(schema.states), len(schema.actions))
         except ValueError as exc:
             raise LogError(f"{where}: sidecar {exc}") from None
         period = d.get("period_ms")
