@@ -214,11 +214,11 @@ def _at_most(args: argparse.Namespace, **limits: int) -> None:
 def cmd_train(args: argparse.Namespace) -> int:
     import importlib.util
     import tempfile
+    from dataclasses import replace
 
     from .diagnose.data_quality import pauses
     from .report.training import training_output_paths, write_training_outputs
-    from .train import member_state_paths, train
-    from .train.common import SelectionSettings
+    from .train import default_selection, member_state_paths, train
 
     _positive(args, "epochs", "history", "eval_every", "select_runs", "members", "jobs")
     _at_most(args, epochs=1_000_000, history=10_000, eval_every=1_000_000, members=MAX_MEMBERS, jobs=1024)
@@ -256,7 +256,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         note = f"{name}: rows are missing before row(s) {rows}; no training window spans them"
         print(f"envi train: note: {note}", file=sys.stderr)
     system = system_of(args) or describe_schema(logs[0].meta.schema)  # what train() would take
-    select_runs = args.select_runs or system.training.select_runs  # else the trainer's
+    runs = {"runs": args.select_runs} if args.select_runs else {}  # else the description's, else the trainer's
     kwargs: dict[str, Any] = {"seed": args.seed, "history": args.history, "progress": not args.quiet}
     if args.algorithm != "random":
         kwargs.update(
@@ -264,7 +264,7 @@ def cmd_train(args: argparse.Namespace) -> int:
             eval_every=args.eval_every,
             extras=tuple(args.extras),
             play_width=args.play_width,
-            selection=SelectionSettings(patience=args.patience, **({"runs": select_runs} if select_runs else {})),
+            selection=replace(default_selection(system), patience=args.patience, **runs),
         )
         if args.algorithm == "bc":
             kwargs.update(head=args.head, multistep=args.multistep)

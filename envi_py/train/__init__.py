@@ -38,6 +38,14 @@ def get_trainer(name: str) -> Trainer:
     raise ValueError(f"unknown algorithm {name!r}; known: bc, gail, bcxgail, random")
 
 
+def default_selection(system: SystemDescription) -> SelectionSettings:
+    """How a training of ``system`` chooses its epoch unless told otherwise: the trainer's settings
+    with the description's ``[training] select_runs`` (a system whose rare failures need more
+    validation runs to be seen says so once, for the API and ``envi train`` alike)."""
+    runs = system.training.select_runs
+    return SelectionSettings(runs=runs) if runs else SelectionSettings()
+
+
 def train(
     name: str,
     train_logs: Sequence[Log],
@@ -62,8 +70,8 @@ def train(
         raise ValueError("no training logs")
     system = system or describe_schema(train_logs[0].meta.schema)
     kwargs = {**system.training.for_algorithm(name), **kwargs}
-    if name != "random" and system.training.select_runs and "selection" not in kwargs:
-        kwargs["selection"] = SelectionSettings(runs=system.training.select_runs)
+    if name != "random" and "selection" not in kwargs:
+        kwargs["selection"] = default_selection(system)
     step_noise = kwargs.pop("step_noise", "gaussian")
     if step_noise not in STEP_NOISES:  # before training, not after it
         raise ValueError(f"step noise must be one of {', '.join(STEP_NOISES)}, not {step_noise!r}")
