@@ -206,11 +206,10 @@ def diverged_runs(
         lo, hi = observed[ch.name]
         widen = margin * (hi - lo)
         flag = (x < lo - widen) | (x > hi + widen)
-        eps = ch.resolution / 2.0 if ch.resolution else 0.0  # a reading within half a step is at the limit
-        if math.isfinite(ch.low):
-            flag |= x <= ch.low + eps
+        if math.isfinite(ch.low):  # at the limit reading (Channel.reads: within half a step) or beyond it
+            flag |= (x < ch.low) | ch.reads(x, ch.low)
         if math.isfinite(ch.high):
-            flag |= x >= ch.high - eps
+            flag |= (x > ch.high) | ch.reads(x, ch.high)
         bad |= _longest_stretch(flag) >= need
     return bad
 
