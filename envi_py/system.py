@@ -42,7 +42,7 @@ from typing import Any, Iterable
 
 import numpy as np
 
-from .controllers import REGISTRY, ControllerSpec
+from .controllers import LOOPS, REGISTRY, ControllerSpec
 from .files import read_text, regular_file
 
 if sys.version_info >= (3, 11):
@@ -353,6 +353,19 @@ class SystemDescription:
                 continue
             out[name] = node
         return out
+
+    def with_version_defaults(self, spec: ControllerSpec) -> ControllerSpec:
+        """``spec`` with each top-level version parameter it leaves to a registered loop's default
+        written out (``lane-keeping()`` becomes ``lane-keeping(x=30)``). Why: a log must say which
+        version produced it, and a default the controller applies silently left twin logs that every
+        command refused ("has no version parameter x")."""
+        defaults = LOOPS[spec.name].defaults if spec.name in LOOPS else {}
+        missing = {
+            key: defaults[key]
+            for key in (self.versions.map.get(p, p) for p in self.versions.params)
+            if key not in spec.params and key in defaults
+        }
+        return ControllerSpec(spec.name, {**spec.params, **missing}) if missing else spec
 
     def version_params(self, spec: ControllerSpec) -> dict[str, Any]:
         """The version parameters of a controller in the description's order ({} when it names none).

@@ -246,6 +246,29 @@ def test_cli_generate_and_effects(tmp_path, capsys):
     assert bad.func(bad) == 2 and "warp" in capsys.readouterr().err  # the effect refused, not the folder
 
 
+def test_cli_default_logs_name_their_version(tmp_path):
+    """Without --param the logs record the controller's default x: every command reads logs by version,
+    and logs of ``lane-keeping()`` were refused by check, verify and diagnose ("has no version parameter x")."""
+    args = _parser().parse_args(["twin", "generate", "--runs", "2", "--steps", "30", "--out", str(tmp_path)])
+    assert args.func(args) == 0
+    system = lane_keeping()
+    logs = load_logs(tmp_path, system=system)
+    assert [lg.param for lg in logs] == [{"x": 30.0}] * 2
+    assert {system.version_label(lg.controller) for lg in logs} == {"x=30"}
+
+
+def test_version_defaults_leave_given_and_unregistered_parameters_alone():
+    system = lane_keeping()
+    given = ControllerSpec("lane-keeping", {"x": 20.0})
+    assert system.with_version_defaults(given) is given
+    assert system.with_version_defaults(ControllerSpec("bang-bang", {"threshold": 35.0})).params == {
+        "threshold": 35.0,
+        "x": 30.0,
+    }
+    user = ControllerSpec("mypkg.ctrl:Steer", {})
+    assert system.with_version_defaults(user) is user
+
+
 def test_cli_calibrate_runs_end_to_end(tmp_path, real_dir):
     args = _parser().parse_args(
         [

@@ -112,7 +112,7 @@ cmd_generate = _refusing("generate", _generate)
 
 def _generate_lane(args: argparse.Namespace) -> str:
     """The lane-keeping twin (steered or diffdrive world); the summary line of what was written."""
-    spec = ControllerSpec(args.controller or "lane-keeping", _checked(args))
+    spec = lane_keeping().with_version_defaults(ControllerSpec(args.controller or "lane-keeping", _checked(args)))
     spec.build()  # fail on a bad controller before any work
     diffdrive = args.family == "diffdrive"
     try:  # every parameter finite and in range: a NaN noise once wrote logs all NaN
