@@ -147,6 +147,15 @@ def check(
                 f"requirement {r.name!r}: probability {r.probability:g} lies too close to 0 or 1 for a "
                 f"sequential test (between {SPRT_EDGE:g} and 1 - {SPRT_EDGE:g})"
             )
+    # a fielded version's verdict is about the real system, not the model alone; by label, since the
+    # command line's x=30 and a log's x = 30.0 are one version
+    fielded = {version_label(spec, system): len(g) for spec, g in group_by_controller(real).items()}
+    for label in (version_label(spec, system) for spec in unseen):
+        if label in fielded:
+            raise ValueError(
+                f"--unseen {label}: the real logs hold {fielded[label]} run(s) of this version; --unseen is for "
+                "a version never field-tested (drop it to check the version against its real runs)"
+            )
     hist = ckpt.config.history
     checker = Checker(ckpt, engine, seed)
     groups = group_by_controller(real)
@@ -308,11 +317,11 @@ def requirements_of(
     """The command line's requirements when given, else the system description's. ``probability``
     (``--probability``) is for the given ones without '@P'; given where none would use it, it is
     an error rather than silently ignored."""
+    if probability is not None and not 0 < probability < 1:  # NaN fails too; it is this option's fault
+        raise ValueError(f"--probability {probability:g}: must lie strictly between 0 and 1")
     if probability is not None and all("@" in t for t in given):
         whose = "every --require gives its own '@P'" if given else "the system description's requirements give theirs"
         raise ValueError(f"--probability {probability:g} would apply to no requirement: {whose}")
-    if probability is not None and not 0 < probability < 1:  # NaN fails too; it is this option's fault
-        raise ValueError(f"--probability {probability:g}: must lie strictly between 0 and 1")
     prob = DEFAULT_PROBABILITY if probability is None else probability
     if given:
         return [parse_requirement(t, prob, i) for i, t in enumerate(given)]

@@ -20,7 +20,7 @@ from .atomic import atomic_write_text
 from .cli_parser import EnviParser, seed_type
 from .controllers import ControllerSpec, parse_params
 from .dataset import EXTRA_CHANNELS
-from .files import output_folder, refuse_overwriting, refuse_writing_among_logs
+from .files import output_folder, refuse_overwriting, refuse_writing_among_logs, writable_file
 from .diagnose.cli import register as register_diagnose
 from .experiments.cli import register as register_experiment
 from .logs import (
@@ -235,6 +235,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         raise ValueError(f"--patience must be at least 0, got {args.patience}")
     if Path(args.output).is_dir():  # found before the training, not when saving it
         raise ValueError(f"--output {args.output}: is a folder; name the model file, e.g. model.pt")
+    writable_file(args.output, "--output")
     logs = read_logs(args, min_length=args.history + 1)
     val = read_logs(args, "val_logs", min_length=args.history + 1) if args.val_logs else []
     if val and val[0].meta.schema.columns != logs[0].meta.schema.columns:  # once a numpy broadcast error
@@ -341,6 +342,10 @@ def load_model(args: argparse.Namespace) -> Checkpoint:
     return ckpt.with_layers(read_layers(args.layers)) if args.layers else ckpt
 
 
+#: The most simulated rows one ``envi simulate`` writes as logs (about 2 GB of CSV at 20 bytes a row)
+MAX_SIMULATED_ROWS = 100_000_000
+
+
 def cmd_simulate(args: argparse.Namespace) -> int:
     from .effect_layers import describe
     from .logs import group_by_controller
@@ -363,6 +368,13 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     inside = [lg.path for lg in init if lg.path is not None and lg.path.resolve().parent == out.resolve()]
     if inside:  # --force would delete the very logs the simulation starts from
         raise ValueError(f"--out {out}: holds the initial log {inside[0].name}; simulate into another folder")
+    rows = sum(args.runs * (args.steps if args.steps is not None else len(lg) - ckpt.config.history) for lg in init)
+    if rows > MAX_SIMULATED_ROWS:  # once 10^8 runs started silently toward filling the disk
+        raise ValueError(
+            f"--runs {args.runs}: {len(init)} initial log(s) x {args.runs} runs would write {rows:,} simulated rows "
+            f"as logs, more than {MAX_SIMULATED_ROWS:,}; for mass verification score runs without writing them "
+            "(envi check, or envi_sim --metrics)"
+        )
     given = ControllerSpec(args.controller, params) if args.controller else None
     specs = [given] if given else list(group_by_controller(init))
     stems = [Path(lg.path).stem if lg.path else lg.meta.run_id for lg in init]

@@ -29,9 +29,12 @@ import inspect
 import json
 import math
 from dataclasses import dataclass, field
-from typing import Any, Callable, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any, Callable, Protocol, Sequence, runtime_checkable
 
 import numpy as np
+
+if TYPE_CHECKING:  # system.py reads this module's registry: the type only, not a cycle
+    from .system import Channel
 
 
 @runtime_checkable
@@ -406,3 +409,18 @@ def parse_params(items: list[str] | None, option: str = "parameter") -> dict[str
             raise ValueError(f"{option} {item!r}: {key.strip()} is non-finite ({number}); give a finite number")
         out[key.strip()] = number
     return out
+
+
+def in_range(commands: np.ndarray, channels: Sequence["Channel"], controller: ControllerSpec) -> np.ndarray:
+    """``commands`` (B, |a|) when every one lies in its action channel's declared range; else a
+    ControllerError naming the controller, the channel and the value (a log holding it could not be
+    read back, and no actuator of the described system can do it)."""
+    for j, ch in enumerate(channels):
+        col = commands[:, j]
+        bad = (col < ch.low) | (col > ch.high)
+        if bad.any():
+            raise ControllerError(
+                f"controller {controller.label()!r} commanded {ch.name} = {col[bad][0]:g}, outside its declared "
+                f"range [{ch.low:g}, {ch.high:g}]"
+            )
+    return commands

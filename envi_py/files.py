@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import os
 import stat
+import tempfile
 from collections.abc import Iterable
 from pathlib import Path
 
@@ -62,6 +63,22 @@ def refuse_writing_among_logs(
                 f"{what}: would write {out} among the logs it reads, where later reads of that folder "
                 "would take it for a log; save the model in another folder"
             )
+
+
+def writable_file(path: str | os.PathLike, flag: str) -> Path:
+    """``path`` as a file a command will write at the end of its work, refused before the work when
+    its folder cannot be made or written in (a training once ran to its end, then failed to save)."""
+    path = Path(path)
+    if path.is_dir():
+        raise ValueError(f"{flag} {path}: is a folder; name the file to write")
+    folder = path.parent
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as exc:
+        raise ValueError(f"{flag} {path}: cannot write in {folder} ({exc.strerror or exc})") from None
+    return path
 
 
 def output_folder(path: str | os.PathLike, flag: str = "--out") -> Path:

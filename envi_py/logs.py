@@ -630,9 +630,13 @@ def _manifest_error(path: Path, why: str) -> LogError:
 def load_manifest(path: Path) -> tuple[SystemDescription | None, list[Path]]:
     """A manifest is JSON ``{"system": {...}, "logs": [files]}`` as :func:`write_manifest` writes it
     (older ones: ``{"pattern": ..., "schema": ..., "logs": ...}``). Paths are relative to it."""
+    if path.name.endswith(".meta.json"):
+        raise _manifest_error(path, "it is a log's sidecar: give the log's .csv, its folder, or a manifest")
     d = read_json(path, "manifest")
     if not isinstance(d, dict):
         raise _manifest_error(path, f"a JSON object is needed, not {type(d).__name__}")
+    if not {"logs", "system", "schema", "pattern"} & d.keys():  # any other JSON would read the whole folder
+        raise _manifest_error(path, "it has none of the keys 'logs', 'system', 'schema', 'pattern'")
     system = None
     try:
         if d.get("system") is not None:

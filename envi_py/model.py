@@ -326,7 +326,11 @@ def load_torch_file(path: Path, missing: str, foreign: str, *, reason: bool = Tr
     except FileNotFoundError:
         raise ValueError(f"{path}: {missing}") from None
     except Exception as exc:  # noqa: BLE001 - torch raises many types for a foreign or corrupt file
-        why = f"{type(exc).__name__}: {exc}" if reason else type(exc).__name__
+        # torch's own words can run to pages (a zip reader's internals) or advise loading with
+        # weights_only=False, which would run the file's code: keep the first line, never that advice
+        text = str(exc).strip()
+        said = reason and text and "weights_only" not in text
+        why = f"{type(exc).__name__}: {text.splitlines()[0][:200]}" if said else type(exc).__name__
         raise ValueError(f"{path}: {foreign} ({why})") from None
 
 

@@ -12,6 +12,8 @@ import copy
 import importlib
 import json
 import os
+from collections.abc import Iterator
+from contextlib import contextmanager
 from functools import cache
 from pathlib import Path
 from types import ModuleType
@@ -19,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from .controllers import ControllerSpec
+from .controllers import ControllerError, ControllerSpec
 from .metrics import MetricConfig
 from .model import Checkpoint
 
@@ -177,9 +179,10 @@ def rollout(
     on each window's rows before the first step. Stochastic draws are keyed by (seed, run, step),
     so the result does not depend on ``threads`` (0 = one per core)."""
     init = np.ascontiguousarray(init, dtype=np.float64)
-    return _native().rollout(
-        _compiled(model), _spec_json(controller), init, int(steps), int(runs), int(seed), int(threads)
-    )
+    with _commands_named(controller):
+        return _native().rollout(
+            _compiled(model), _spec_json(controller), init, int(steps), int(runs), int(seed), int(threads)
+        )
 
 
 def rollout_metrics(
@@ -206,18 +209,33 @@ def rollout_metrics(
             f"{system.get('name', '?')!r} declares other goals: simulate traces and score them with its goals"
         )
     init = np.ascontiguousarray(init, dtype=np.float64)
-    return _native().rollout_metrics(
-        compiled,
-        _spec_json(controller),
-        init,
-        int(steps),
-        int(runs),
-        int(seed),
-        int(threads),
-        centre=metric.centre,
-        band=metric.band,
-        skip=metric.skip,
-    )
+    with _commands_named(controller):
+        return _native().rollout_metrics(
+            compiled,
+            _spec_json(controller),
+            init,
+            int(steps),
+            int(runs),
+            int(seed),
+            int(threads),
+            centre=metric.centre,
+            band=metric.band,
+            skip=metric.skip,
+        )
+
+
+@contextmanager
+def _commands_named(controller: ControllerSpec) -> Iterator[None]:
+    """The engine's refusal of a command outside its declared range as the PyTorch engine words it
+    (:func:`envi_py.simulate.in_range`): a ControllerError naming the controller with its parameters,
+    where the engine knows only its name."""
+    try:
+        yield
+    except ValueError as exc:
+        engine_words = f"controller {controller.name!r} commanded "
+        if not str(exc).startswith(engine_words):
+            raise
+        raise ControllerError(f"controller {controller.label()!r} commanded {str(exc)[len(engine_words) :]}") from None
 
 
 def peak_flops(threads: int = 0, seconds: float = 0.5) -> float:

@@ -14,11 +14,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .controllers import ControllerError, ControllerSpec
+from .controllers import ControllerSpec, in_range
 from .effect_layers import LayerStack, layers_json
 from .logs import Log, LogMeta, group_by_controller
 from .model import Checkpoint
-from .system import Channel, LogSchema
+from .system import LogSchema
 
 
 def initial_rows(init: np.ndarray, ckpt: Checkpoint) -> tuple[np.ndarray, np.ndarray]:
@@ -169,21 +169,6 @@ def ensemble_rollout(rolls: Sequence[Roll], init: np.ndarray, steps: int, runs: 
         out[idx] = part
     assert out is not None  # batch >= 1: some member ran
     return out
-
-
-def in_range(commands: np.ndarray, channels: Sequence[Channel], controller: ControllerSpec) -> np.ndarray:
-    """``commands`` (B, |a|) when every one lies in its action channel's declared range; else a
-    ControllerError naming the controller, the channel and the value (a log holding it could not be
-    read back, and no actuator of the described system can do it)."""
-    for j, ch in enumerate(channels):
-        col = commands[:, j]
-        bad = (col < ch.low) | (col > ch.high)
-        if bad.any():
-            raise ControllerError(
-                f"controller {controller.label()!r} commanded {ch.name} = {col[bad][0]:g}, outside its declared "
-                f"range [{ch.low:g}, {ch.high:g}]"
-            )
-    return commands
 
 
 def initial_windows(logs: Sequence[Log], history: int) -> np.ndarray:

@@ -30,7 +30,8 @@ class DitherSteer:
         self.last = np.zeros((n, 1))
 
     def __call__(self, states: np.ndarray) -> np.ndarray:
-        self.last = 20 * self.rng.standard_normal((states.shape[0], 1))
+        # within the steering's declared range, which the twin holds every controller to
+        self.last = np.clip(20 * self.rng.standard_normal((states.shape[0], 1)), -80, 80)
         return np.sign(states[:, :1] - 40) * 10 + self.last
 
 

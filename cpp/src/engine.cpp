@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <atomic>
 #include <cmath>
+#include <cstdio>
 #include <exception>
 #include <mutex>
 #include <stdexcept>
@@ -286,6 +287,20 @@ struct Runner {
     return forward(layers + 1, end, h, rows, rows, count, w.buf[0].data(), w.buf[1].data(), w.scratch.data());
   }
 
+  // As envi_py.simulate.in_range: a command outside its action channel's declared range is an error
+  // naming the controller, the channel and the value (no actuator of the described system can do
+  // it, and a log holding it could not be read back).
+  void in_range(const double* actions, int count) const {
+    const size_t na = m.actions.size();
+    for (size_t i = 0; i < size_t(count) * na; ++i) {
+      const ChannelInfo& ch = m.actions[i % na];
+      if (!(actions[i] < ch.low || actions[i] > ch.high)) continue;  // NaN passes, as in Python
+      char text[160];
+      std::snprintf(text, sizeof text, " = %g, outside its declared range [%g, %g]", actions[i], ch.low, ch.high);
+      throw std::invalid_argument("controller '" + ctrl.name() + "' commanded " + ch.name + text);
+    }
+  }
+
   void block(int thread, Workspace& w, long first, int count) {
     const int ns = m.n_state(), na = m.n_action(), c = m.channels();
     const long l = m.history;
@@ -361,6 +376,7 @@ struct Runner {
         seen = w.seen.data();
       }
       ctrl.act(seen, ns, w.actions.data(), count, w.memory.data());
+      in_range(w.actions.data(), count);
       for (int b = 0; b < count; ++b) {
         double* row = w.rows.data() + size_t(b) * size_t(c);
         std::copy_n(seen + size_t(b) * size_t(ns), ns, row);

@@ -384,7 +384,11 @@ void check_capacity(const Args& a, const Model& m, const std::vector<Group>& gro
     // an ensemble: each run's member, and a member's runs with a copy of each one's initial window
     if (members > 1) group += double(group_runs) * (4.0 + (8.0 + 8.0 * double(l) * double(c)) / members);
     held = std::max(held, group);
-    logs_bytes += double(group_runs) * (double(length) * double(c + 1) * 2 + 200);  // >= 1 digit and 1 separator a cell
+    // a run's CSV (>= 1 digit and 1 separator a cell) and its sidecar, each taking whole blocks of the
+    // file system (4 KiB on most): counting characters alone let 10^8 short runs start on a disk they
+    // would fill at 8 KiB a run
+    const double csv = double(length) * double(c + 1) * 2 + 200;
+    logs_bytes += double(group_runs) * (std::ceil(csv / 4096.0) * 4096.0 + 4096.0);
   }
   if (want_metrics && !streamed) held += double(total) * 8 * 8;  // kept in window order until the end
   const double memory = double(::sysconf(_SC_PHYS_PAGES)) * double(::sysconf(_SC_PAGE_SIZE));

@@ -65,7 +65,7 @@ from typing import Any
 
 import numpy as np
 
-from envi_py.controllers import ControllerSpec
+from envi_py.controllers import ControllerSpec, in_range
 from envi_py.logs import Log, LogMeta, write_log
 from envi_py.system import load_system
 
@@ -152,13 +152,14 @@ def simulate_car(
             "the logged P, I and D columns need them"
         )
     ctrl.reset(runs)
+    channels = load_system("car").schema.actions  # a command no actuator can do is an error, as in simulation
     states, actions = np.empty((runs, steps, 2)), np.empty((runs, steps, 2))
     terms = np.empty((runs, steps, 6))
     for i in range(profile.warmup + steps):
         if i == profile.warmup:
             ctrl.reset(runs)
         s = world.read()
-        a = ctrl(s)
+        a = in_range(np.asarray(ctrl(s), dtype=np.float64), channels, controller)
         if i >= profile.warmup:
             t = i - profile.warmup
             states[:, t], actions[:, t] = s, a

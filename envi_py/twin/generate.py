@@ -8,7 +8,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from envi_py.controllers import ControllerSpec
+from envi_py.controllers import ControllerSpec, in_range
 from envi_py.logs import LANE_KEEPING_SCHEMA, Log, LogMeta, write_log
 
 from .effects import resolve
@@ -76,7 +76,8 @@ def drive(
         if i == warmup:
             batch.start_logging(float(moving[:, :i].sum(1).mean()) / 1000)
         c = batch.read()
-        a = np.asarray(ctrl(c[:, None]), dtype=np.float64).reshape(runs, -1)[:, 0]
+        a = np.asarray(ctrl(c[:, None]), dtype=np.float64).reshape(runs, -1)[:, :1]
+        a = in_range(a, LANE_KEEPING_SCHEMA.actions, controller)[:, 0]  # as in simulation: no actuator can do more
         if i >= warmup:
             color[:, i - warmup], angle[:, i - warmup] = c, a
         batch.apply(a, moving[:, i] / 1000)
