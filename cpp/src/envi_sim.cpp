@@ -141,7 +141,7 @@ Args parse(int argc, char** argv) {
     else if (f == "--init") more(a.init);
     else if (f == "--controller") a.controller = val();
     else if (f == "--param") more(a.params);
-    else if (f == "--steps") a.steps = to_long(f, val(), 0, kMaxLength);
+    else if (f == "--steps") a.steps = to_long(f, val(), 1, kMaxLength);
     else if (f == "--runs") a.runs = to_long(f, val(), 1, std::numeric_limits<long>::max());
     else if (f == "--seed") a.seed = uint64_t(to_long(f, val(), 0, std::numeric_limits<long>::max()));
     else if (f == "--threads") a.threads = int(to_long(f, val(), 0, kMaxThreads));
@@ -325,9 +325,15 @@ long chunk_runs(long length, long channels, const Plan& full, bool want_logs) {
 
 double gib(double bytes) { return bytes / double(1L << 30); }
 
+// A size in the unit that shows it (a few KiB once read "0.0 GiB").
 std::string gib_text(double bytes) {
   char buf[32];
-  std::snprintf(buf, sizeof buf, "%.1f GiB", gib(bytes));
+  if (bytes >= double(1L << 30))
+    std::snprintf(buf, sizeof buf, "%.1f GiB", gib(bytes));
+  else if (bytes >= double(1L << 20))
+    std::snprintf(buf, sizeof buf, "%.1f MiB", bytes / double(1L << 20));
+  else
+    std::snprintf(buf, sizeof buf, "%.0f KiB", bytes / 1024.0);
   return buf;
 }
 
