@@ -227,7 +227,7 @@ def rollout_metrics(
 @contextmanager
 def _commands_named(controller: ControllerSpec) -> Iterator[None]:
     """The engine's refusal of a command outside its declared range as the PyTorch engine words it
-    (:func:`envi_py.simulate.in_range`): a ControllerError naming the controller with its parameters,
+    (:func:`envi_py.controllers.in_range`): a ControllerError naming the controller with its parameters,
     where the engine knows only its name."""
     try:
         yield

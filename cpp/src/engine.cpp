@@ -287,7 +287,7 @@ struct Runner {
     return forward(layers + 1, end, h, rows, rows, count, w.buf[0].data(), w.buf[1].data(), w.scratch.data());
   }
 
-  // As envi_py.simulate.in_range: a command outside its action channel's declared range is an error
+  // As envi_py.controllers.in_range: a command outside its action channel's declared range is an error
   // naming the controller, the channel and the value (no actuator of the described system can do
   // it, and a log holding it could not be read back).
   void in_range(const double* actions, int count) const {
