@@ -20,6 +20,7 @@ from .atomic import atomic_write_text
 from .cli_parser import EnviParser, seed_type
 from .controllers import ControllerSpec, parse_params
 from .dataset import EXTRA_CHANNELS
+from .interrupt import Terminated, exit_code, signals_interrupt
 from .files import output_folder, refuse_overwriting, refuse_writing_among_logs, writable_file
 from .diagnose.cli import register as register_diagnose
 from .experiments.cli import register as register_experiment
@@ -430,6 +431,24 @@ def note_starts_across_breaks(command: str, logs: Sequence[Log], history: int) -
             )
 
 
+SIMULATED_SOURCES = ("sim", "hil")  # the learnt model made the readings
+
+
+def note_sources(command: str, option: str, logs: Sequence[Log], want_sim: bool) -> None:
+    """Say when an option's logs are not what it takes (simulations for ``--sim``: the model's, or
+    hardware in its loop; field or twin runs for ``--real``) by their sidecars' ``source``. They are
+    scored as given, since a twin may stand in for reality on purpose, but never without a word."""
+    odd = [lg for lg in logs if (lg.meta.source in SIMULATED_SOURCES) != want_sim]
+    if odd:
+        sources = ", ".join(sorted({repr(lg.meta.source) for lg in odd}))
+        print(
+            f"{command}: note: {len(odd)} of the {len(logs)} {option} log(s) (e.g. {odd[0].path or odd[0].name}) "
+            f"say source {sources} in their sidecars, not {'a simulation' if want_sim else 'a real run'}; "
+            "scored as given",
+            file=sys.stderr,
+        )
+
+
 def cmd_verify(args: argparse.Namespace) -> int:
     from .logs import group_by_controller
     from .verify import to_text, verify, write_report
@@ -453,6 +472,8 @@ def cmd_verify(args: argparse.Namespace) -> int:
         sim = [lg for lg in sim if lg.meta.controller is not None]
     system = system_of(args)
     results = verify(real, sim, system, skip=args.skip, floor=not args.no_floor, seed=args.seed)
+    note_sources("envi verify", "--real", real, want_sim=False)  # after the checks: an error stays one line
+    note_sources("envi verify", "--sim", sim, want_sim=True)
     real_versions = set(group_by_controller(real))
     for spec, group in group_by_controller(sim).items():
         if spec not in real_versions:  # say so: a simulated log whose sidecar went missing lands here
@@ -470,6 +491,8 @@ def cmd_verify(args: argparse.Namespace) -> int:
 
 # ------------------------------------------------------------------------------------ check
 
+DEFAULT_CHECK_BATCH = 100
+
 
 def cmd_check(args: argparse.Namespace) -> int:
     """A verdict per controller version and requirement, for the real system, with as few runs as needed."""
@@ -486,6 +509,10 @@ def cmd_check(args: argparse.Namespace) -> int:
         raise ValueError(f"--delta must lie in (0, 0.5), got {args.delta}")
     _positive(args, "max_runs", "batch", "sims_per_start")
     _at_most(args, max_runs=10_000_000, batch=1_000_000, sims_per_start=100_000)
+    if args.batch is None:  # a cap below the default batch is one look of the whole cap
+        args.batch = min(DEFAULT_CHECK_BATCH, args.max_runs)
+    elif args.batch > args.max_runs:  # once ran --max-runs silently, as if the batch had been the cap
+        raise ValueError(f"--batch {args.batch} is more than --max-runs {args.max_runs}: give at most the cap")
     if args.out:
         output_folder(args.out)
     ckpt = load_model(args)
@@ -842,7 +869,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="indifference region of the sequential test around the required probability",
     )
     p.add_argument("--max-runs", type=int, default=4000, help="simulated runs at most per version and requirement")
-    p.add_argument("--batch", type=int, default=100, help="simulated runs per look of the sequential test")
+    p.add_argument(
+        "--batch",
+        type=int,
+        default=None,
+        help=f"simulated runs per look of the sequential test (default {DEFAULT_CHECK_BATCH}; --max-runs when less)",
+    )
     p.add_argument(
         "--sims-per-start",
         type=int,
@@ -899,7 +931,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     func: Callable[[argparse.Namespace], int] = args.func
     try:
-        rc = func(args)
+        with signals_interrupt():  # kill and a closed terminal clean up as Ctrl-C does
+            rc = func(args)
         if config is not None and rc == 0:
             written = write_effective(args, command_parser(parser, argv)[0])
             if written is not None:
@@ -917,9 +950,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             msg = f"{exc.filename}: {why}"
         print(f"envi {args.command}: error: {msg}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print(f"envi {args.command}: interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as exc:
+        print(f"envi {args.command}: interrupted{f' ({exc})' if isinstance(exc, Terminated) else ''}", file=sys.stderr)
+        return exit_code(exc)
 
 
 if __name__ == "__main__":

@@ -68,8 +68,10 @@ class ControllerSpec:
 
     @property
     def key(self) -> str:
-        """A stable text key (sorted JSON): logs of one controller version share it."""
-        return json.dumps(self.to_json(), sort_keys=True)
+        """A stable text key (sorted JSON): logs of one controller version share it. Numbers are
+        keyed by value, so that ``x=30`` from a command line and ``30.0`` from a log's file name or
+        sidecar are one version (they were two, and a report showed x = 30 twice)."""
+        return json.dumps(_by_value(self.to_json()), sort_keys=True)
 
     def label(self) -> str:
         """``name(k=v, ...)`` for tables; nested loops shown by their own labels."""
@@ -87,6 +89,17 @@ class ControllerSpec:
 
     def __eq__(self, other: object) -> bool:
         return isinstance(other, ControllerSpec) and self.key == other.key
+
+
+def _by_value(v: Any) -> Any:
+    """A JSON tree with every integral float written as an int (booleans stay booleans)."""
+    if isinstance(v, dict):
+        return {k: _by_value(e) for k, e in v.items()}
+    if isinstance(v, list):
+        return [_by_value(e) for e in v]
+    if isinstance(v, float) and v.is_integer():
+        return int(v)
+    return v
 
 
 def _label(name: str, params: dict[str, Any]) -> str:

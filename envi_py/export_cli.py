@@ -3,9 +3,16 @@ argument errors answer at once (torch and onnx are imported only once there is a
 
 from __future__ import annotations
 
+import argparse
 import sys
+from pathlib import Path
+from typing import TYPE_CHECKING
 
 from .cli_parser import EnviParser
+from .interrupt import exit_code, signals_interrupt
+
+if TYPE_CHECKING:
+    from .model import Checkpoint
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -27,27 +34,18 @@ def main(argv: list[str] | None = None) -> int:
         "network; envi_sim --model m0.onnx m1.onnx ... runs the exported members as the ensemble",
     )
     args = ap.parse_args(argv)
-    from .effect_layers import describe, read_layers
-    from .export import OPSET, PARITY_TOL, export
-    from .files import refuse_overwriting
-    from .model import Checkpoint
-
     try:
-        refuse_overwriting([args.output], [args.model, args.layers], "-o")
-        ckpt = Checkpoint.load(args.model)
-        if args.member is not None:
-            ckpt = ckpt.member(args.member)
-        elif ckpt.members:
-            raise ValueError(
-                f"{args.model}: a seed ensemble of {ckpt.size} members; an ONNX file holds one: "
-                f"export each with --member 0..{ckpt.size - 1}"
-            )
-        if args.layers:
-            ckpt = ckpt.with_layers(read_layers(args.layers))
-        path = export(ckpt, args.output, check=not args.no_check)
+        with signals_interrupt():  # a kill removes the temporary file, as Ctrl-C does
+            path, ckpt = _export(args)
     except ValueError as exc:
         print(f"envi-export: error: {str(exc).splitlines()[0]}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt as exc:
+        print(f"envi-export: interrupted; {args.output} is left as it was", file=sys.stderr)
+        return exit_code(exc)
+    from .effect_layers import describe
+    from .export import OPSET, PARITY_TOL
+
     size = path.stat().st_size
     print(
         f"wrote {path} ({size / 1024:.1f} KiB, opset {OPSET}, {ckpt.config.head} head"
@@ -56,6 +54,27 @@ def main(argv: list[str] | None = None) -> int:
         + ")"
     )
     return 0
+
+
+def _export(args: argparse.Namespace) -> tuple[Path, Checkpoint]:
+    """The checkpoint (one member of an ensemble, with its effect layers) written to ONNX."""
+    from .effect_layers import read_layers
+    from .export import export
+    from .files import refuse_overwriting
+    from .model import Checkpoint
+
+    refuse_overwriting([args.output], [args.model, args.layers], "-o")
+    ckpt = Checkpoint.load(args.model)
+    if args.member is not None:
+        ckpt = ckpt.member(args.member)
+    elif ckpt.members:
+        raise ValueError(
+            f"{args.model}: a seed ensemble of {ckpt.size} members; an ONNX file holds one: "
+            f"export each with --member 0..{ckpt.size - 1}"
+        )
+    if args.layers:
+        ckpt = ckpt.with_layers(read_layers(args.layers))
+    return export(ckpt, args.output, check=not args.no_check), ckpt
 
 
 if __name__ == "__main__":

@@ -188,3 +188,18 @@ def test_runs_from_further_starts_count_in_the_outside_figure(lane):
         ckpt, real[:2], REQS[:1], extra_starts=real[2:4], max_runs=50, batch=50, sims_per_start=3, engine="torch"
     )
     assert row.sim_runs == row.simulation["runs"] + (2 + 2) * 3
+
+
+def test_a_batch_beyond_the_cap_is_refused_and_a_small_cap_is_one_look(lane, tmp_path, capsys):
+    """``--max-runs 5 --batch 10`` once ran 5 runs without a word; a cap below the default batch of 100,
+    given alone, is one look of the whole cap (as the report's provenance records)."""
+    ckpt, real, _ = lane
+    model = ckpt.save(tmp_path / "m.pt")
+    base = ["check", "--model", str(model), "--real", str(real[0].path), "--require", "max(color) <= 100"]
+    base += ["--engine", "torch", "--sims-per-start", "2"]
+    assert main([*base, "--max-runs", "5", "--batch", "10"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == "envi check: error: --batch 10 is more than --max-runs 5: give at most the cap", err
+    assert main([*base, "--max-runs", "30", "--out", str(tmp_path / "c")]) == 0
+    js = json.loads((tmp_path / "c" / "check.json").read_text())
+    assert js["provenance"]["batch"] == 30 and js["provenance"]["max_runs"] == 30, js["provenance"]

@@ -6,6 +6,9 @@ import numpy as np
 import pytest
 
 from envi_py.controllers import ControllerSpec, parse_params
+from envi_py.logs import group_by_controller
+
+from .conftest import make_log
 
 
 def test_lane_keeping_matches_every_real_row(real_logs):
@@ -173,3 +176,19 @@ def test_rollout_warms_the_controller_up_on_sigma0(tmp_path):
 def test_bad_parameter_types_are_value_errors_naming_the_controller(params, why):
     with pytest.raises(ValueError, match=why):
         ControllerSpec("pid", params).build(n_state=2, n_action=1)
+
+
+def test_a_version_is_keyed_by_its_numbers_values():
+    """``x=30`` from a command line and ``30.0`` from a log were two versions (a report showed x = 30
+    twice); nested loops too. A boolean is not the number 1, and 30.5 is not 30."""
+    assert ControllerSpec("lane-keeping", {"x": 30}) == ControllerSpec("lane-keeping", {"x": 30.0})
+    assert len({ControllerSpec("lane-keeping", {"x": 30}), ControllerSpec("lane-keeping", {"x": 30.0})}) == 1
+    loops = [{"name": "pid", "params": {"kp": 2, "out_max": 40.0}}]
+    assert ControllerSpec("combine", {"loops": loops}) == ControllerSpec(
+        "combine", {"loops": [{"name": "pid", "params": {"kp": 2.0, "out_max": 40}}]}
+    )
+    assert ControllerSpec("pid", {"kp": 1}) != ControllerSpec("pid", {"kp": True})
+    assert ControllerSpec("lane-keeping", {"x": 30}) != ControllerSpec("lane-keeping", {"x": 30.5})
+    a, b = make_log([40.0] * 12, x=30), make_log([41.0] * 12, x=30)
+    b.meta.controller = {"name": "lane-keeping", "params": {"x": 30.0}}
+    assert list(map(len, group_by_controller([a, b]).values())) == [2]

@@ -20,6 +20,9 @@
 #include <map>
 #include <memory>
 #include <mutex>
+#include <pthread.h>
+#include <csignal>
+#include <thread>
 #include <sstream>
 #include <sys/stat.h>
 #include <sys/statvfs.h>
@@ -470,25 +473,137 @@ std::string real_path(const std::string& path) {
   return s;
 }
 
+// What a run has written but not yet moved into place (the staged logs, the metrics document) is
+// discarded when the run fails or is interrupted. One lock covers every write into a pending place,
+// every move into place, every discard and the list itself: a signal's cleanup never races a file
+// being written, moved in or destroyed.
+class Pending {
+ public:
+  Pending(const Pending&) = delete;
+  Pending& operator=(const Pending&) = delete;
+  static std::mutex& lock() {
+    static std::mutex m;
+    return m;
+  }
+  // discards everything still pending (the caller holds lock()); true when something was
+  static bool discard_all() {
+    bool any = false;
+    for (Pending* p : live()) any = p->discard() || any;
+    return any;
+  }
+
+ protected:
+  Pending() = default;
+  ~Pending() = default;
+  // a derived class enlists once set up and delists in its destructor, both under lock()
+  void enlist() { live().push_back(this); }
+  void delist() {
+    auto& l = live();
+    l.erase(std::remove(l.begin(), l.end(), this), l.end());
+  }
+  virtual bool discard() = 0;  // true when something was pending
+
+ private:
+  static std::vector<Pending*>& live() {
+    static std::vector<Pending*> l;
+    return l;
+  }
+};
+
+// SIGINT, SIGTERM and SIGHUP are blocked in every thread and taken by one watcher thread, which
+// discards what is pending in ordinary context (a handler may not walk a folder) and exits with
+// 128 + the signal, as a shell reports a killed command: a killed envi_sim leaves --out and
+// --metrics as they were, as envi simulate does.
+void watch_for_interruption() {
+  static sigset_t signals;
+  sigemptyset(&signals);
+  for (int sig : {SIGINT, SIGTERM, SIGHUP}) sigaddset(&signals, sig);
+  if (::pthread_sigmask(SIG_BLOCK, &signals, nullptr) != 0) return;  // then the signals keep their default action
+  std::thread([] {
+    int sig = 0;
+    if (::sigwait(&signals, &sig) != 0) return;
+    std::lock_guard<std::mutex> hold(Pending::lock());
+    const bool discarded = Pending::discard_all();
+    const std::string what = std::string("envi_sim: interrupted (") +
+                             (sig == SIGINT ? "SIGINT" : sig == SIGTERM ? "SIGTERM" : "SIGHUP") + ")" +
+                             (discarded ? "; --out and --metrics are left as they were" : "") + "\n";
+    if (::write(STDERR_FILENO, what.data(), what.size()) < 0) {
+      // nothing more to do: the exit status still says it
+    }
+    std::_Exit(128 + sig);
+  }).detach();
+}
+
+// The metrics document is written to a hidden file beside --metrics and renamed onto it when
+// complete: a run that fails or is interrupted half-way leaves an earlier document whole, and
+// never a truncated one.
+class PendingFile : public Pending {
+ public:
+  explicit PendingFile(const std::string& target) : target_(target) {
+    const auto slash = target.rfind('/');
+    std::string pattern = slash == std::string::npos ? "." + target + ".partial-XXXXXX"
+                                                     : target.substr(0, slash + 1) + "." + target.substr(slash + 1) + ".partial-XXXXXX";
+    std::lock_guard<std::mutex> hold(lock());
+    const int fd = ::mkstemp(pattern.data());
+    if (fd < 0) throw std::runtime_error("--metrics " + target + ": cannot write (" + std::strerror(errno) + ")");
+    const mode_t mask = ::umask(0);  // mkstemp's 0600, widened as a plainly opened file would be
+    ::umask(mask);
+    const int chmod_rc = ::fchmod(fd, 0666 & ~mask);
+    ::close(fd);
+    path_ = pattern;
+    enlist();
+    (void)chmod_rc;  // a file system without modes keeps mkstemp's: the document is still whole
+  }
+  ~PendingFile() {
+    std::lock_guard<std::mutex> hold(lock());
+    discard();
+    delist();
+  }
+  const std::string& path() const { return path_; }
+  // renames the complete document onto --metrics
+  void commit() {
+    std::lock_guard<std::mutex> hold(lock());
+    if (::rename(path_.c_str(), target_.c_str()) != 0)
+      throw std::runtime_error("--metrics " + target_ + ": cannot move the document into place (" + std::strerror(errno) + ")");
+    path_.clear();
+  }
+
+ protected:
+  bool discard() override {
+    if (path_.empty()) return false;
+    ::unlink(path_.c_str());
+    path_.clear();
+    return true;
+  }
+
+ private:
+  std::string target_, path_;
+};
+
 // The new logs are written into a hidden folder inside --out and moved in only when the whole run
 // has been written (envi_py.logs.staged_logs): a run that fails half-way leaves --out as it was,
 // neither an earlier run lost nor half of a new one mixed into it.
-class Staging {
+class Staging : public Pending {
  public:
   explicit Staging(const std::string& out) : out_(out) {
     std::string pattern = out + "/.staging-XXXXXX";
+    std::lock_guard<std::mutex> hold(lock());
     if (!::mkdtemp(pattern.data()))
       throw std::runtime_error("--out " + out + ": cannot create a staging folder (" + std::strerror(errno) + ")");
     dir_ = pattern;
+    enlist();
   }
-  Staging(const Staging&) = delete;
-  Staging& operator=(const Staging&) = delete;
-  ~Staging() { discard(); }
+  ~Staging() {
+    std::lock_guard<std::mutex> hold(lock());
+    discard();
+    delist();
+  }
   const std::string& dir() const { return dir_; }
 
   // Deletes the earlier logs (with --force; without it, refuses logs that appeared during the run)
   // and moves the new ones in. Returns how many earlier CSV logs were replaced.
   long commit(bool force) {
+    std::lock_guard<std::mutex> hold(lock());
     const auto held = folder_logs(out_);
     if (!held.empty() && !force)
       throw std::runtime_error("--out " + out_ + ": " + logs_text(held) + " appeared there during the run; nothing was written " +
@@ -503,6 +618,15 @@ class Staging {
     return count_csv(held);
   }
 
+ protected:
+  bool discard() override {
+    if (dir_.empty()) return false;
+    for (const auto& name : entries()) ::unlink((dir_ + "/" + name).c_str());
+    ::rmdir(dir_.c_str());
+    dir_.clear();
+    return true;
+  }
+
  private:
   std::vector<std::string> entries() const {
     std::vector<std::string> names;
@@ -513,12 +637,6 @@ class Staging {
     }
     std::sort(names.begin(), names.end());
     return names;
-  }
-  void discard() {
-    if (dir_.empty()) return;
-    for (const auto& name : entries()) ::unlink((dir_ + "/" + name).c_str());
-    ::rmdir(dir_.c_str());
-    dir_.clear();
   }
   std::string out_, dir_;
 };
@@ -642,13 +760,15 @@ int run(const Args& a) {
   const long K = long(windows.size()), R = K * a.runs;
 
   std::ofstream metrics_file;
+  std::unique_ptr<PendingFile> metrics_pending;
   std::ostream* mout = nullptr;
   // per-run metric rows in window order; written as they come when there is one group of windows
   std::vector<double> all_metrics;
   if (want_metrics) {
     if (a.metrics == "-") mout = &std::cout;
     else {
-      metrics_file.open(a.metrics);
+      metrics_pending = std::make_unique<PendingFile>(a.metrics);
+      metrics_file.open(metrics_pending->path());
       if (!metrics_file) throw std::runtime_error("--metrics " + a.metrics + ": cannot write");
       mout = &metrics_file;
     }
@@ -768,6 +888,7 @@ int run(const Args& a) {
                              {"run_id", str(run_id)},
                              {"source", str("sim")},
                              {"provenance", provenance(w.name, r)}});
+            std::lock_guard<std::mutex> hold(Pending::lock());  // not discarded by an interruption half-written
             write_log(staging->dir(), run_id, m, meta, time, traces.data() + size_t(i) * size_t(length) * size_t(c), length);
           }
         }
@@ -787,6 +908,11 @@ int run(const Args& a) {
     *mout << "]}\n";
     mout->flush();
     if (!*mout) throw std::runtime_error(a.metrics + ": write failed");
+    if (metrics_pending) {
+      metrics_file.close();
+      if (!metrics_file) throw std::runtime_error(a.metrics + ": write failed");
+      metrics_pending->commit();
+    }
   }
   if (mout != &std::cout) {
     std::cerr << "envi_sim: " << R << " runs";
@@ -802,6 +928,7 @@ int run(const Args& a) {
 
 int main(int argc, char** argv) {
   try {
+    watch_for_interruption();  // before any worker thread starts, so that all inherit the blocked signals
     return run(parse(argc, argv));
   } catch (const std::exception& e) {  // bad arguments, files, models or controllers alike
     std::string what = e.what();

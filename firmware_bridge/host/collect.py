@@ -30,6 +30,7 @@ from tqdm import tqdm
 from envi_py import __version__
 from envi_py.cli_parser import EnviParser
 from envi_py.controllers import ControllerSpec
+from envi_py.interrupt import exit_code, signals_interrupt
 from envi_py.logs import LANE_KEEPING_SCHEMA, Log, LogMeta, read_log
 
 from ..brick import protocol as P
@@ -434,12 +435,15 @@ def main(argv: list[str] | None = None) -> int:
     session: Session | None = None
     lock: int | None = None
     code = 0
+    interrupted = False
     try:
-        lock = hold(args.out)  # before the ledger is read or the port opened: both are the holder's
-        session = Session(args, load_model(args.inject) if args.inject else None, bar)
-        session.run_all()
-    except KeyboardInterrupt:
-        code = 130
+        with signals_interrupt():  # kill and a closed terminal record the current run as Ctrl-C does
+            lock = hold(args.out)  # before the ledger is read or the port opened: both are the holder's
+            session = Session(args, load_model(args.inject) if args.inject else None, bar)
+            session.run_all()
+    except KeyboardInterrupt as exc:
+        code = exit_code(exc)
+        interrupted = True
     except (FolderBusy, BrickError, LinkLost, ValueError, OSError) as exc:  # LogExists, a bad ledger: ValueErrors
         bar.close()
         print(f"envi-collect: {exc}", file=sys.stderr)
@@ -453,7 +457,7 @@ def main(argv: list[str] | None = None) -> int:
     if session is None or (code == 2 and not session.tally.runs):
         return code  # refused before any run: the one error line says it all
     tally = session.tally
-    if code == 130:
+    if interrupted:
         print("envi-collect: interrupted; the logs written so far are complete files", file=sys.stderr)
     print(f"envi-collect: {tally.line(str(args.out))}", file=sys.stderr)
     if code == 0 and tally.partial and not args.accept_partial:
