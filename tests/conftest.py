@@ -37,3 +37,20 @@ def make_log(color: np.ndarray, x: float = 30.0, period: float = 40.0, run: str 
     angle = np.sign(color - 40.0) * x
     meta = LogMeta(controller={"name": "lane-keeping", "params": {"x": x}}, period_ms=period, run_id=run)
     return Log(None, np.arange(len(color)) * period, color[:, None], angle[:, None], meta)
+
+
+@pytest.fixture(scope="module")
+def mini(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """4 lane twin logs (x = 30), a small BC model trained on them in seconds, and its ONNX export:
+    enough for a command to run end to end where what is checked is its inputs and outputs."""
+    from envi_py.controllers import ControllerSpec
+    from envi_py.export import export
+    from envi_py.train import train
+    from envi_py.twin import generate, write_logs
+
+    d = tmp_path_factory.mktemp("mini_lane")
+    logs = d / "logs"
+    write_logs(generate(ControllerSpec("lane-keeping", {"x": 30}), 4, 40, seed=1), logs)
+    ckpt = train("bc", load_logs(logs), [], epochs=2, hidden=(8, 8), history=5, seed=0, members=1)
+    ckpt.save(d / "m.pt")
+    return {"dir": d, "logs": logs, "model": d / "m.pt", "onnx": export(ckpt, d / "m.onnx")}

@@ -18,26 +18,11 @@ from pathlib import Path
 import pytest
 
 from envi_py import native
-from envi_py.controllers import ControllerSpec
-from envi_py.export import export
 from envi_py.interrupt import Terminated, exit_code, signals_interrupt
-from envi_py.logs import load_logs
-from envi_py.train import train
-from envi_py.twin import generate, write_logs
 from tests.test_native import envi_sim
 
 ROOT = Path(__file__).resolve().parents[1]
 EARLIER = '{"earlier": "document"}\n'
-
-
-@pytest.fixture(scope="module")
-def setup(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
-    d = tmp_path_factory.mktemp("interruption")
-    logs = d / "logs"
-    write_logs(generate(ControllerSpec("lane-keeping", {"x": 30}), 4, 40, seed=1), logs)
-    ckpt = train("bc", load_logs(logs), [], epochs=2, hidden=(8, 8), history=5, seed=0, members=1)
-    ckpt.save(d / "m.pt")
-    return {"dir": d, "logs": logs, "model": d / "m.pt", "onnx": export(ckpt, d / "m.onnx")}
 
 
 def earlier_run(out: Path) -> dict[str, bytes]:
@@ -79,12 +64,12 @@ ENGINES = ["torch", pytest.param("native", marks=pytest.mark.skipif(not native.a
 
 @pytest.mark.parametrize("engine", ENGINES)
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP], ids=["kill", "hangup"])
-def test_envi_simulate_killed_mid_run_leaves_out_as_it_was(setup, tmp_path, engine, sig):
+def test_envi_simulate_killed_mid_run_leaves_out_as_it_was(mini, tmp_path, engine, sig):
     out = tmp_path / "sim"
     before = earlier_run(out)
     proc = subprocess.Popen(
-        [sys.executable, "-m", "envi_py.cli", "simulate", "--model", str(setup["model"])]
-        + ["--init-logs", str(setup["logs"]), "--out", str(out), "--force", "--runs", "3000", "--steps", "20"]
+        [sys.executable, "-m", "envi_py.cli", "simulate", "--model", str(mini["model"])]
+        + ["--init-logs", str(mini["logs"]), "--out", str(out), "--force", "--runs", "3000", "--steps", "20"]
         + ["--engine", engine],
         cwd=ROOT,
         stdout=subprocess.PIPE,
@@ -99,13 +84,13 @@ def test_envi_simulate_killed_mid_run_leaves_out_as_it_was(setup, tmp_path, engi
 
 
 @pytest.mark.skipif(envi_sim() is None, reason="envi_sim binary not built")
-def test_envi_sim_killed_mid_run_leaves_out_and_metrics_as_they_were(setup, tmp_path):
+def test_envi_sim_killed_mid_run_leaves_out_and_metrics_as_they_were(mini, tmp_path):
     out, metrics = tmp_path / "sim", tmp_path / "m.json"
     before = earlier_run(out)
     metrics.write_text(EARLIER)
-    init = [str(p) for p in sorted(setup["logs"].glob("*.csv"))]
+    init = [str(p) for p in sorted(mini["logs"].glob("*.csv"))]
     proc = subprocess.Popen(
-        [envi_sim(), "--model", str(setup["onnx"]), "--init", *init, "--runs", "3000", "--steps", "20"]
+        [envi_sim(), "--model", str(mini["onnx"]), "--init", *init, "--runs", "3000", "--steps", "20"]
         + ["--out", str(out), "--force", "--metrics", str(metrics), "--threads", "1"],
         stderr=subprocess.PIPE,
         text=True,
@@ -120,14 +105,14 @@ def test_envi_sim_killed_mid_run_leaves_out_and_metrics_as_they_were(setup, tmp_
 
 
 @pytest.mark.skipif(envi_sim() is None, reason="envi_sim binary not built")
-def test_envi_sim_refused_mid_run_keeps_the_earlier_metrics_document(setup, tmp_path):
+def test_envi_sim_refused_mid_run_keeps_the_earlier_metrics_document(mini, tmp_path):
     """A command beyond the actuator's range is refused at its first step, after the document was
     opened: it once truncated the earlier document to its header."""
     metrics = tmp_path / "m.json"
     metrics.write_text(EARLIER)
-    init = str(sorted(setup["logs"].glob("*.csv"))[0])
+    init = str(sorted(mini["logs"].glob("*.csv"))[0])
     done = subprocess.run(
-        [envi_sim(), "--model", str(setup["onnx"]), "--init", init, "--metrics", str(metrics)]
+        [envi_sim(), "--model", str(mini["onnx"]), "--init", init, "--metrics", str(metrics)]
         + ["--controller", "lane-keeping", "--param", "x=1e6"],
         capture_output=True,
         text=True,
@@ -138,7 +123,7 @@ def test_envi_sim_refused_mid_run_keeps_the_earlier_metrics_document(setup, tmp_
     assert [p.name for p in tmp_path.iterdir()] == ["m.json"]
     # and a run that completes replaces it whole, with a plain file's mode
     ok = subprocess.run(
-        [envi_sim(), "--model", str(setup["onnx"]), "--init", init, "--metrics", str(metrics), "--steps", "5"],
+        [envi_sim(), "--model", str(mini["onnx"]), "--init", init, "--metrics", str(metrics), "--steps", "5"],
         capture_output=True,
         text=True,
         check=False,

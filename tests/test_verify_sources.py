@@ -9,23 +9,19 @@ from pathlib import Path
 import pytest
 
 from envi_py.controllers import ControllerSpec
-from envi_py.logs import load_logs
-from envi_py.train import train
 from envi_py.twin import generate, write_logs
 from tests.test_bad_input_audit import run_cli
 
 
 @pytest.fixture(scope="module")
-def folders(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+def folders(mini: dict[str, Path], tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """The twin logs and model of ``mini``, other twin runs of the same version, and simulations."""
     d = tmp_path_factory.mktemp("sources")
-    twin, other = d / "twin", d / "other"
-    write_logs(generate(ControllerSpec("lane-keeping", {"x": 30}), 4, 40, seed=1), twin)
-    write_logs(generate(ControllerSpec("lane-keeping", {"x": 30}), 4, 40, seed=2), other)
-    ckpt = train("bc", load_logs(twin), [], epochs=2, hidden=(8, 8), history=5, seed=0, members=1)
-    ckpt.save(d / "m.pt")
-    code, err = run_cli(["simulate", "--model", str(d / "m.pt"), "--init-logs", str(twin), "--out", str(d / "sim")])
+    write_logs(generate(ControllerSpec("lane-keeping", {"x": 30}), 4, 40, seed=2), d / "other")
+    sim = ["simulate", "--model", str(mini["model"]), "--init-logs", str(mini["logs"]), "--out", str(d / "sim")]
+    code, err = run_cli(sim)
     assert code == 0, err
-    return {"twin": twin, "other": other, "sim": d / "sim"}
+    return {"twin": mini["logs"], "other": d / "other", "sim": d / "sim"}
 
 
 def notes(err: str) -> list[str]:
