@@ -38,6 +38,7 @@ from .model import Checkpoint
 from .simulate import simulate_logs
 from .system import RequirementSpec, SystemDescription, describe_schema
 from .verdicts import RectifierCheck, model_only, ppi_verdict, sprt
+from .notes import release
 from .verify import version_label
 
 
@@ -158,6 +159,7 @@ def check(
             )
     hist = ckpt.config.history
     checker = Checker(ckpt, engine, seed)
+    release()  # the request is checked: a command's notes before the simulations, not after them
     groups = group_by_controller(real)
     extra = group_by_controller(extra_starts) if extra_starts else {}
     rows: list[CheckRow] = []

@@ -18,16 +18,16 @@ from firmware_bridge.host.brick_sim import register as register_brick_sim
 
 from .atomic import atomic_write_text
 from .cli_parser import EnviParser, seed_type
-from .controllers import ControllerSpec, parse_params
+from .controllers import ControllerSpec, finite_numbers, parse_params
 from .dataset import EXTRA_CHANNELS
 from .interrupt import Terminated, exit_code, signals_interrupt
+from .notes import held_notes, note, release
 from .files import output_folder, refuse_overwriting, refuse_writing_among_logs, writable_file
 from .diagnose.cli import register as register_diagnose
 from .experiments.cli import register as register_experiment
 from .logs import (
     Log,
     LogError,
-    finite_numbers,
     load_logs,
     refuse_earlier_logs,
     staged_logs,
@@ -115,10 +115,9 @@ def cmd_init(args: argparse.Namespace) -> int:
         if first and first[0].meta.controller:
             ControllerSpec.from_json(first[0].meta.controller).build()
     except ValueError as exc:
-        print(
+        note(
             f"envi init: note: {out}: {exc}; name the [controller] and the pattern's fields after its parameters "
-            "before training",
-            file=sys.stderr,
+            "before training"
         )
     return 0
 
@@ -251,12 +250,12 @@ def cmd_train(args: argparse.Namespace) -> int:
     )
     refuse_writing_among_logs(training_output_paths(output), [lg.path for lg in (*logs, *val)], f"--output {output}")
     for finding in pauses([*logs, *val]):  # what envi diagnose flags first, said before the training
-        print(f"envi train: note: {finding.what}", file=sys.stderr)
+        note(f"envi train: note: {finding.what}")
     gappy = {str(lg.path or lg.name): lg.meta.breaks for lg in (*logs, *val) if lg.meta.breaks}
     for name, breaks in gappy.items():  # the collector marked missing rows: no window spans them
         rows = ", ".join(map(str, breaks[:5])) + (f", ... ({len(breaks)} in all)" if len(breaks) > 5 else "")
-        note = f"{name}: rows are missing before row(s) {rows}; no training window spans them"
-        print(f"envi train: note: {note}", file=sys.stderr)
+        text = f"{name}: rows are missing before row(s) {rows}; no training window spans them"
+        note(f"envi train: note: {text}")
     system = system_of(args) or describe_schema(logs[0].meta.schema)  # what train() would take
     runs = {"runs": args.select_runs} if args.select_runs else {}  # else the description's, else the trainer's
     kwargs: dict[str, Any] = {"seed": args.seed, "history": args.history, "progress": not args.quiet}
@@ -303,6 +302,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         kwargs["curves_dir"] = losses.name  # GAIL's per-epoch losses, merged into the curves below
     t0 = time.perf_counter()
     jobs = args.jobs or os.cpu_count() or 1
+    release()  # every check has passed: the notes before the training, not after it
     ckpt = train(args.algorithm, logs, val, system=system, jobs=jobs, **kwargs)
     path = ckpt.save(args.output)
     written = write_training_outputs(
@@ -318,7 +318,7 @@ def cmd_train(args: argparse.Namespace) -> int:
             done.unlink(missing_ok=True)
     sel = ckpt.record.selection
     if sel.get("warning"):
-        print(f"envi train: warning: {sel['warning']}", file=sys.stderr)
+        note(f"envi train: warning: {sel['warning']}")
     epochs = [m.get("best_epoch", "-") for m in sel.get("members", [sel])]
     what = f", {ckpt.size} members (seeds {args.seed}..{args.seed + ckpt.size - 1})" if ckpt.members else ""
     print(
@@ -398,21 +398,19 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         for spec in specs:
             why = unsupported(ckpt, spec, args.mean)
             if why:
-                print(
-                    f"envi simulate: the native engine cannot run {spec.label()} ({why}); using PyTorch",
-                    file=sys.stderr,
-                )
+                note(f"envi simulate: the native engine cannot run {spec.label()} ({why}); using PyTorch")
     t0 = time.perf_counter()
     n = 0
+    release()  # every check has passed: the notes before the simulations, not after them
     with staged_logs(out, args.force) as staging:  # a failure mid-way leaves --out as it was
         for spec, group in versions_to_simulate(init, given):
             for _, _, lg in iter_simulate(ckpt, spec, group, args.steps, args.runs, args.seed, args.engine, args.mean):
                 write_log(lg, staging.folder / f"{lg.meta.run_id}.csv")  # run ids are plain names: no path escapes
                 n += 1
     replaced = staging.replaced
-    note = f" (replaced {replaced} earlier logs)" if replaced else ""
-    note += f"; effect layers: {describe(ckpt.layers)}" if ckpt.layers else ""
-    print(f"simulated {n} runs in {time.perf_counter() - t0:.2f} s ({'+'.join(sorted(engines))} engine) -> {out}{note}")
+    said = f" (replaced {replaced} earlier logs)" if replaced else ""
+    said += f"; effect layers: {describe(ckpt.layers)}" if ckpt.layers else ""
+    print(f"simulated {n} runs in {time.perf_counter() - t0:.2f} s ({'+'.join(sorted(engines))} engine) -> {out}{said}")
     return 0
 
 
@@ -424,10 +422,9 @@ def note_starts_across_breaks(command: str, logs: Sequence[Log], history: int) -
     sides of missing rows: simulations start from a state the system was never in."""
     for lg in logs:
         if lg.meta.breaks and lg.meta.breaks[0] < history:
-            print(
+            note(
                 f"{command}: note: {lg.path or lg.name}: rows are missing before row {lg.meta.breaks[0]}, inside "
-                f"the initial window of {history} rows its simulations start from",
-                file=sys.stderr,
+                f"the initial window of {history} rows its simulations start from"
             )
 
 
@@ -441,11 +438,10 @@ def note_sources(command: str, option: str, logs: Sequence[Log], want_sim: bool)
     odd = [lg for lg in logs if (lg.meta.source in SIMULATED_SOURCES) != want_sim]
     if odd:
         sources = ", ".join(sorted({repr(lg.meta.source) for lg in odd}))
-        print(
+        note(
             f"{command}: note: {len(odd)} of the {len(logs)} {option} log(s) (e.g. {odd[0].path or odd[0].name}) "
             f"say source {sources} in their sidecars, not {'a simulation' if want_sim else 'a real run'}; "
-            "scored as given",
-            file=sys.stderr,
+            "scored as given"
         )
 
 
@@ -464,10 +460,9 @@ def cmd_verify(args: argparse.Namespace) -> int:
             "version (no sidecar): --sim takes what envi simulate wrote, real logs go to --real"
         )
     if unknown:  # a simulated log whose sidecar went missing: its version cannot be told
-        print(
+        note(
             f"envi verify: note: {len(unknown)} simulated run(s) (e.g. {unknown[0].path or unknown[0].name}) do not "
-            "say their controller version (no sidecar); not scored",
-            file=sys.stderr,
+            "say their controller version (no sidecar); not scored"
         )
         sim = [lg for lg in sim if lg.meta.controller is not None]
     system = system_of(args)
@@ -477,10 +472,9 @@ def cmd_verify(args: argparse.Namespace) -> int:
     real_versions = set(group_by_controller(real))
     for spec, group in group_by_controller(sim).items():
         if spec not in real_versions:  # say so: a simulated log whose sidecar went missing lands here
-            print(
+            note(
                 f"envi verify: note: {len(group)} simulated run(s) of {spec.label()} "
-                f"(e.g. {group[0].path or group[0].name}) have no real runs of that version; not scored",
-                file=sys.stderr,
+                f"(e.g. {group[0].path or group[0].name}) have no real runs of that version; not scored"
             )
     print(to_text(results))
     if args.out:
@@ -929,15 +923,29 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"envi: error: {exc}", file=sys.stderr)
         return 2
     args = parser.parse_args(argv)
+    empty = next((k for k, v in vars(args).items() if v == "" or isinstance(v, list) and "" in v), None)
+    if empty is not None:  # '--out ""' once wrote into the current folder, and a report nowhere
+        nested = [v for k, v in vars(args).items() if k.endswith("_command") and isinstance(v, str)]
+        name = " ".join([args.command, *nested])  # as the sub-command says its own errors: 'envi twin generate'
+        print(f"envi {name}: error: --{empty.replace('_', '-')}: an empty value", file=sys.stderr)
+        return 2
     func: Callable[[argparse.Namespace], int] = args.func
     try:
-        with signals_interrupt():  # kill and a closed terminal clean up as Ctrl-C does
+        with signals_interrupt(), held_notes(f"envi {args.command}"):  # kill cleans up as Ctrl-C; notes after checks
             rc = func(args)
         if config is not None and rc == 0:
             written = write_effective(args, command_parser(parser, argv)[0])
             if written is not None:
                 print(f"effective configuration: {written}")
         return rc
+    except MemoryError:  # one line, as any other refusal; the sizes checked up front make it rare
+        print(f"envi {args.command}: error: out of memory; ask for fewer runs or a smaller model", file=sys.stderr)
+        return 2
+    except RuntimeError as exc:
+        if "can't allocate memory" not in str(exc):  # torch's allocator, the same condition
+            raise
+        print(f"envi {args.command}: error: out of memory ({str(exc).splitlines()[0][:120]})", file=sys.stderr)
+        return 2
     except BrokenPipeError:  # 'envi twin effects | head': the reader stopped; quietly, as a shell's SIGPIPE
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit's flush
         return 141  # not 0: the command may not have finished (a report after the printed table)

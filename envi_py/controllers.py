@@ -91,6 +91,20 @@ class ControllerSpec:
         return isinstance(other, ControllerSpec) and self.key == other.key
 
 
+def finite_numbers(node: Any, what: str) -> Any:
+    """Every number in a JSON tree finite: a NaN or infinite controller gain is never a version."""
+    stack = [node]
+    while stack:
+        item = stack.pop()
+        if isinstance(item, float) and not math.isfinite(item):
+            raise ValueError(f"{what} hold a non-finite number ({item})")
+        if isinstance(item, dict):
+            stack.extend(item.values())
+        elif isinstance(item, list):
+            stack.extend(item)
+    return node
+
+
 def _by_value(v: Any) -> Any:
     """A JSON tree with every integral float written as an int (booleans stay booleans)."""
     if isinstance(v, dict):
@@ -107,7 +121,7 @@ def _label(name: str, params: dict[str, Any]) -> str:
     for k, v in params.items():
         if isinstance(v, list) and all(isinstance(e, dict) and "name" in e for e in v):
             parts.append(f"{k}=[" + ", ".join(_label(e["name"], e.get("params", {})) for e in v) + "]")
-        elif isinstance(v, float) and v.is_integer():
+        elif isinstance(v, float) and v.is_integer() and abs(v) < 1e15:  # 1e308 is not 309 digits
             parts.append(f"{k}={int(v)}")
         else:
             parts.append(f"{k}={v:g}" if isinstance(v, (int, float)) else f"{k}={v}")
@@ -414,6 +428,8 @@ def parse_params(items: list[str] | None, option: str = "parameter") -> dict[str
         key, sep, value = item.partition("=")
         if not sep or not key:
             raise ValueError(f"{option} {item!r}: expected name=value")
+        if key.strip() in out:  # 'x=30 x=40' once kept x=40 without a word
+            raise ValueError(f"{option} {item!r}: {key.strip()} is given twice")
         try:
             number = float(value)
         except ValueError:

@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from .atomic import atomic_write_text
-from .controllers import REGISTRY, ControllerSpec
+from .controllers import REGISTRY, ControllerSpec, finite_numbers
 from .files import regular_file
 from .system import Channel, LogSchema, SystemDescription, describe_schema, lane_keeping, pattern_regex
 
@@ -224,20 +224,6 @@ class Log:
         for arr in (self.time, self.states, self.actions):
             h.update(np.ascontiguousarray(arr, dtype=np.float64).tobytes())
         return h.hexdigest()
-
-
-def finite_numbers(node: Any, what: str) -> Any:
-    """Every number in a JSON tree finite: a NaN or infinite controller gain is never a version."""
-    stack = [node]
-    while stack:
-        item = stack.pop()
-        if isinstance(item, float) and not math.isfinite(item):
-            raise ValueError(f"{what} hold a non-finite number ({item})")
-        if isinstance(item, dict):
-            stack.extend(item.values())
-        elif isinstance(item, list):
-            stack.extend(item)
-    return node
 
 
 def _json_depth(node: Any) -> int:
@@ -611,16 +597,22 @@ def staged_logs(out: str | os.PathLike, force: bool) -> Iterator[StagedLogs]:
     in. A simulation that fails half-way (a controller that raises, Ctrl-C) leaves ``out`` exactly as
     it was: neither the earlier run lost nor half of a new one mixed into it."""
     out = Path(out)
+    created = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
     staged = StagedLogs(Path(tempfile.mkdtemp(dir=out, prefix=".staging-")))
+    done = False
     try:
         yield staged
         refuse_earlier_logs(out, force)  # a log that appeared meanwhile is not silently replaced
         staged.replaced = remove_logs(out) if force else 0
         for p in sorted(staged.folder.iterdir()):
             os.replace(p, out / p.name)
+        done = True
     finally:
         shutil.rmtree(staged.folder, ignore_errors=True)
+        if created and not done:  # a folder this run made and filled with nothing goes too
+            with contextlib.suppress(OSError):
+                out.rmdir()
 
 
 def _manifest_error(path: Path, why: str) -> LogError:

@@ -80,7 +80,8 @@ def command_parser(parser: argparse.ArgumentParser, argv: Sequence[str]) -> tupl
 
 def _convert(action: argparse.Action, value: Any, where: str) -> Any:
     """A TOML value as the command line would have parsed it."""
-    if isinstance(action, (argparse._StoreTrueAction, argparse._StoreFalseAction)):
+    # --x/--no-x (BooleanOptionalAction) too: the run.toml envi writes holds them as true/false
+    if isinstance(action, (argparse._StoreTrueAction, argparse._StoreFalseAction, argparse.BooleanOptionalAction)):
         if not isinstance(value, bool):
             raise ValueError(f"{where}: must be true or false, not {value!r:.40}")
         return value
@@ -95,6 +96,10 @@ def _convert(action: argparse.Action, value: Any, where: str) -> Any:
         if bad:
             raise ValueError(f"{where}: {item!r:.40} is not a value this option takes")
         v = item
+        if action.type is None and not isinstance(item, str):  # a path or name: 'out = 5' once reached os.fspath
+            raise ValueError(f"{where}: takes text, not {item!r:.40}: write it in quotes")
+        if action.type is int and isinstance(item, float):  # int('2.0') said 'invalid literal for int()'
+            raise ValueError(f"{where}: must be a whole number, not {item!r:.40}")
         if action.type is not None:
             try:
                 v = action.type(str(item))

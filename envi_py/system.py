@@ -42,7 +42,7 @@ from typing import Any, Iterable
 
 import numpy as np
 
-from .controllers import LOOPS, REGISTRY, ControllerSpec
+from .controllers import LOOPS, REGISTRY, ControllerSpec, finite_numbers
 from .files import read_text, regular_file
 
 if sys.version_info >= (3, 11):
@@ -189,6 +189,8 @@ MAX_MEMBERS = 32
 
 #: the widest hidden layer a description or ``envi train --hidden`` may ask for
 MAX_HIDDEN = 100_000
+#: weights between consecutive hidden layers at most: 200 MB of float32, and as much again for Adam
+MAX_HIDDEN_WEIGHTS = 50_000_000
 
 
 def check_members(members: Any, what: str = "members") -> int:
@@ -207,6 +209,12 @@ def check_hidden(hidden: Any, what: str = "hidden") -> tuple[int, ...]:
         or any(isinstance(h, bool) or not isinstance(h, int) or not 1 <= h <= MAX_HIDDEN for h in hidden)
     ):
         raise ValueError(f"{what} must be a list of widths, each in 1..{MAX_HIDDEN}, not {hidden!r:.40}")
+    weights = sum(a * b for a, b in zip(hidden[:-1], hidden[1:]))
+    if weights > MAX_HIDDEN_WEIGHTS:  # 100000,100000 once asked for 40 GB at the first step
+        raise ValueError(
+            f"{what} {','.join(map(str, hidden))}: {weights:,} weights between hidden layers, "
+            f"more than {MAX_HIDDEN_WEIGHTS:,} (the paper's 256,256 has 65,536)"
+        )
     return tuple(hidden)
 
 
@@ -266,8 +274,8 @@ def _training(d: Any) -> TrainingDefaults:
         if not isinstance(value, bool):
             raise ValueError(f"[training] {key} must be true or false, not {value!r:.40}")
     noise = d.get("input_noise", 0.0)
-    if isinstance(noise, bool) or not isinstance(noise, (int, float)) or not math.isfinite(noise) or noise < 0:
-        raise ValueError(f"[training] input_noise must be a number >= 0, not {noise!r:.40}")
+    if isinstance(noise, bool) or not isinstance(noise, (int, float)) or not 0 <= noise <= 100:  # NaN fails too
+        raise ValueError(f"[training] input_noise must be a multiple of the typical step in 0..100, not {noise!r:.40}")
     step_noise = d.get("step_noise", "gaussian")
     if step_noise not in STEP_NOISES:
         raise ValueError(f"[training] step_noise must be one of {', '.join(STEP_NOISES)}, not {step_noise!r:.40}")
@@ -434,7 +442,7 @@ class SystemDescription:
             desc = SystemDescription(
                 name=_text(d.get("name", "system"), "name"),
                 schema=LogSchema.from_json(d.get("schema")),
-                period_ms=_opt_float(d.get("period_ms"), "period_ms"),
+                period_ms=_period(d.get("period_ms")),
                 versions=_versions(v.get("pattern"), v.get("params"), v.get("map")),
                 controller=None if d.get("controller") is None else ControllerSpec.from_json(d["controller"]),
                 ignore=tuple(_strings(d.get("ignore"), "ignore")),
@@ -470,6 +478,19 @@ class SystemDescription:
 def _is_number(v: Any) -> bool:
     """An int or float as written (``true`` and ``"40"`` are not numbers)."""
     return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+#: A nominal period envi can take (ms): a checkpoint records it under the same bound.
+PERIOD_RANGE_MS = (1e-3, 1e6)
+
+
+def _period(v: Any) -> float | None:
+    """The nominal period in ms, if given: 1 us to about 17 minutes (1e300 once passed)."""
+    period = _opt_float(v, "period_ms")
+    low, high = PERIOD_RANGE_MS
+    if period is not None and not low <= period < high:
+        raise ValueError(f"'period_ms' must lie in {low:g}..{high:g} ms, not {period:g}")
+    return period
 
 
 def _opt_float(v: Any, what: str) -> float | None:
@@ -638,7 +659,7 @@ def _from_toml(doc: dict[str, Any], where: str) -> SystemDescription:
     return SystemDescription(
         name=_text(sysd.get("name", Path(where).stem), "name"),
         schema=schema,
-        period_ms=_opt_float(sysd.get("period_ms"), "period_ms"),
+        period_ms=_period(sysd.get("period_ms")),
         versions=_versions(v.get("pattern"), v.get("params"), v.get("map")),
         controller=controller,
         ignore=tuple(s["name"] for s in signals if s.get("role") == "ignore"),
@@ -653,8 +674,10 @@ def _from_toml(doc: dict[str, Any], where: str) -> SystemDescription:
 def _validated(desc: SystemDescription, where: str) -> SystemDescription:
     names = desc.schema.columns + list(desc.ignore)
     dup = sorted({n for n in names if names.count(n) > 1})
-    if dup or "time" in names[1:]:
-        raise ValueError(f"{where}: signal(s) {', '.join(dup or ['time'])} declared twice")
+    if dup:
+        raise ValueError(f"{where}: signal(s) {', '.join(dup)} declared twice")
+    if "time" in names[1:]:
+        raise ValueError(f"{where}: a signal is named 'time', the name of every log's time column; name it otherwise")
     known = {c.name for c in desc.schema.states + desc.schema.actions + desc.schema.logged}
     for g in desc.goals:
         if g.signal not in known:
@@ -667,13 +690,17 @@ def _uses_checked(desc: SystemDescription, where: str) -> SystemDescription:
     and every version parameter's ``map`` path leads into the controller, so a typo in the file is
     refused (naming the file) when it is read, not after a training at ``envi check``."""
     from .goals.presets import goals_of  # lazily: the goals package reads this module's types
-    from .goals.registry import metric
+    from .goals.registry import KNOWN, metric
     from .goals.requirements import parse
 
     signals = [c.name for c in desc.schema.states + desc.schema.actions + desc.schema.logged]
     try:
         for g in goals_of(desc):
             m = metric(g.metric)
+            if g.metric in KNOWN:  # a user's metric may take anything; envi's take numbers
+                for k, v in g.params.items():
+                    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+                        raise ValueError(f"goal {g.name!r}: parameter {k!r} must be a finite number, not {v!r:.40}")
             unknown = sorted(set(g.params) - set(m.params))
             missing = [p for p in m.required if p not in g.params]
             if unknown or missing:
@@ -696,8 +723,14 @@ def _uses_checked(desc: SystemDescription, where: str) -> SystemDescription:
                 f"unknown controller {desc.controller.name!r}; registered: {', '.join(REGISTRY)}, "
                 "or give 'package.module:function'"
             )
+        if desc.controller is not None:
+            finite_numbers(desc.controller.params, f"[controller] {desc.controller.name!r}: params")
+            if desc.controller.name in REGISTRY:  # its parameters' names, before any training reads them
+                desc.controller.build(period_ms=desc.period_ms)
         if desc.controller is not None and desc.versions.map:
-            desc.controller_for({p: 0 for p in desc.versions.map})
+            mapped = desc.controller_for({p: 1 for p in desc.versions.map})
+            if mapped is not None and mapped.name in REGISTRY:  # a path to a parameter the controller lacks
+                mapped.build(period_ms=desc.period_ms)
     except ValueError as exc:
         msg = str(exc)
         raise ValueError(msg if msg.startswith(where) else f"{where}: {msg}") from None

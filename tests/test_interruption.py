@@ -121,6 +121,15 @@ def test_envi_sim_refused_mid_run_keeps_the_earlier_metrics_document(mini, tmp_p
     assert done.returncode == 2 and len(done.stderr.splitlines()) == 1, done.stderr
     assert metrics.read_text() == EARLIER
     assert [p.name for p in tmp_path.iterdir()] == ["m.json"]
+    # nor is a fresh --out left behind, empty (it is created only once every check has passed)
+    again = subprocess.run(
+        [envi_sim(), "--model", str(mini["onnx"]), "--init", init, "--out", str(tmp_path / "fresh")]
+        + ["--controller", "lane-keeping", "--param", "x=1e6"],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    assert again.returncode == 2 and not (tmp_path / "fresh").exists(), again.stderr
     # and a run that completes replaces it whole, with a plain file's mode
     ok = subprocess.run(
         [envi_sim(), "--model", str(mini["onnx"]), "--init", init, "--metrics", str(metrics), "--steps", "5"],

@@ -75,8 +75,8 @@ def test_the_system_description_sets_the_defaults_and_the_command_line_wins(car_
     "line, bad, message",
     [
         ("residual = true", "residual = 1", "residual must be true or false"),
-        ("input_noise = 0.5", "input_noise = -0.5", "input_noise must be a number >= 0"),
-        ("input_noise = 0.5", "input_noise = nan", "input_noise must be a number >= 0"),
+        ("input_noise = 0.5", "input_noise = -0.5", "input_noise must be a multiple of the typical step in 0..100"),
+        ("input_noise = 0.5", "input_noise = nan", "input_noise must be a multiple of the typical step in 0..100"),
         ("residual = true", "residuals = true", "unknown key 'residuals' (did you mean 'residual'?"),
         ("input_noise = 0.5", 'input_noise = 0.5\nstep_noise = "laplace"', "step_noise must be one of gaussian"),
         ("input_noise = 0.5", 'input_noise = 0.5\ncontext = "yes"', "context must be true or false"),

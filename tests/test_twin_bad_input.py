@@ -117,7 +117,7 @@ def test_every_effect_at_its_defaults_and_the_shipped_profile_still_pass():
     """The ranges refuse nonsense only: every default, the documented example and the shipped profile."""
     assert set(resolve({}, {name: True for name in EFFECTS})) == set(EFFECTS)
     assert set(resolve_diffdrive({name: True for name in NOVEL})) == set(NOVEL)
-    assert parse_effects("delay=2,noise=1.5,jitter.pause_prob=0.01,glitch,noise=0")["delay"] == 2.0
+    assert parse_effects("delay=2,noise=1.5,jitter.pause_prob=0.01,glitch,lowpass=0")["delay"] == 2.0
     proc = twin("effects")
     assert proc.returncode == 0 and proc.stderr == "" and "profile effects" in proc.stdout, proc.stderr
 

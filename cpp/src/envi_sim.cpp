@@ -585,7 +585,9 @@ class PendingFile : public Pending {
 // neither an earlier run lost nor half of a new one mixed into it.
 class Staging : public Pending {
  public:
-  explicit Staging(const std::string& out) : out_(out) {
+  // made_out: this run created --out, so a run that fails or is interrupted removes it again (when
+  // empty), as envi simulate does
+  Staging(const std::string& out, bool made_out) : out_(out), made_out_(made_out) {
     std::string pattern = out + "/.staging-XXXXXX";
     std::lock_guard<std::mutex> hold(lock());
     if (!::mkdtemp(pattern.data()))
@@ -614,6 +616,7 @@ class Staging : public Pending {
     for (const auto& name : entries())
       if (::rename((dir_ + "/" + name).c_str(), (out_ + "/" + name).c_str()) != 0)
         throw std::runtime_error("--out " + out_ + ": cannot move " + name + " into place (" + std::strerror(errno) + ")");
+    made_out_ = false;  // it holds the run now
     discard();
     return count_csv(held);
   }
@@ -624,6 +627,7 @@ class Staging : public Pending {
     for (const auto& name : entries()) ::unlink((dir_ + "/" + name).c_str());
     ::rmdir(dir_.c_str());
     dir_.clear();
+    if (made_out_) ::rmdir(out_.c_str());  // only when empty: nothing else is ever removed
     return true;
   }
 
@@ -639,6 +643,7 @@ class Staging : public Pending {
     return names;
   }
   std::string out_, dir_;
+  bool made_out_;
 };
 
 // The output folder, checked before any work and created only after every check has passed: an
@@ -786,10 +791,13 @@ int run(const Args& a) {
           << ", \"steps\": " << steps << ", \"seed\": " << a.seed << ",\n\"per_run\": [";
     if (!streamed) all_metrics.assign(size_t(R) * 8, 0.0);
   }
-  if (want_logs && ::mkdir(a.out.c_str(), 0777) != 0 && errno != EEXIST)
-    throw std::runtime_error("--out " + a.out + ": cannot create (" + std::strerror(errno) + ")");
+  bool made_out = false;
+  if (want_logs) {
+    made_out = ::mkdir(a.out.c_str(), 0777) == 0;
+    if (!made_out && errno != EEXIST) throw std::runtime_error("--out " + a.out + ": cannot create (" + std::strerror(errno) + ")");
+  }
   std::unique_ptr<Staging> staging;
-  if (want_logs) staging = std::make_unique<Staging>(a.out);
+  if (want_logs) staging = std::make_unique<Staging>(a.out, made_out);
   long replaced = 0;
   std::vector<double> sums(8, 0.0), traces;
   MetricRows mrows;

@@ -14,6 +14,10 @@ from ..cli_parser import seed_type
 from ..files import output_folder
 
 
+#: simulated runs per initial window at most: a diagnosis holds every run's trace in memory
+MAX_RUNS_PER_WINDOW = 10_000
+
+
 def _cmd_diagnose(args: argparse.Namespace) -> int:
     from ..cli import read_logs
     from ..logs import Log, require_signals
@@ -27,6 +31,8 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
     # sizes and the output before any work (--runs 0 once 'min() arg is an empty sequence' after a stage)
     if args.runs < 1 or args.top < 1:
         raise ValueError(f"--runs and --top must be at least 1, got {args.runs} and {args.top}")
+    if args.runs > MAX_RUNS_PER_WINDOW:  # 10^8 once ran into a MemoryError after the first stage
+        raise ValueError(f"--runs {args.runs}: at most {MAX_RUNS_PER_WINDOW:,} simulated runs per initial window")
     output_folder(args.out)
     ckpt = Checkpoint.load(args.model)
     hist = ckpt.config.history
@@ -36,6 +42,11 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
 
     real = model_logs("real")
     confirm = model_logs("confirm") if args.confirm else None
+    shared = {lg.sha256() for lg in real} & {lg.sha256() for lg in confirm or []}
+    if shared:  # confirmation logs that also chose the effect confirm nothing
+        raise ValueError(
+            f"--confirm: {len(shared)} of its logs are also among --real; confirmation logs must be others"
+        )
     train_logs = model_logs("train_logs") if args.train_logs else None
     val_logs = model_logs("val_logs") if args.val_logs else None
     kept: dict[str, Checkpoint] = {}
@@ -72,6 +83,12 @@ def _cmd_validate(args: argparse.Namespace) -> int:
     for name in ("seeds", "jobs", "train", "diag", "steps", "epochs", "history", "runs"):
         if getattr(args, name) < 1:
             raise ValueError(f"--{name} must be at least 1, got {getattr(args, name)}")
+    if args.runs > MAX_RUNS_PER_WINDOW:
+        raise ValueError(f"--runs {args.runs}: at most {MAX_RUNS_PER_WINDOW:,} simulated runs per initial window")
+    if args.steps <= args.history:  # every trial once failed on its logs and the report read 'nan%'
+        raise ValueError(f"--steps {args.steps}: logs must be longer than the model's --history {args.history}")
+    if args.diag < 2:  # half choose the effect, half confirm it
+        raise ValueError(f"--diag {args.diag}: at least 2 logs, half to choose the effect and half to confirm it")
     for name in ("shrink_seeds", "val", "first_seed"):
         if getattr(args, name) < 0:
             raise ValueError(f"--{name.replace('_', '-')} must be at least 0, got {getattr(args, name)}")

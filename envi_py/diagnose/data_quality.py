@@ -69,6 +69,11 @@ class QualityFinding:
         }
 
 
+def _span_text(low: float, high: float) -> str:
+    """``10.5`` or ``9.8-14.1``: one pause once read 'jump by 10.5-10.5 s'."""
+    return f"{low:.1f}" if f"{low:.1f}" == f"{high:.1f}" else f"{low:.1f}-{high:.1f}"
+
+
 def _natural(name: str) -> list[Any]:
     """Sort key of a file name with numbers in numeric order (log_30_9 before log_30_10)."""
     return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", name)]
@@ -110,7 +115,7 @@ def pauses(logs: Sequence[Log]) -> list[QualityFinding]:
             "pause",
             files,
             f"{len(files)} of {len(logs)} logs pause inside the log: the time stamps jump by "
-            f"{min(lengths):.1f}-{max(lengths):.1f} s where the median interval is {nominal:.0f} ms "
+            f"{_span_text(min(lengths), max(lengths))} s where the median interval is {nominal:.0f} ms "
             f"(longest: {longest['file']} at {longest['time_s']:.1f} s, row {longest['row']}, "
             f"a {longest['pause_s']:.1f} s "
             f"pause in a log spanning {span:.1f} s). The loop did not run meanwhile: the rows on either side "

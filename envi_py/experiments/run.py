@@ -19,6 +19,7 @@ from tqdm import tqdm
 from ..files import read_text
 from ..goals.presets import LANE_KEEPING_BAND, lane_keeping_centre
 from ..logs import Log
+from ..notes import note
 from ..system import SystemDescription, describe_schema
 from ..executor import Executor, LocalExecutor
 from .grid import ALGORITHMS, Job, make_jobs
@@ -59,7 +60,7 @@ def _read_journal(path: Path) -> dict[str, Any]:
     if damaged:
         shown = ", ".join(map(str, damaged[:5])) + (", ..." if len(damaged) > 5 else "")
         what = f"{len(damaged)} damaged or unverifiable record(s) (line {shown})"
-        print(f"{path}: {what} not reused; their jobs run again", file=sys.stderr)
+        note(f"envi experiment: note: {path}: {what} not reused; their jobs run again")
     return done
 
 

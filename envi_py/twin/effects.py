@@ -42,6 +42,8 @@ class Param:
 _NONNEG = {"low": 0.0}
 _POS = {"low": 0.0, "above": True}
 _FRACTION = {"low": 0.0, "high": 1.0}
+#: a delay in ms, at most an hour: 1e300 once wrote time stamps no reader could take as a period
+_DURATION = {"low": 0.0, "high": 3_600_000.0}
 _SCALE = {"low": 0.0, "high": 100.0}  # the colour scale
 
 
@@ -167,10 +169,10 @@ EFFECTS: dict[str, Effect] = {
             "sampling jitter and rare long pauses (the robot stands still during a pause)",
             {
                 "extra_ms": Param(
-                    2.0, "ms", "mean of the exponential extra delay per period (floored to ms)", **_NONNEG
+                    2.0, "ms", "mean of the exponential extra delay per period (floored to ms)", **_DURATION
                 ),
                 "pause_prob": Param(0.0, "1/tick", "probability of a long pause per period", **_FRACTION),
-                "pause_ms": Param(11000.0, "ms", "mean pause length (uniform within +-25%)", **_NONNEG),
+                "pause_ms": Param(11000.0, "ms", "mean pause length (uniform within +-25%)", **_DURATION),
             },
             "extra_ms",
         ),
@@ -256,11 +258,16 @@ def parse_effects(text: str | None, registry: Mapping[str, Effect] | None = None
     effect checked against ``registry`` (default :data:`EFFECTS`) with the user's spelling in the message."""
     registry = EFFECTS if registry is None else registry
     out: dict[str, Any] = {}
+    said: set[str] = set()
     for item in filter(None, (s.strip() for s in (text or "").split(","))):
         key, sep, value = item.partition("=")
         name, dot, param = key.strip().partition(".")
         if name not in registry:
             raise ValueError(f"unknown twin effect {name!r}; known: {', '.join(registry)}")
+        which = f"{name}.{param or registry[name].primary}" if sep else name
+        if which in said:  # 'delay=2,delay=3' once kept 3 without a word
+            raise ValueError(f"effect {name!r}: {key.strip()} is given twice")
+        said.add(which)
         if dot:
             if param not in registry[name].params:
                 known = ", ".join(registry[name].params)
