@@ -727,6 +727,8 @@ def load_logs(
             )
         logs = [lg for lg, p in zip(logs, params) if _matches(p, where)]
     if not logs:
+        if not sources:  # 'logs = []' in a run file once said ': no logs found'
+            raise LogError("no logs given: name log files, folders or manifests")
         raise LogError(f"{', '.join(map(str, sources))}: no logs found" + (f" matching {where}" if where else ""))
     first = logs[0]
     for lg in logs[1:]:

@@ -121,7 +121,15 @@ def apply_config(parser: argparse.ArgumentParser, argv: Sequence[str], path: Pat
         raise ValueError(f"{path}: not a readable TOML run file ({exc})") from None
     names, sub = command_parser(parser, argv)
     table: Any = data
-    for name in names:
+    for depth, name in enumerate(names):
+        if depth and isinstance(table, dict):  # '[twin] out' beside '[twin.generate]' was ignored
+            stray = sorted(k for k, v in table.items() if not isinstance(v, dict))
+            if stray:
+                where = ".".join(names[:depth])
+                raise ValueError(
+                    f"{path}: [{where}] {stray[0]}: envi {' '.join(names[:depth])} takes its options in its "
+                    f"sub-command's table ([{where}.{name}])"
+                )
         table = table.get(name, {}) if isinstance(table, dict) else {}
     key = ".".join(names)
     if not isinstance(table, dict) or not table:

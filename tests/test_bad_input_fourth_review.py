@@ -206,3 +206,20 @@ def test_skipped_logs_are_one_warning_line_each(mini, tmp_path):
     lines = err.splitlines()
     assert code == 0 and len(lines) == 1 and lines[0].startswith("envi split: warning: "), err
     assert "broken.csv" in lines[0]
+
+
+def test_a_run_file_option_outside_its_sub_command_table_is_refused(tmp_path):
+    """``[twin] out = ...`` beside ``[twin.generate]`` was ignored without a word."""
+    run = tmp_path / "run.toml"
+    run.write_text(f'[twin.generate]\nout = "{tmp_path / "t"}"\nparam = ["x=30"]\n[twin]\nout = "elsewhere"\n')
+    code, err = run_cli(["twin", "generate", "--config", str(run)])
+    lines = err.splitlines()
+    assert code == 2 and len(lines) == 1 and "[twin] out:" in lines[0] and "[twin.generate]" in lines[0], err
+
+
+def test_an_empty_list_of_logs_says_so(tmp_path):
+    """``logs = []`` in a run file said 'error: : no logs found'."""
+    run = tmp_path / "run.toml"
+    run.write_text(f'[split]\nlogs = []\nout = "{tmp_path / "sp"}"\n')
+    code, err = run_cli(["split", "--config", str(run)])
+    assert "no logs given" in assert_one_line(code, err, "split", "no logs given")
