@@ -223,3 +223,13 @@ def test_an_empty_list_of_logs_says_so(tmp_path):
     run.write_text(f'[split]\nlogs = []\nout = "{tmp_path / "sp"}"\n')
     code, err = run_cli(["split", "--config", str(run)])
     assert "no logs given" in assert_one_line(code, err, "split", "no logs given")
+
+
+def test_an_stl_bound_in_exponent_form_is_not_said_to_have_a_unit():
+    from envi_py.goals.requirements import parse
+    from envi_py.system import RequirementSpec
+
+    with pytest.raises(ValueError, match=r"must be \[lo:hi\] with whole numbers of samples"):
+        parse(RequirementSpec("R", "eventually[0:1e400] (color >= 5)", "stl", 0.9), ["color", "angle"])
+    with pytest.raises(ValueError, match="has a unit"):
+        parse(RequirementSpec("R", "eventually[0:5s] (color >= 5)", "stl", 0.9), ["color", "angle"])

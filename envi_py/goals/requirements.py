@@ -262,7 +262,7 @@ def _parse_stl(req: RequirementSpec, signals: Collection[str]) -> StlRequirement
 
 def _check_bound(bound: str, where: str) -> None:
     """``lo:hi`` with integers lo <= hi: STL bounds count samples (see the module docstring)."""
-    if re.search(r"[A-Za-z]", bound):
+    if re.search(r"[A-Za-df-z]|[eE][^0-9+-]|[eE]$", bound):  # 1e400 is an exponent, not a unit
         raise ValueError(
             f"{where}: bound [{bound}] has a unit; STL bounds count samples of the control "
             f"period (at 40 ms, one second is 25 samples), write them as plain integers"
