@@ -372,7 +372,8 @@ def _loop(spec: ControllerSpec, n_state: int | None, period_ms: float | None) ->
     unknown = set(spec.params) - set(cls.defaults)
     if unknown:
         raise ValueError(
-            f"controller {spec.name!r}: unknown parameter(s) {', '.join(sorted(unknown))}; "
+            f"controller {spec.name!r}: unknown parameter(s) "  # a name holding a line break stays on the line
+            f"{', '.join(n if n.isidentifier() else repr(n) for n in sorted(unknown))}; "
             f"known: {', '.join(cls.defaults)}"
         )
     kwargs: dict[str, Any] = {k: _number(spec.name, k, v) for k, v in spec.params.items() if k != "input"}

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from .logs import Log, LogError, LogMeta, read_columns, read_log, read_sidecar, sidecar_path
-from .system import Channel, LogSchema, pattern_regex, toml_value
+from .system import Channel, LogSchema, pattern_fields, pattern_regex, toml_value
 
 MAX_FILES = 50
 
@@ -37,6 +37,31 @@ def guess_pattern(names: list[str]) -> str | None:
     for f in fields:
         out = out.replace("#", "{" + f + "}", 1)
     return out
+
+
+def _fields_named_by_sidecars(pattern: str, logs: list[Log], paths: list[Path]) -> str:
+    """``twin_{v1}_{run}.csv`` -> ``twin_{x}_{run}.csv`` when every sampled log's sidecar gives its
+    controller a number ``x`` equal to the file name's ``v1``: the field then says which parameter
+    it is, as the description must (a draft's ``v1`` was refused by ``verify``)."""
+    rx = pattern_regex(pattern)
+    named = {}
+    for field in (f for f in pattern_fields(pattern) if f != "run"):
+        values = [(rx.match(path.name), lg.meta.controller) for path, lg in zip(paths, logs)]
+        if not all(m and c for m, c in values):
+            return pattern
+        candidates = None
+        for m, c in values:
+            here = {
+                k
+                for k, v in c.get("params", {}).items()
+                if isinstance(v, (int, float)) and not isinstance(v, bool) and float(m.group(field)) == float(v)
+            }
+            candidates = here if candidates is None else candidates & here
+        if candidates and len(candidates) == 1:
+            named[field] = candidates.pop()
+    for field, name in named.items():
+        pattern = pattern.replace("{" + field + "}", "{" + name + "}")
+    return pattern
 
 
 def _round_out(low: float, high: float) -> tuple[float, float]:
@@ -107,6 +132,8 @@ def draft_system(folder: Path, pattern: str | None = None) -> str:
     columns = {name: np.concatenate([lg.signal(name) for lg in logs]) for name in header if name != "time"}
     periods = [float(np.median(np.diff(lg.time))) for lg in logs if len(lg) > 1]
     roles = {}
+    declared: dict[str, Channel] = {}
+    controller = None
     if sidecar is not None:
         meta = read_sidecar(sidecar)
         roles = {
@@ -114,6 +141,10 @@ def draft_system(folder: Path, pattern: str | None = None) -> str:
             **{c.name: "action" for c in meta.schema.actions},
             **{c.name: "logged" for c in meta.schema.logged},
         }
+        declared = {c.name: c for c in meta.schema.channels}
+        controller = meta.controller
+        if pattern and not given:
+            pattern = _fields_named_by_sidecars(pattern, logs, sample)
     others = [h for h in header if h != "time"]
     lines = [
         f"# Drafted by 'envi init' from {len(sample)} log(s) of {len(files)} in {folder}.",
@@ -129,12 +160,15 @@ def draft_system(folder: Path, pattern: str | None = None) -> str:
         role = roles.get(name) or ("state" if k == 0 else "action" if k == 1 else "logged")
         guessed = "" if name in roles else "  # CHECK: guessed (state, action, logged or ignore)"
         low, high = _round_out(float(col.min()), float(col.max()))
+        side = declared.get(name)
+        if side is not None and math.isfinite(side.low) and math.isfinite(side.high):  # declared, not observed
+            low, high = side.low, side.high
         lines += [
             "",
             "[[signals]]",
             f"name = {toml_value(name)}",
             f"role = {toml_value(role)}{guessed}",
-            'unit = ""  # CHECK',
+            f"unit = {toml_value(side.unit)}" if side is not None and side.unit else 'unit = ""  # CHECK',
             f"range = {toml_value([low, high])}  # CHECK: observed {col.min():g}..{col.max():g}",
         ]
         res = _resolution(col)
@@ -145,12 +179,20 @@ def draft_system(folder: Path, pattern: str | None = None) -> str:
         lines.append(f"pattern = {toml_value(pattern)}  # fields become controller parameters, 'run' the run id")
     else:
         lines.append("# no common file-name shape: versions come from sidecars")
+    if controller is not None:  # the sidecars' controller; the pattern's fields set its version parameters
+        fields = set(pattern_fields(pattern)) if pattern else set()
+        params = {k: v for k, v in controller.get("params", {}).items() if k not in fields}
+        head = [f"name = {toml_value(controller['name'])}  # from the sidecars", f"params = {toml_value(params)}"]
+    else:
+        head = [
+            'name = "lane-keeping"  # CHECK: a registered controller (bang-bang, pid, combine) '
+            "or 'package.module:function'",
+            "params = {}",
+        ]
     lines += [
         "",
         "[controller]",
-        'name = "lane-keeping"  # CHECK: a registered controller (bang-bang, pid, combine) '
-        "or 'package.module:function'",
-        "params = {}",
+        *head,
         "",
         '# [[goals]]  # e.g. metric = "max_abs_dev", signal = "...", setpoint = ...',
         '# [[requirements]]  # e.g. expr = "max_abs_dev(signal, setpoint) <= limit", probability = 0.9',

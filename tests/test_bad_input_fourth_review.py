@@ -233,3 +233,25 @@ def test_an_stl_bound_in_exponent_form_is_not_said_to_have_a_unit():
         parse(RequirementSpec("R", "eventually[0:1e400] (color >= 5)", "stl", 0.9), ["color", "angle"])
     with pytest.raises(ValueError, match="has a unit"):
         parse(RequirementSpec("R", "eventually[0:5s] (color >= 5)", "stl", 0.9), ["color", "angle"])
+
+
+def test_init_on_logs_with_sidecars_drafts_what_reads_them_back(mini, tmp_path):
+    """The draft named the file name's field ``v1``, kept 'lane-keeping' as a guess and the data's
+    narrower ranges; ``verify`` with that draft then refused the logs ('no version parameter v1')."""
+    draft = tmp_path / "system.toml"
+    code, err = run_cli(["init", "--logs", str(mini["logs"]), "-o", str(draft)])
+    assert code == 0, err
+    text = draft.read_text()
+    assert 'pattern = "twin_{x}_{run}.csv"' in text and 'name = "lane-keeping"  # from the sidecars' in text
+    assert "range = [-90.0, 90.0]" in text  # the sidecars' declared limits of the steering angle
+    code, err = run_cli(["split", "--logs", str(mini["logs"]), "--system", str(draft), "--out", str(tmp_path / "sp")])
+    assert code == 0, err
+
+
+def test_an_unknown_controller_parameter_holding_a_line_break_stays_on_one_line():
+    """Found by the sidecar fuzzer (Hypothesis) this stop: a parameter named '\\n' broke the line."""
+    from envi_py.controllers import ControllerSpec
+
+    with pytest.raises(ValueError) as caught:
+        ControllerSpec("lane-keeping", {"\n": 1, "bogus": 2}).build()
+    assert "\n" not in str(caught.value) and "'\\n', bogus" in str(caught.value)
