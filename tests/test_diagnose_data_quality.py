@@ -42,7 +42,7 @@ def test_a_pause_is_found_with_file_row_and_time(clean):
     (where,) = found[0].where
     assert where["file"] == lg.name and where["row"] == 43  # data row 41, the header is row 1
     assert where["time_s"] == pytest.approx(1.6) and where["pause_s"] == pytest.approx(10.54)
-    assert "10.5-10.5 s where the median interval is 40 ms" in found[0].what
+    assert "10.5 s where the median interval is 40 ms" in found[0].what
 
 
 def test_a_copied_log_and_a_block_sent_twice_are_found(clean):
