@@ -51,10 +51,15 @@ def _fields_named_by_sidecars(pattern: str, logs: list[Log], paths: list[Path]) 
             return pattern
         candidates = None
         for m, c in values:
+            try:
+                value = float(m.group(field))
+            except ValueError:  # a field of words ('log_{v1}' of 'log_left'): no number to match
+                candidates = set()
+                break
             here = {
                 k
                 for k, v in c.get("params", {}).items()
-                if isinstance(v, (int, float)) and not isinstance(v, bool) and float(m.group(field)) == float(v)
+                if isinstance(v, (int, float)) and not isinstance(v, bool) and value == float(v)
             }
             candidates = here if candidates is None else candidates & here
         if candidates and len(candidates) == 1:

@@ -698,6 +698,7 @@ def load_logs(
         first.setdefault(f.resolve(), (f, fsys))
     entries = list(first.values())
     logs: list[Log] = []
+    skipped: list[str] = []
     for f, fsys in entries:
         try:
             if fsys is None and not sidecar_path(f).exists():
@@ -713,8 +714,10 @@ def load_logs(
             if not skip_bad:
                 raise LogError(msg) from None
             warnings.warn(f"skipping bad log: {msg}", stacklevel=2)
+            skipped.append(msg)
             continue
         logs.append(log)
+    read_ok = len(logs)
     if where and logs:
         params = [_version_params(lg, system) for lg in logs]
         known = sorted({k for p in params for k in p})
@@ -729,6 +732,8 @@ def load_logs(
     if not logs:
         if not sources:  # 'logs = []' in a run file once said ': no logs found'
             raise LogError("no logs given: name log files, folders or manifests")
+        if skipped and not read_ok:  # the one error line says why, since a failed command's warnings are not shown
+            raise LogError(f"every log was bad and skipped ({len(skipped)}); the first: {skipped[0]}")
         raise LogError(f"{', '.join(map(str, sources))}: no logs found" + (f" matching {where}" if where else ""))
     first = logs[0]
     for lg in logs[1:]:

@@ -255,3 +255,13 @@ def test_an_unknown_controller_parameter_holding_a_line_break_stays_on_one_line(
     with pytest.raises(ValueError) as caught:
         ControllerSpec("lane-keeping", {"\n": 1, "bogus": 2}).build()
     assert "\n" not in str(caught.value) and "'\\n', bogus" in str(caught.value)
+
+
+def test_when_every_log_is_skipped_the_error_says_why(tmp_path):
+    """A failed command's held warnings are not shown, so the one line names the first bad log's fault."""
+    logs = tmp_path / "all_bad"
+    logs.mkdir()
+    (logs / "broken.csv").write_text("time,color,angle\n0,40,30\n40,abc,30\n")
+    code, err = run_cli(["split", "--logs", str(logs), "--skip-bad", "--out", str(tmp_path / "sp")])
+    line = assert_one_line(code, err, "split", "broken.csv")
+    assert "every log was bad and skipped (1)" in line and "non-numeric" in line, line

@@ -142,3 +142,24 @@ def test_envi_sim_refused_mid_run_keeps_the_earlier_metrics_document(mini, tmp_p
     umask = os.umask(0)
     os.umask(umask)
     assert metrics.stat().st_mode & 0o777 == 0o666 & ~umask
+
+
+@pytest.mark.skipif(envi_sim() is None, reason="envi_sim binary not built")
+def test_envi_sim_writes_metrics_into_a_fifo_as_it_is(mini, tmp_path):
+    """A document renamed into place must never replace a device or FIFO node (``--metrics /dev/null``
+    run as root would have replaced the device with a file): such a target is written as it is."""
+    fifo = tmp_path / "metrics.fifo"
+    os.mkfifo(fifo)
+    reader = subprocess.Popen(["cat", str(fifo)], stdout=subprocess.PIPE, text=True)
+    init = str(sorted(mini["logs"].glob("*.csv"))[0])
+    done = subprocess.run(
+        [envi_sim(), "--model", str(mini["onnx"]), "--init", init, "--metrics", str(fifo), "--steps", "5"],
+        capture_output=True,
+        text=True,
+        check=False,
+        timeout=120,
+    )
+    out, _ = reader.communicate(timeout=60)
+    assert done.returncode == 0, done.stderr
+    assert len(json.loads(out)["per_run"]) == 1
+    assert fifo.is_fifo() and sorted(p.name for p in tmp_path.iterdir()) == ["metrics.fifo"]

@@ -772,8 +772,12 @@ int run(const Args& a) {
   if (want_metrics) {
     if (a.metrics == "-") mout = &std::cout;
     else {
-      metrics_pending = std::make_unique<PendingFile>(a.metrics);
-      metrics_file.open(metrics_pending->path());
+      struct stat st {};
+      // a device, FIFO or link (/dev/null, /dev/stdout) is written as it is: renaming a file onto it
+      // would replace the node itself
+      const bool special = ::lstat(a.metrics.c_str(), &st) == 0 && !S_ISREG(st.st_mode);
+      if (!special) metrics_pending = std::make_unique<PendingFile>(a.metrics);
+      metrics_file.open(special ? a.metrics : metrics_pending->path());
       if (!metrics_file) throw std::runtime_error("--metrics " + a.metrics + ": cannot write");
       mout = &metrics_file;
     }
