@@ -10,6 +10,7 @@ included, the temporary file is removed and the target is left as it was.
 from __future__ import annotations
 
 import os
+import stat
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
@@ -24,8 +25,22 @@ def _umask() -> int:
 
 def atomic_write(path: str | os.PathLike, write: Callable[[BinaryIO], object]) -> Path:
     """Call ``write`` on a binary file that becomes ``path`` once it has returned (its folder is
-    made when missing). OSError and anything ``write`` raises propagate, with nothing written."""
+    made when missing). OSError and anything ``write`` raises propagate, with nothing written.
+
+    A device or FIFO (``-o /dev/null``) is written as it is: renaming a file onto it would replace
+    the node itself (as root, /dev/null with a regular file). Through a symbolic link, the file it
+    points to is replaced and the link stays."""
     path = Path(path)
+    try:
+        mode = os.stat(path).st_mode  # follows links: what the name leads to
+    except OSError:
+        mode = None
+    if mode is not None and not stat.S_ISREG(mode) and not stat.S_ISDIR(mode):
+        with open(path, "wb") as fh:
+            write(fh)
+        return path
+    if path.is_symlink():
+        path = Path(os.path.realpath(path))
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(dir=path.parent, prefix="." + path.name, suffix=".tmp")
