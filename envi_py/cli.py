@@ -26,6 +26,7 @@ from .files import output_folder, refuse_overwriting, refuse_writing_among_logs,
 from .diagnose.cli import register as register_diagnose
 from .experiments.cli import register as register_experiment
 from .logs import (
+    SIMULATED_SOURCES,
     Log,
     LogError,
     load_logs,
@@ -426,9 +427,6 @@ def note_starts_across_breaks(command: str, logs: Sequence[Log], history: int) -
                 f"{command}: note: {lg.path or lg.name}: rows are missing before row {lg.meta.breaks[0]}, inside "
                 f"the initial window of {history} rows its simulations start from"
             )
-
-
-SIMULATED_SOURCES = ("sim", "hil")  # the learnt model made the readings
 
 
 def note_sources(command: str, option: str, logs: Sequence[Log], want_sim: bool) -> None:

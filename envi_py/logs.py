@@ -40,6 +40,7 @@ __all__ = ["Channel", "LogSchema", "pattern_regex"]
 
 SCHEMA_VERSION = 1
 SOURCES = ("fot", "sim", "twin", "hil")
+SIMULATED_SOURCES = ("sim", "hil")  # the learnt model made the readings (in hil, for the real controller)
 #: Run ids become file names: letters, digits, '.', '_' and '-', not starting with a dot.
 RUN_ID = re.compile(r"^[A-Za-z0-9_-][A-Za-z0-9._-]{0,119}$")
 MAX_SIDECAR_BYTES = 1 << 20

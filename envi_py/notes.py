@@ -18,12 +18,12 @@ import warnings
 from collections.abc import Iterator
 
 _held: list[str] = []
-_released = [True]  # notes are said at once, except inside a command's span before its release
+_released = True  # notes are said at once, except inside a command's span before its release
 
 
 def note(line: str) -> None:
     """Say ``line`` on standard error once the command's checks have passed."""
-    if _released[0]:
+    if _released:
         print(line, file=sys.stderr, flush=True)
     else:
         _held.append(line)
@@ -31,7 +31,8 @@ def note(line: str) -> None:
 
 def release() -> None:
     """The command's checks have passed: say the held notes now, and later ones at once."""
-    _released[0] = True
+    global _released
+    _released = True
     for line in _held:
         print(line, file=sys.stderr)
     _held.clear()
@@ -43,8 +44,9 @@ def held_notes(command: str) -> Iterator[None]:
     """A command's span: notes start held, Python warnings become ``<command>: warning: ...``
     notes, and the held ones are said when the block ends without error and dropped when it
     raises (the caller then prints the one error line)."""
+    global _released
     _held.clear()
-    _released[0] = False
+    _released = False
 
     def show(message: Warning | str, *_: object, **__: object) -> None:
         note(f"{command}: warning: {str(message).strip().splitlines()[0] if str(message).strip() else message}")
@@ -56,4 +58,4 @@ def held_notes(command: str) -> Iterator[None]:
         release()
     finally:
         _held.clear()
-        _released[0] = True
+        _released = True

@@ -18,6 +18,13 @@ from ..files import output_folder
 MAX_RUNS_PER_WINDOW = 10_000
 
 
+def runs_fit_in_memory(runs: int) -> None:
+    """``--runs`` refused above :data:`MAX_RUNS_PER_WINDOW` (10^8 once ran into a MemoryError after
+    the first stage)."""
+    if runs > MAX_RUNS_PER_WINDOW:
+        raise ValueError(f"--runs {runs}: at most {MAX_RUNS_PER_WINDOW:,} simulated runs per initial window")
+
+
 def _cmd_diagnose(args: argparse.Namespace) -> int:
     from ..cli import read_logs
     from ..logs import Log, require_signals
@@ -31,8 +38,7 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
     # sizes and the output before any work (--runs 0 once 'min() arg is an empty sequence' after a stage)
     if args.runs < 1 or args.top < 1:
         raise ValueError(f"--runs and --top must be at least 1, got {args.runs} and {args.top}")
-    if args.runs > MAX_RUNS_PER_WINDOW:  # 10^8 once ran into a MemoryError after the first stage
-        raise ValueError(f"--runs {args.runs}: at most {MAX_RUNS_PER_WINDOW:,} simulated runs per initial window")
+    runs_fit_in_memory(args.runs)
     output_folder(args.out)
     ckpt = Checkpoint.load(args.model)
     hist = ckpt.config.history
@@ -83,8 +89,7 @@ def _cmd_validate(args: argparse.Namespace) -> int:
     for name in ("seeds", "jobs", "train", "diag", "steps", "epochs", "history", "runs"):
         if getattr(args, name) < 1:
             raise ValueError(f"--{name} must be at least 1, got {getattr(args, name)}")
-    if args.runs > MAX_RUNS_PER_WINDOW:
-        raise ValueError(f"--runs {args.runs}: at most {MAX_RUNS_PER_WINDOW:,} simulated runs per initial window")
+    runs_fit_in_memory(args.runs)
     if args.steps <= args.history:  # every trial once failed on its logs and the report read 'nan%'
         raise ValueError(f"--steps {args.steps}: logs must be longer than the model's --history {args.history}")
     if args.diag < 2:  # half choose the effect, half confirm it

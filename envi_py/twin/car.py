@@ -60,6 +60,7 @@ from __future__ import annotations
 import math
 import os
 from dataclasses import replace
+from functools import cache
 from pathlib import Path
 from typing import Any
 
@@ -67,7 +68,7 @@ import numpy as np
 
 from envi_py.controllers import ControllerSpec, in_range
 from envi_py.logs import Log, LogMeta, write_log
-from envi_py.system import load_system
+from envi_py.system import SystemDescription, load_system
 
 from .car_world import CarBatch, CarProfile
 
@@ -78,9 +79,15 @@ CAR_TRAINED: tuple[int, ...] = (0, 1, 2)
 CAR_UNSEEN: tuple[int, ...] = (3, 4)
 
 
+@cache
+def car_system() -> SystemDescription:
+    """The shipped car description, read once: its controller, actions' ranges and goals."""
+    return load_system("car")
+
+
 def car_versions() -> list[ControllerSpec]:
     """The five shipped controller versions, in :data:`CAR_GAINS` order (trained, then unseen)."""
-    system = load_system("car")
+    system = car_system()
     return [_spec(system.controller_for({"kp_steer": ks, "kp_speed": kv})) for ks, kv in CAR_GAINS]
 
 
@@ -152,7 +159,7 @@ def simulate_car(
             "the logged P, I and D columns need them"
         )
     ctrl.reset(runs)
-    channels = load_system("car").schema.actions  # a command no actuator can do is an error, as in simulation
+    channels = car_system().schema.actions  # a command no actuator can do is an error, as in simulation
     states, actions = np.empty((runs, steps, 2)), np.empty((runs, steps, 2))
     terms = np.empty((runs, steps, 6))
     for i in range(profile.warmup + steps):
@@ -185,7 +192,7 @@ def generate_car(
     if runs < 1 or steps < 1:
         raise ValueError(f"car twin: runs and steps must be positive, got {runs} and {steps}")
     profile = with_options(profile or CarProfile(), options)
-    system = load_system("car")
+    system = car_system()
     rng = np.random.default_rng(seed)
     states, actions, terms, world = simulate_car(controller, runs, steps, profile, rng)
     time = np.arange(steps) * profile.period_ms
