@@ -16,14 +16,19 @@ model runs (its paired prediction f(s_i)); ``--starts`` (200) further real start
 each (the unpaired predictions, as the recorded training starts in ``envi check``). Then
 :func:`envi_py.verdicts.ppi_verdict` gives the interval for the real P at 95 %, or withdraws the claim
 when its validity check rejects: the outcome count against the paired predictions, and each real run's
-margin against its own 40 paired margins (``--no-margins``: the outcome count alone, as before).
+margin against its own 40 paired margins (``--no-margins``: the outcome count alone), and the
+mean, spread and roughness of the signal the requirement reads, by the same test (``--no-summaries``:
+without them).
 Reported per (model, version, requirement), over ``--reps`` (200)
 repetitions: coverage of the truth when the claim is kept, how often it is withdrawn, coverage of
 the interval actually reported (kept or the real-only fallback), and the width against the exact
 real-only (Clopper-Pearson) interval of the same 10 runs (median ratio).
 
+Then the runs the sequential test in simulation uses (``envi check``'s SPRT) for each version's true
+P, at batches of 10 (the default) and 100, against the fixed-size test with the same error rates.
+
 Targets (issue 15): coverage >= 93 % whenever the claim is kept; withdrawn when the model is badly
-wrong; width <= 0.6x real-only with a faithful model.
+wrong; width <= 0.6x real-only with a faithful model; the sequential test at most 1/3 of the runs.
 """
 
 from __future__ import annotations
@@ -47,7 +52,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from envi_py.controllers import ControllerSpec
 from envi_py.twin.car import car_versions
 from envi_py.twin.car_world import CarBatch, CarProfile
-from envi_py.verdicts import ppi_verdict
+from envi_py.verdicts import fixed_sample_size, ppi_verdict, sprt, trace_summaries
 
 REAL = CarProfile()
 MODELS: dict[str, CarProfile] = {
@@ -62,6 +67,8 @@ MARGINS = {
     "keeps the lane: max|color - 40| <= 10": lambda s: 10 - np.abs(s[:, SKIP:, 0] - 40).max(axis=1),
     "keeps its distance: min(distance) >= 22": lambda s: s[:, SKIP:, 1].min(axis=1) - 22,
 }
+#: requirement -> the state channel it reads, whose run summaries the validity check also compares
+READS = {name: 0 if name.startswith("keeps the lane") else 1 for name in MARGINS}
 P_REQUIRED = 0.8
 
 
@@ -117,6 +124,9 @@ def repetition(spec: ControllerSpec, model: CarProfile, args: argparse.Namespace
         y = (real_m >= 0).astype(float)
         f = (paired_m >= 0).mean(axis=1)
         margins = {"real_margins": real_m, "paired_margins": paired_m} if args.margins else {}
+        if args.summaries:
+            mine, theirs = trace_summaries(real[:, SKIP:, READS[name]]), trace_summaries(paired[:, SKIP:, READS[name]])
+            margins["summaries"] = {k: (v, theirs[k].reshape(args.real, args.paired)) for k, v in mine.items()}
         v = ppi_verdict(
             (margin(unpaired) >= 0).astype(float), y, f, P_REQUIRED, sims_per_start=args.paired, seed=seed, **margins
         )
@@ -159,6 +169,18 @@ def summarise(reps: list[dict[str, Any]], p_true: float) -> dict[str, Any]:
     }
 
 
+def sequential(p_true: float, reps: int, seed: int) -> dict[str, Any]:
+    """Runs the SPRT of ``envi check`` (delta 0.05, alpha = beta = 0.05) uses on a faithful model's
+    outcomes, Bernoulli(p_true), at the default batch of 10 and at 100, against the fixed-size test."""
+    n_fixed, _ = fixed_sample_size(P_REQUIRED, 0.05, 0.05, 0.05)
+    out: dict[str, Any] = {"fixed_n": n_fixed}
+    rng = np.random.default_rng(seed)
+    for batch in (10, 100):
+        runs = [sprt(lambda n: rng.random(n) < p_true, P_REQUIRED, 0.05, batch=batch).runs for _ in range(reps)]
+        out[f"batch_{batch}"] = {"median_runs": float(np.median(runs)), "vs_fixed": float(np.median(runs)) / n_fixed}
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--reps", type=int, default=200)
@@ -174,6 +196,12 @@ def main() -> None:
         help="validity check on the 0/1 outcomes only (without the margins' PIT test), as before",
     )
     ap.add_argument(
+        "--no-summaries",
+        dest="summaries",
+        action="store_false",
+        help="validity check without the run summaries' PIT tests (mean, spread, roughness), as before",
+    )
+    ap.add_argument(
         "--models", default=",".join(MODELS), help=f"comma-separated models to run (of {', '.join(MODELS)})"
     )
     ap.add_argument("--versions", default=",".join(map(str, VERSIONS)), help="comma-separated car versions")
@@ -187,13 +215,17 @@ def main() -> None:
     if args.quick:
         args.reps, args.truth = 20, 2000
     specs = car_versions()
-    rows, t0 = [], time.perf_counter()
+    rows, seq, t0 = [], [], time.perf_counter()
     for v in versions:
         spec = specs[v]
         label = (
             f"kp_steer={spec.params['loops'][0]['params']['kp']:g},kp_speed={spec.params['loops'][1]['params']['kp']:g}"
         )
         p_true = truth(spec, args.truth, 10_000 + v)
+        for name in MARGINS:
+            seq.append(
+                {"version": label, "requirement": name, "truth": p_true[name], **sequential(p_true[name], 300, v)}
+            )
         for model_name in models:
             model = MODELS[model_name]
             reps = [repetition(spec, model, args, 1000 * v + k) for k in range(args.reps)]
@@ -218,6 +250,17 @@ def main() -> None:
             f"{ci_text:>13} "
             f"{r['withdrawn_share']:>9.1%} {r['coverage_reported']:>8.1%} {w:>6}"
         )
+    print(
+        f"\nSequential test in simulation (P >= {P_REQUIRED} +- 0.05, alpha = beta = 0.05), faithful model: "
+        "median runs of 300 tests"
+    )
+    print(f"{'version':<24} {'requirement':<40} {'truth':>6} {'fixed n':>7} {'batch 10':>14} {'batch 100':>14}")
+    for r in seq:
+        cells = [f"{r[b]['median_runs']:.0f} ({r[b]['vs_fixed']:.2f}x)" for b in ("batch_10", "batch_100")]
+        print(
+            f"{r['version']:<24} {r['requirement']:<40} {r['truth']:>6.3f} {r['fixed_n']:>7} "
+            f"{cells[0]:>14} {cells[1]:>14}"
+        )
     args.out.parent.mkdir(parents=True, exist_ok=True)
     meta = {
         "machine": platform.platform(),
@@ -225,7 +268,7 @@ def main() -> None:
         "argv": sys.argv[1:],
         "seconds": time.perf_counter() - t0,
     }
-    args.out.write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
+    args.out.write_text(json.dumps({"meta": meta, "rows": rows, "sequential": seq}, indent=1))
     print(f"written {args.out} ({meta['seconds']:.0f} s)")
 
 

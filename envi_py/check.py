@@ -11,8 +11,8 @@ For every version and requirement (the system description's, or given on the com
    with the model's predictions from further starts of that version (the training and validation
    logs the checkpoint records). A validity check withdraws the model-based claim when the real
    runs contradict the model (their count of successes against the paired predictions, and each real
-   run's margin against its own paired simulated margins), and the verdict then rests on the real
-   runs alone.
+   run's margin, and the mean, spread and roughness of each signal the requirement reads, against its
+   own paired simulated runs'), and the verdict then rests on the real runs alone.
 3. **Without real runs** (TMVU, ``--unseen``): the verdict rests on the model only, and the model's
    error measured on the versions that do have real runs is carried beside it.
 
@@ -37,7 +37,7 @@ from .logs import Log, group_by_controller
 from .model import Checkpoint
 from .simulate import simulate_logs
 from .system import RequirementSpec, SystemDescription, describe_schema
-from .verdicts import RectifierCheck, model_only, ppi_verdict, sprt
+from .verdicts import RectifierCheck, model_only, ppi_verdict, sprt, trace_summaries
 from .notes import release
 from .verify import version_label
 
@@ -116,6 +116,17 @@ def _outcomes(req: Requirement, runs: Runs) -> np.ndarray:
     return satisfied(req, runs).astype(float)
 
 
+def _summaries(req: Requirement, real: Runs, paired: Runs) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Each real run's summaries of the signals ``req`` reads beside its paired runs' (n, m), by name
+    ("color roughness"), for the validity check (:func:`envi_py.verdicts.trace_summaries`)."""
+    out = {}
+    for signal in req.reads:
+        mine, theirs = trace_summaries(real.scored(signal)), trace_summaries(paired.scored(signal))
+        for what, values in mine.items():
+            out[f"{signal} {what}"] = (values, theirs[what].reshape(values.size, -1))
+    return out
+
+
 def check(
     ckpt: Checkpoint,
     real: Sequence[Log],
@@ -125,7 +136,7 @@ def check(
     alpha: float = 0.05,
     delta: float = 0.05,
     max_runs: int = 4000,
-    batch: int = 100,
+    batch: int = 10,
     sims_per_start: int = 40,
     seed: int = 0,
     engine: str = "auto",
@@ -204,6 +215,7 @@ def check(
                     real_margins=req.margin(real_runs),
                     paired_margins=req.margin(paired_runs).reshape(len(logs), sims_per_start),
                     seed=seed,
+                    summaries=_summaries(req, real_runs, paired_runs),
                 )
                 measured[spec_req.name][label] = verdict.check
                 real_json = verdict.to_json()

@@ -483,7 +483,10 @@ def cmd_verify(args: argparse.Namespace) -> int:
 
 # ------------------------------------------------------------------------------------ check
 
-DEFAULT_CHECK_BATCH = 100
+#: simulated runs per look of envi check's sequential test. Why 10: a look costs milliseconds, while a look
+#: of 100 made every verdict cost at least 100 runs, 0.57x the fixed-size test at the car twin's
+#: P >= 0.8; with 10 the twin's versions decide after a median of 10-40 runs (0.06-0.23x).
+DEFAULT_CHECK_BATCH = 10
 
 
 def cmd_check(args: argparse.Namespace) -> int:

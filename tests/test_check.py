@@ -191,7 +191,7 @@ def test_runs_from_further_starts_count_in_the_outside_figure(lane):
 
 
 def test_a_batch_beyond_the_cap_is_refused_and_a_small_cap_is_one_look(lane, tmp_path, capsys):
-    """``--max-runs 5 --batch 10`` once ran 5 runs without a word; a cap below the default batch of 100,
+    """``--max-runs 5 --batch 10`` once ran 5 runs without a word; a cap below the default batch of 10,
     given alone, is one look of the whole cap (as the report's provenance records)."""
     ckpt, real, _ = lane
     model = ckpt.save(tmp_path / "m.pt")
@@ -200,6 +200,9 @@ def test_a_batch_beyond_the_cap_is_refused_and_a_small_cap_is_one_look(lane, tmp
     assert main([*base, "--max-runs", "5", "--batch", "10"]) == 2
     err = capsys.readouterr().err.strip()
     assert err == "envi check: error: --batch 10 is more than --max-runs 5: give at most the cap", err
-    assert main([*base, "--max-runs", "30", "--out", str(tmp_path / "c")]) == 0
+    assert main([*base, "--max-runs", "6", "--out", str(tmp_path / "c")]) == 0
     js = json.loads((tmp_path / "c" / "check.json").read_text())
-    assert js["provenance"]["batch"] == 30 and js["provenance"]["max_runs"] == 30, js["provenance"]
+    assert js["provenance"]["batch"] == 6 and js["provenance"]["max_runs"] == 6, js["provenance"]
+    assert main([*base, "--max-runs", "30", "--out", str(tmp_path / "d")]) == 0
+    js = json.loads((tmp_path / "d" / "check.json").read_text())
+    assert js["provenance"]["batch"] == 10 and js["provenance"]["max_runs"] == 30, js["provenance"]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -17,6 +18,7 @@ from envi_py.verdicts import (
     ppi,
     ppi_verdict,
     rectifier_check,
+    trace_summaries,
 )
 from envi_py.verdicts.real_system import calibration_p_value, detectable_error, welch_df
 
@@ -299,6 +301,65 @@ def test_margin_test_withdraws_a_model_wrong_only_where_outcomes_rarely_show_it(
             assert "PIT test" in both.reason or "calibration test" in both.reason
     assert np.mean(kept_outcomes_only) >= 0.5 and np.mean(covered_outcomes_only) < 0.93  # the failure it fixes
     assert np.mean(withdrawn_with_margins) >= 0.95
+
+
+def noisy_synthetic(rng: np.random.Generator, model_noise: float):
+    """Runs of 50 samples: a start level x plus white noise (sd 1 real, ``model_noise`` in the model);
+    the requirement is "mean >= 0", whose margin the noise barely moves, so only the runs' roughness
+    tells a model with the wrong noise from the real system. Returns the verdict's arguments and the
+    traces' summaries."""
+    x, xs = rng.normal(size=10), rng.normal(size=STARTS)
+    real = x[:, None] + rng.normal(size=(10, 50))
+    paired = x[:, None, None] + model_noise * rng.normal(size=(10, SIMS_PER_START, 50))
+    further = xs[:, None, None] + model_noise * rng.normal(size=(STARTS, SIMS_PER_START, 50))
+    real_m, paired_m = real.mean(axis=1), paired.mean(axis=2)
+    mine, theirs = trace_summaries(real), trace_summaries(paired.reshape(-1, 50))
+    summaries = {k: (v, theirs[k].reshape(10, SIMS_PER_START)) for k, v in mine.items()}
+    args = ((further.mean(axis=2) >= 0).mean(axis=1), (real_m >= 0).astype(float), (paired_m >= 0).mean(axis=1))
+    return args, {"real_margins": real_m, "paired_margins": paired_m, "summaries": summaries}
+
+
+def test_trace_summaries():
+    got = trace_summaries([[0.0, 2.0, 0.0, 2.0], [1.0, 1.0, 1.0, 4.0]])
+    assert got["mean"] == pytest.approx([1.0, 1.75])
+    assert got["spread"] == pytest.approx([1.0, np.std([1, 1, 1, 4])])
+    assert got["roughness"] == pytest.approx([2.0, 1.0])
+    with pytest.raises(ValueError, match="at least 2 samples"):
+        trace_summaries([[1.0], [2.0]])
+
+
+def test_run_summaries_withdraw_a_model_whose_runs_look_wrong_and_keep_a_faithful_one():
+    """Noise 1.5x the real one: margins and outcomes pass the check most of the time, the roughness
+    test catches it nearly always. With a faithful model the five tests together (count, margin and
+    three summaries, each at level / 5) withdraw at most at the level."""
+    rng, reps = np.random.default_rng(21), 200
+    caught, kept_without = [], []
+    for k in range(reps):
+        args, extra = noisy_synthetic(rng, 1.5)
+        plain = ppi_verdict(*args, 0.5, sims_per_start=SIMS_PER_START, seed=k, **{**extra, "summaries": None})
+        v = ppi_verdict(*args, 0.5, sims_per_start=SIMS_PER_START, seed=k, **extra)
+        kept_without.append(not plain.withdrawn)
+        caught.append(v.withdrawn)
+        if v.withdrawn and plain.check.passed:
+            assert re.search(r"real runs' (spread|roughness) is not a plausible draw", v.reason)
+    assert np.mean(kept_without) >= 0.8 and np.mean(caught) >= 0.95
+    withdrawn = []
+    for k in range(reps):
+        args, extra = noisy_synthetic(rng, 1.0)
+        v = ppi_verdict(*args, 0.5, sims_per_start=SIMS_PER_START, seed=k, **extra)
+        assert v.check.tests == 5 and set(v.check.summary_p_values) == {"mean", "spread", "roughness"}
+        if not v.withdrawn:
+            assert "each test withdraws at p <= 0.01, 1/5 of 0.05" in v.reason
+        withdrawn.append(v.withdrawn)
+    assert np.mean(withdrawn) <= 0.05 + 3 * np.sqrt(0.05 * 0.95 / reps)
+    assert "summary_p_values" in v.check.to_json() and "each of the 5 tests" in v.check.to_json()["test"]
+
+
+def test_summaries_pair_with_the_runs():
+    with pytest.raises(ValueError, match="summary 'x' must hold one value per real run"):
+        rectifier_check([1, 0], [0.5, 0.5], summaries={"x": ([1.0, 2.0, 3.0], [[1.0], [2.0]])})
+    with pytest.raises(ValueError, match="NaN"):
+        rectifier_check([1, 0], [0.5, 0.5], summaries={"x": ([1.0, 2.0], [[1.0], [float("nan")]])})
 
 
 def test_margins_go_together_and_pair_with_the_runs():

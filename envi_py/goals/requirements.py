@@ -66,6 +66,11 @@ class MetricRequirement:
     op: str
     threshold: float
 
+    @property
+    def reads(self) -> tuple[str, ...]:
+        """The signals the requirement reads."""
+        return (self.signal,)
+
     def values(self, runs: Runs) -> np.ndarray:
         try:
             return metric(self.metric)(runs.scored(self.signal), runs.period_ms, **self.params)
@@ -90,6 +95,11 @@ class StlRequirement:
     signals: tuple[str, ...]
     monitor: Any = field(repr=False)
     fast: FastForm | None = None
+
+    @property
+    def reads(self) -> tuple[str, ...]:
+        """The signals the requirement reads."""
+        return self.signals
 
     def robustness(self, runs: Runs, use_fast: bool = True) -> np.ndarray:
         """Robustness at time 0 of each run, (R,); ``use_fast=False`` forces rtamt (for checks)."""
