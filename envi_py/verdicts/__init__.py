@@ -15,12 +15,12 @@ from .real_system import (
     RectifierCheck,
     control_variate,
     margin_p_value,
-    trace_summaries,
     model_only,
     ppi,
     pit_values,
     ppi_verdict,
     rectifier_check,
+    trace_summaries,
 )
 from .sequential import (
     Look,
@@ -54,7 +54,6 @@ __all__ = [
     "kld_gaussian",
     "ks_statistic",
     "margin_p_value",
-    "trace_summaries",
     "mean_interval",
     "mixture_interval",
     "model_only",
@@ -66,5 +65,6 @@ __all__ = [
     "sprt",
     "sprt_expected_runs",
     "summarise",
+    "trace_summaries",
     "w1_normalised",
 ]

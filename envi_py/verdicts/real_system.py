@@ -68,7 +68,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -89,7 +89,6 @@ class RectifierCheck:
     high: float
     p_value: float  # of the exact Poisson-binomial calibration test
     level: float
-    passed: bool  # no test rejects at its share of the level: the real runs do not contradict the model
     margin_p_value: float | None = None  # of the PIT uniformity test of the margins (None: no margins given)
     #: PIT uniformity test p-value of each run summary of the signals the requirement reads (see
     #: :func:`trace_summaries`), by name: "color roughness" (empty: none given)
@@ -124,6 +123,12 @@ class RectifierCheck:
         """The level each test withdraws at: the whole level shared among the tests (Bonferroni), so a
         reported p of 0.03 beside a kept claim is no contradiction."""
         return self.level / self.tests
+
+    @property
+    def passed(self) -> bool:
+        """No test rejects at its share of the level: the real runs do not contradict the model."""
+        margin = [] if self.margin_p_value is None else [self.margin_p_value]
+        return min([self.p_value, *margin, *self.summary_p_values.values()]) > self.test_level
 
     @property
     def failed_test(self) -> str | None:
@@ -323,9 +328,6 @@ def rectifier_check(
         if np.asarray(real_values).shape != y.shape:
             raise ValueError(f"summary {name!r} must hold one value per real run ({y.size})")
         p_summaries[name] = margin_p_value(real_values, paired_values, seed)
-    test_level = level / (1 + (p_margin is not None) + len(p_summaries))
-    passed = min([p, *([] if p_margin is None else [p_margin]), *p_summaries.values()]) > test_level
-    down, up = detectable_error(g, test_level)
     r = y - f
     mean, sd = float(r.mean()), float(r.std(ddof=1))
     if np.ptp(r) <= 1e-12:
@@ -334,10 +336,12 @@ def rectifier_check(
         # (Clopper-Pearson) interval of the real share, less the mean prediction, bounds it instead: 30
         # of 30 real runs allow a real P(goal) down to 0.884, so an error down to -0.116, not +-0.
         cp_lo, cp_hi = clopper_pearson(int(y.sum()), y.size, 1.0 - level)
-        lo, hi = min(mean, cp_lo - float(f.mean())), max(mean, cp_hi - float(f.mean()))
-        return RectifierCheck(r.size, mean, 0.0, lo, hi, p, level, passed, p_margin, p_summaries, down, up)
-    lo, hi = stats.ttest_1samp(r, 0.0).confidence_interval(1.0 - level)
-    return RectifierCheck(r.size, mean, sd, float(lo), float(hi), p, level, passed, p_margin, p_summaries, down, up)
+        sd, lo, hi = 0.0, min(mean, cp_lo - float(f.mean())), max(mean, cp_hi - float(f.mean()))
+    else:
+        lo, hi = (float(b) for b in stats.ttest_1samp(r, 0.0).confidence_interval(1.0 - level))
+    check = RectifierCheck(r.size, mean, sd, lo, hi, p, level, p_margin, p_summaries)
+    down, up = detectable_error(g, check.test_level)
+    return replace(check, detectable_down=down, detectable_up=up)
 
 
 @dataclass(frozen=True)
