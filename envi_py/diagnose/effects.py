@@ -427,9 +427,9 @@ def _play_channel(ckpt: Checkpoint, res: Residuals) -> dict[str, Any]:
 
 #: Intervals before the predicted one that the jitter test also reads. A sensor with a conversion
 #: latency reads the surface one period late, so the motion of the previous interval is what its
-#: next reading shows (the diffdrive twin's sensor: the interval ending at the window's last row
-#: explains 61-70 % of the differenced residuals there, the predicted one 0.3 %); an actuator
-#: whose response lags spreads one interval's motion over the next ones.
+#: next reading shows; an actuator whose response lags spreads one interval's motion over the next
+#: ones. On the diffdrive twin (its sensor reads one period late, its motors lag about a period)
+#: the three intervals explain 57-71 % of the differenced residuals, the predicted one alone 0.3 %.
 JITTER_LAGS = 2
 
 
@@ -449,7 +449,8 @@ def _interval_change(res: Residuals, ckpt: Checkpoint) -> np.ndarray:
 
 def test_jitter(res: Residuals, ckpt: Checkpoint) -> tuple[float, float, float, str]:
     """Sampling jitter: a longer interval lets the state move further, so between look-alike windows
-    residuals follow the predicted change scaled by the interval's deviation from nominal."""
+    residuals follow the predicted change scaled by the interval's deviation from nominal: of the
+    interval to the predicted row and of the :data:`JITTER_LAGS` before it (one F test of all)."""
     z = _interval_change(res, ckpt)
     if np.allclose(z, 0):
         return 0.0, 1.0, 0.0, "the sampling interval never varies"
