@@ -132,12 +132,14 @@ def test_impossible_validation_sizes_are_refused_before_any_trial(tmp_path):
         (["--param", "x=30", "x=40"], "x is given twice"),
         (["--param", "x=30", "--effects", "delay=2,delay=3"], "delay is given twice"),
         (["--param", "x=30", "--effects", "jitter.extra_ms=1e300"], "extra_ms"),
+        (["--param", "x=30", "--effects", "lag=1e300"], "tau_ms"),
         (["--param", "x=30", "--out", ""], "--out: an empty value"),
     ],
 )
 def test_twin_generate_refuses_what_it_kept_silently(tmp_path, argv, said):
     """Each was accepted: the last of two values kept, a jitter whose time stamps reached 1e300 (no
-    reader could take their period), an empty --out written into the current folder."""
+    reader could take their period), a lag so slow the steering froze, an empty --out written into
+    the current folder."""
     out = ["--out", str(tmp_path / "t")] if "--out" not in argv else []
     code, err = run_cli(["twin", "generate", "--runs", "1", *argv, *out])
     assert said in assert_one_line(code, err, "twin generate", said.split(" ")[0]), err

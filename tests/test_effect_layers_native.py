@@ -141,6 +141,7 @@ def test_layers_travel_in_the_export_and_envi_sim_applies_them(tmp_path, real_di
         ({"kind": "wind", "value": 1}, "unknown effect layer 'wind'"),
         ({"kind": "delay", "value": 2.5}, "whole number of ticks"),
         ({"kind": "delay", "value": 5000}, "whole number of ticks"),
+        ({"kind": "lag", "value": 1e300}, "time constant up to 1000 rows"),
         ({"kind": "noise", "value": -1}, "finite and not negative"),
         ({"kind": "noise", "value": "1"}, "must be a number"),
         ({"kind": "saturation", "low": 5, "high": 1}, "ordered"),

@@ -45,6 +45,9 @@ _FRACTION = {"low": 0.0, "high": 1.0}
 #: a delay in ms, at most an hour: 1e300 once wrote time stamps no reader could take as a period
 _DURATION = {"low": 0.0, "high": 3_600_000.0}
 _SCALE = {"low": 0.0, "high": 100.0}  # the colour scale
+#: a time constant in ms, above 0 and at most an hour: beyond about 1e16 ms a tick's step rounds to
+#: nothing and the steering would freeze at its first angle without a word
+_TIME_CONSTANT = {"low": 0.0, "above": True, "high": 3_600_000.0}
 
 
 @dataclass(frozen=True)
@@ -69,7 +72,7 @@ EFFECTS: dict[str, Effect] = {
         Effect(
             "lag",
             "steering actuator lag: the angle follows the command as a first-order system",
-            {"tau_ms": Param(60.0, "ms", "time constant", **_POS)},
+            {"tau_ms": Param(60.0, "ms", "time constant", **_TIME_CONSTANT)},
             "tau_ms",
         ),
         Effect(
