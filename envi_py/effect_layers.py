@@ -31,10 +31,11 @@ from .files import read_text
 ACTION_LAYERS = ("delay", "lag", "play", "gain_drift", "run_gain")
 STATE_LAYERS = ("noise", "quantise", "saturation")
 LAYERS = ACTION_LAYERS + STATE_LAYERS
-#: the longest delay a layer may hold (its run memory is that many commands per run), and the
-#: longest lag: a time constant of 1000 rows (40 s at 25 Hz) outlasts any run, and beyond about
-#: 1e16 rows the filter's step rounds to nothing, so the commands would freeze without a word
+#: the longest delay a layer may hold (its run memory is that many commands per run)
 MAX_DELAY = 1000
+#: the slowest lag, in rows: 1000 (40 s at 25 Hz) outlasts any run, and beyond about 1e16 rows the
+#: filter's step rounds to nothing, so the commands would freeze without a word
+MAX_LAG = 1000.0
 #: the most layers a model may carry (the native engine keys each layer's draws by its index)
 MAX_LAYERS = 64
 
@@ -66,8 +67,8 @@ class Layer:
             raise ValueError(f"effect layer {self.kind}: parameter must be finite and not negative, got {self.value}")
         if self.kind == "delay" and (self.value != int(self.value) or self.value > MAX_DELAY):
             raise ValueError(f"effect layer delay: a whole number of ticks up to {MAX_DELAY}, got {self.value}")
-        if self.kind == "lag" and self.value > MAX_DELAY:
-            raise ValueError(f"effect layer lag: a time constant up to {MAX_DELAY} rows, got {self.value}")
+        if self.kind == "lag" and self.value > MAX_LAG:
+            raise ValueError(f"effect layer lag: a time constant up to {MAX_LAG:g} rows, got {self.value}")
         if math.isnan(self.low) or math.isnan(self.high) or self.low > self.high:
             raise ValueError(f"effect layer {self.kind}: limits must be ordered numbers, got [{self.low}, {self.high}]")
 

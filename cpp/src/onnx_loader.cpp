@@ -629,7 +629,7 @@ Model::EffectLayer effect_layer(const Json& e) {
     throw ModelError(what + kind->string + ": parameter must be finite and not negative");
   if (layer.kind == K::Delay && (layer.value != std::floor(layer.value) || layer.value > 1000))
     throw ModelError(what + "delay: a whole number of ticks up to 1000");
-  if (layer.kind == K::Lag && layer.value > 1000)  // envi_py.effect_layers.MAX_DELAY
+  if (layer.kind == K::Lag && layer.value > 1000)  // envi_py.effect_layers.MAX_LAG
     throw ModelError(what + "lag: a time constant up to 1000 rows");
   if (!(layer.low <= layer.high)) throw ModelError(what + kind->string + ": limits must be ordered numbers");
   return layer;
