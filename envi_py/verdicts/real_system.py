@@ -114,9 +114,16 @@ class RectifierCheck:
         )
 
     @property
+    def pit_p_values(self) -> dict[str, float]:
+        """Every PIT test's p-value by what it tests: "margin" (when margins were given), then each
+        run summary's name."""
+        margin = {} if self.margin_p_value is None else {"margin": self.margin_p_value}
+        return {**margin, **self.summary_p_values}
+
+    @property
     def tests(self) -> int:
-        """How many tests share the level: the count test, the margins' and each summary's PIT test."""
-        return 1 + (self.margin_p_value is not None) + len(self.summary_p_values)
+        """How many tests share the level: the count test and each PIT test."""
+        return 1 + len(self.pit_p_values)
 
     @property
     def test_level(self) -> float:
@@ -127,24 +134,19 @@ class RectifierCheck:
     @property
     def passed(self) -> bool:
         """No test rejects at its share of the level: the real runs do not contradict the model."""
-        margin = [] if self.margin_p_value is None else [self.margin_p_value]
-        return min([self.p_value, *margin, *self.summary_p_values.values()]) > self.test_level
+        return min([self.p_value, *self.pit_p_values.values()]) > self.test_level
 
     @property
     def failed_test(self) -> str | None:
         """Which test withdrew the claim, in words, or None when the check passed."""
         if self.passed:
             return None
-        if self.margin_p_value is not None and self.margin_p_value <= self.test_level:
-            return (
-                "the real margins are not plausible draws from the paired simulations "
-                f"(PIT test p = {self.margin_p_value:.3g})"
-            )
-        for name, p in self.summary_p_values.items():
-            if p <= self.test_level:
-                return (
-                    f"the real runs' {name} is not a plausible draw from the paired simulations' (PIT test p = {p:.3g})"
-                )
+        for name, p in self.pit_p_values.items():
+            if p > self.test_level:
+                continue
+            if name == "margin":
+                return f"the real margins are not plausible draws from the paired simulations (PIT test p = {p:.3g})"
+            return f"the real runs' {name} is not a plausible draw from the paired simulations' (PIT test p = {p:.3g})"
         return (
             "the count of real runs meeting the goal contradicts the predictions "
             f"(calibration test p = {self.p_value:.3g})"
@@ -173,7 +175,7 @@ class RectifierCheck:
                 ""
                 if self.tests == 1
                 else "; and Cramer-von Mises tests of the randomised PIT of each real run's "
-                + " and ".join((["margin"] if self.margin_p_value is not None else []) + list(self.summary_p_values))
+                + " and ".join(self.pit_p_values)
                 + f" among its paired simulated runs' (each of the {self.tests} tests at level / {self.tests})"
             ),
         }
