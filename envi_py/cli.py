@@ -107,7 +107,10 @@ def cmd_init(args: argparse.Namespace) -> int:
     out = Path(args.output)
     if out.exists() and not args.force:
         raise ValueError(f"{out}: exists; choose another --output or pass --force")
-    text = draft_system(Path(args.logs), args.pattern)
+    logs = Path(args.logs)
+    if logs.is_dir():  # '-o logs/log_30_1.csv --force' once replaced a log with the draft
+        refuse_overwriting([out], [p for p in logs.iterdir() if p.name.endswith((".csv", ".meta.json"))], "--output")
+    text = draft_system(logs, args.pattern)
     atomic_write_text(out, text)
     system = SystemDescription.load(out)  # what was drafted must read back
     print(f"drafted {out}: check each signal's role, range and resolution, the controller and the goals")
@@ -236,6 +239,11 @@ def cmd_train(args: argparse.Namespace) -> int:
         raise ValueError(f"--patience must be at least 0, got {args.patience}")
     if Path(args.output).is_dir():  # found before the training, not when saving it
         raise ValueError(f"--output {args.output}: is a folder; name the model file, e.g. model.pt")
+    if Path(args.output).suffix.lower() == ".onnx":  # the name every command reads as an exported model
+        raise ValueError(
+            f"--output {args.output}: .onnx names an exported model; save the checkpoint as .pt "
+            "and export it with envi-export"
+        )
     writable_file(args.output, "--output")
     logs = read_logs(args, min_length=args.history + 1)
     val = read_logs(args, "val_logs", min_length=args.history + 1) if args.val_logs else []

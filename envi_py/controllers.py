@@ -361,8 +361,8 @@ def _number(name: str, key: str, value: Any) -> float | None:
         raise ValueError(f"controller {name!r}: parameter {key!r} must be a number, not {value!r:.40}")
     try:
         return float(value)
-    except ValueError:
-        raise ValueError(f"controller {name!r}: parameter {key!r} must be a number, not {value!r:.40}") from None
+    except (ValueError, OverflowError):  # OverflowError: an integer past a float's range
+        raise ValueError(f"controller {name!r}: parameter {key!r} must be a number, not {str(value)[:40]!r}") from None
 
 
 def _loop(spec: ControllerSpec, n_state: int | None, period_ms: float | None) -> Loop:

@@ -17,7 +17,6 @@ model keeps its own prediction): ``noise`` (Gaussian sd), ``quantise`` (step) an
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
@@ -26,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from .files import read_text
+from .files import parse_json, read_text
 
 ACTION_LAYERS = ("delay", "lag", "play", "gain_drift", "run_gain")
 STATE_LAYERS = ("noise", "quantise", "saturation")
@@ -38,6 +37,9 @@ MAX_DELAY = 1000
 MAX_LAG = 1000.0
 #: the most layers a model may carry (the native engine keys each layer's draws by its index)
 MAX_LAYERS = 64
+#: the largest gain drift or per-run gain sd, as a fraction (1000 %): a drift of -1e308 once turned
+#: every command into NaN, which the native engine wrote into the logs, exit 0
+MAX_GAIN = 10.0
 
 UNITS = {
     "delay": "ticks",
@@ -69,6 +71,8 @@ class Layer:
             raise ValueError(f"effect layer delay: a whole number of ticks up to {MAX_DELAY}, got {self.value}")
         if self.kind == "lag" and self.value > MAX_LAG:
             raise ValueError(f"effect layer lag: a time constant up to {MAX_LAG:g} rows, got {self.value}")
+        if self.kind in ("gain_drift", "run_gain") and abs(self.value) > MAX_GAIN:
+            raise ValueError(f"effect layer {self.kind}: a fraction of at most {MAX_GAIN:g} in size, got {self.value}")
         if math.isnan(self.low) or math.isnan(self.high) or self.low > self.high:
             raise ValueError(f"effect layer {self.kind}: limits must be ordered numbers, got [{self.low}, {self.high}]")
 
@@ -107,9 +111,8 @@ class Layer:
 def read_layers(path: str | Path) -> tuple[Layer, ...]:
     """The layers of a layers file (``{"layers": [{"layer": {...}, ...}, ...]}``, as ``envi diagnose``
     writes it); anything else is one ValueError naming the file."""
-    text = read_text(path, "a layers file")
+    data = parse_json(read_text(path, "a layers file"), str(path), "a layers file")
     try:
-        data = json.loads(text)
         if len(data["layers"]) > MAX_LAYERS:
             raise ValueError(f"{len(data['layers'])} layers, at most {MAX_LAYERS}")
         return tuple(Layer.from_json(entry["layer"]) for entry in data["layers"])
@@ -177,7 +180,12 @@ class LayerStack:
         ]
 
     def states(self, s: np.ndarray) -> np.ndarray:
-        """What the controller and the log see of the predicted states ``s`` (B, |s|)."""
+        """What the controller and the log see of the predicted states ``s`` (B, |s|). An overflow is
+        left to :func:`envi_py.simulate.sensor_reading`, which names it, without numpy's warning line."""
+        with np.errstate(over="ignore", invalid="ignore"):
+            return self._states(s)
+
+    def _states(self, s: np.ndarray) -> np.ndarray:
         for layer in self.state_layers:
             if layer.kind == "noise":
                 s = s + layer.value * self.rng.standard_normal(s.shape)

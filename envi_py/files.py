@@ -6,11 +6,18 @@ reach the end), and a folder gives an unhelpful IsADirectoryError; so every read
 
 from __future__ import annotations
 
+import json
+import math
 import os
 import stat
 import tempfile
+import tomllib
 from collections.abc import Iterable
 from pathlib import Path
+from typing import Any
+
+#: deepest nesting of lists and objects any JSON or TOML input may have (a sidecar holds 3)
+MAX_DEPTH = 32
 
 
 def regular_file(path: str | os.PathLike, what: str, error: type[ValueError] = ValueError) -> Path:
@@ -88,3 +95,57 @@ def output_folder(path: str | os.PathLike, flag: str = "--out") -> Path:
     if path.exists() and not path.is_dir():
         raise ValueError(f"{flag} {path}: exists and is not a folder")
     return path
+
+
+def plain_tree(node: Any, where: str, what: str, error: type[ValueError] = ValueError) -> Any:
+    """``node`` (a parsed JSON or TOML tree) when it is at most :data:`MAX_DEPTH` deep and every
+    integer in it converts to a float; else ``error`` naming ``where``. Walked without recursion:
+    a tree 2,000 levels deep once stopped a command with Python's RecursionError, and a 400-digit
+    integer with an OverflowError deep in the code that read it."""
+    stack = [(node, 1)]
+    while stack:
+        item, depth = stack.pop()
+        if isinstance(item, (dict, list)):
+            if depth > MAX_DEPTH:
+                raise error(f"{where}: {what} nested deeper than {MAX_DEPTH} levels")
+            stack.extend((v, depth + 1) for v in (item.values() if isinstance(item, dict) else item))
+        elif isinstance(item, int) and not isinstance(item, bool) and not _fits_float(item):
+            raise error(f"{where}: {what} holds an integer too large for a number ({str(item)[:20]}...)")
+    return node
+
+
+def _fits_float(value: int) -> bool:
+    try:
+        return math.isfinite(float(value))
+    except OverflowError:
+        return False
+
+
+def parse_json(text: str, where: str, what: str, error: type[ValueError] = ValueError) -> Any:
+    """``text`` parsed as JSON (NaN refused, ``Infinity`` kept: an open range) and checked by
+    :func:`plain_tree`; any failure is one ``error`` naming ``where``."""
+    try:
+        tree = json.loads(text, parse_constant=_refuse_nan)
+    except RecursionError:
+        raise error(f"{where}: {what} is not valid JSON (nested too deeply)") from None
+    except ValueError as exc:  # syntax, and Python's limit on an integer's digits
+        raise error(f"{where}: {what} is not valid JSON ({exc})") from None
+    return plain_tree(tree, where, what, error)
+
+
+def parse_toml(text: str, where: str, what: str, error: type[ValueError] = ValueError) -> dict[str, Any]:
+    """``text`` parsed as TOML and checked by :func:`plain_tree`; any failure is one ``error``
+    naming ``where``."""
+    try:
+        tree = tomllib.loads(text)
+    except RecursionError:
+        raise error(f"{where}: {what} is not valid TOML (nested too deeply)") from None
+    except ValueError as exc:  # tomllib.TOMLDecodeError, and Python's limit on an integer's digits
+        raise error(f"{where}: {what} is not valid TOML ({exc})") from None
+    return plain_tree(tree, where, what, error)
+
+
+def _refuse_nan(name: str) -> float:
+    if name == "NaN":
+        raise ValueError("NaN is not a value")
+    return float(name)  # Infinity: an open channel range, as write_log records one

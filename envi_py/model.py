@@ -34,7 +34,7 @@ from .atomic import atomic_write
 from .dataset import Dataset, Normaliser, actuator_position, context_of, extra_channels, play_offsets
 from .effect_layers import MAX_LAYERS, Layer
 from .logs import Log, LogError, LogMeta, read_log, sidecar_path
-from .system import LogSchema, SystemDescription
+from .system import MAX_HIDDEN_WEIGHTS, LogSchema, SystemDescription
 
 CHECKPOINT_FORMAT = "envi-model"
 CHECKPOINT_VERSION = 1
@@ -108,6 +108,14 @@ class ModelConfig:
             raise ValueError(f"model kind must be 'mlp' or 'random', not {self.kind!r}")
         if self.history < 1:
             raise ValueError("history must be at least 1")
+        widths = (self.in_features, *self.hidden)
+        weights = sum(a * b for a, b in zip(widths[:-1], widths[1:]))
+        if self.kind == "mlp" and weights > MAX_HIDDEN_WEIGHTS:  # the input layer too: l = 10000 rows once passed
+            raise ValueError(
+                f"a network of {self.in_features:,} inputs ({self.history} rows of history) and hidden widths "
+                f"{','.join(map(str, self.hidden))} has {weights:,} weights, more than {MAX_HIDDEN_WEIGHTS:,}; "
+                "ask for fewer rows of history or narrower layers"
+            )
         # post-processing a damaged file could hold: reversed limits once pinned every state to one edge
         if self.round_to is not None and (
             len(self.round_to) != self.n_state or not all(math.isfinite(r) and r > 0 for r in self.round_to)
@@ -314,12 +322,22 @@ def _env_model(config: dict[str, Any], state_dict: dict[str, torch.Tensor]) -> E
     return model
 
 
+def _is_zip(path: Path) -> bool:
+    """Whether ``path`` starts as a zip archive does, as every file torch.save writes."""
+    try:
+        with open(path, "rb") as f:
+            return f.read(4) == b"PK\x03\x04"
+    except OSError:
+        return False
+
+
 def load_torch_file(path: Path, missing: str, foreign: str, *, reason: bool = True) -> Any:
     """What an envi torch file (checkpoint, training state) holds, read with ``weights_only`` so no
     code in it runs. torch raises many types for a foreign or corrupt file: each becomes one
     ValueError naming the file, ``missing`` when it does not exist, else ``foreign`` with the
     exception's type (and its message when ``reason``). One owner, so every such file fails alike."""
-    if Path(path).suffix.lower() == ".onnx" and Path(path).is_file():  # torch would talk about weights_only
+    if Path(path).suffix.lower() == ".onnx" and Path(path).is_file() and not _is_zip(Path(path)):
+        # an ONNX protobuf, not torch's zip: torch would talk about weights_only
         raise ValueError(f"{path}: an exported ONNX model, not an envi checkpoint: give the .pt it was exported from")
     try:
         return torch.load(path, map_location="cpu", weights_only=True)

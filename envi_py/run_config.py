@@ -26,12 +26,12 @@ from pathlib import Path
 from typing import Any
 
 from .atomic import atomic_write_text
-from .files import read_text
+from .files import parse_toml, read_text
 
 if sys.version_info >= (3, 11):
-    import tomllib
+    pass
 else:  # pragma: no cover - Python 3.10
-    import tomli as tomllib
+    pass
 
 #: Namespace entries that are not options of a command.
 NOT_OPTIONS = {"func", "parser", "debug", "config", "help"}
@@ -115,10 +115,7 @@ def apply_config(parser: argparse.ArgumentParser, argv: Sequence[str], path: Pat
     """Make ``path``'s table for the command in ``argv`` that command's defaults (checked)."""
     if not path.exists():
         raise ValueError(f"{path}: no such run file")
-    try:
-        data = tomllib.loads(read_text(path, "a run file"))
-    except tomllib.TOMLDecodeError as exc:
-        raise ValueError(f"{path}: not a readable TOML run file ({exc})") from None
+    data = parse_toml(read_text(path, "a run file"), str(path), "a run file")
     names, sub = command_parser(parser, argv)
     table: Any = data
     for depth, name in enumerate(names):

@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from .controllers import ControllerSpec, in_range
-from .effect_layers import LayerStack, layers_json
+from .effect_layers import LayerStack, describe, layers_json
 from .logs import Log, LogMeta, group_by_controller
 from .model import Checkpoint
 from .system import LogSchema
@@ -109,13 +109,31 @@ def rollout(
     window = ModelWindow(ckpt, view[:, :hist], intervals)
     for t in range(steps):
         s = window.next_state(gen)
-        seen = layers.states(s)
+        seen = sensor_reading(ckpt, layers.states(s)) if layers.state_layers else s
         out[:, hist + t, :ns] = seen
         out[:, hist + t, ns:] = in_range(ctrl(seen), actions, controller)
         if view is not out:
             view[:, hist + t, :ns], view[:, hist + t, ns:] = s, layers.commands(out[:, hist + t, ns:])
         window.push(view[:, hist + t : hist + t + 1], hist + t)
     return out
+
+
+def sensor_reading(ckpt: Checkpoint, seen: np.ndarray) -> np.ndarray:
+    """What a sensor reports of the layered states ``seen`` (B, |s|): within each state's declared
+    range and at its resolution, as the model's own states are (a noise layer of sd 50 once wrote
+    colour readings of -113 and 188, which every later command refused as a log). A layer that
+    drives a state to a non-finite value is a ValueError naming the state."""
+    bad = ~np.isfinite(seen).all(axis=0)
+    if bad.any():
+        name = ckpt.schema.states[int(np.argmax(bad))].name
+        raise ValueError(f"the effect layers {describe(ckpt.layers)} drive state {name!r} to a non-finite value")
+    low = np.array([c.low for c in ckpt.schema.states])
+    high = np.array([c.high for c in ckpt.schema.states])
+    seen = np.clip(seen, low, high)
+    if ckpt.config.round_to is not None:
+        res = np.asarray(ckpt.config.round_to)
+        seen = np.round(seen / res) * res
+    return seen
 
 
 #: (initial windows (K, l, C), steps, runs per window, seed) -> runs (K*runs, l+steps, C): one
@@ -237,6 +255,11 @@ def iter_simulate(
     by_len: dict[int, list[int]] = {}
     for i, lg in enumerate(init_logs):
         n = steps if steps is not None else len(lg) - hist
+        if n == 0 and steps is None:  # once a 'simulated' log of sigma_0 alone, exit 0
+            raise ValueError(
+                f"{lg.path or lg.name}: {len(lg)} rows, the model's window alone: no row is left to "
+                "simulate; give --steps, or a longer log"
+            )
         by_len.setdefault(n, []).append(i)
     ns = ckpt.config.n_state
     schema = LogSchema(ckpt.schema.states, ckpt.schema.actions)

@@ -43,12 +43,12 @@ from typing import Any, Iterable
 import numpy as np
 
 from .controllers import LOOPS, REGISTRY, ControllerSpec, finite_numbers
-from .files import read_text, regular_file
+from .files import parse_toml, read_text, regular_file
 
 if sys.version_info >= (3, 11):
-    import tomllib
+    pass
 else:  # pragma: no cover - Python 3.10
-    import tomli as tomllib
+    pass
 
 ROLES = ("state", "action", "logged", "ignore")
 #: A column name a CSV header can hold as is: no separator, quote or line break, no surrounding spaces.
@@ -189,7 +189,8 @@ MAX_MEMBERS = 32
 
 #: the widest hidden layer a description or ``envi train --hidden`` may ask for
 MAX_HIDDEN = 100_000
-#: weights between consecutive hidden layers at most: 200 MB of float32, and as much again for Adam
+#: weights between consecutive layers at most (hidden ones here, the input layer too in ModelConfig):
+#: 200 MB of float32, and as much again for Adam
 MAX_HIDDEN_WEIGHTS = 50_000_000
 
 
@@ -460,10 +461,7 @@ class SystemDescription:
 
     @staticmethod
     def from_toml_text(text: str, where: str) -> "SystemDescription":
-        try:
-            doc = tomllib.loads(text)
-        except tomllib.TOMLDecodeError as exc:
-            raise ValueError(f"{where}: not valid TOML ({exc})") from None
+        doc = parse_toml(text, where, "a system description")
         try:
             desc = _from_toml(doc, where)
         except (AttributeError, TypeError, ValueError) as exc:
@@ -761,6 +759,12 @@ def pattern_regex(pattern: str) -> re.Pattern[str]:
         raise ValueError(f"pattern {pattern!r}: field {{{dup[0]}}} appears twice")
     if re.sub(r"\{\w+\}", "", pattern).count("{") or re.sub(r"\{\w+\}", "", pattern).count("}"):
         raise ValueError(f"pattern {pattern!r}: a brace that is not a {{field}}")
+    touching = re.search(r"\{\w+\}\{\w+\}", pattern)
+    if touching:  # 'log_{x}{run}.csv' once read log_30_1.csv as x=3, run '0_1'
+        raise ValueError(
+            f"pattern {pattern!r}: fields {touching.group(0)} touch; put a separator between them, "
+            "as in log_{x}_{run}.csv"
+        )
     out, pos = [], 0
     for m in re.finditer(r"\{(\w+)\}", pattern):
         out.append(re.escape(pattern[pos : m.start()]))

@@ -77,12 +77,18 @@ class Scoring:
         return np.stack([values[g.name] for g in self.goals], axis=1)
 
     def scales(self, runs: Runs) -> np.ndarray:
-        """Each goal's scale (its possible range over these runs), 1 where none is defined."""
+        """Each goal's scale (its possible range over these runs), 1 where none is defined. A signal
+        declared without a finite range is scaled by the range these runs show: an infinite one once
+        fell back to 1 and reported an accuracy of -7929 %."""
         out = []
         channels = {c.name: c for c in self.schema.channels}
         for g in self.goals:
             ch = channels[g.signal]
-            s = goal_scale(g, ch.low, ch.high, runs.scored_length, runs.period_ms)
+            low, high = ch.low, ch.high
+            if not (math.isfinite(low) and math.isfinite(high)):
+                seen = runs.scored(g.signal)
+                low, high = float(np.min(seen)), float(np.max(seen))
+            s = goal_scale(g, low, high, runs.scored_length, runs.period_ms)
             out.append(s if s is not None and s > 0 and math.isfinite(s) else 1.0)
         return np.array(out)
 

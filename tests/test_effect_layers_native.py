@@ -112,6 +112,25 @@ def test_a_noise_layer_has_the_declared_spread():
     assert seen.std() == pytest.approx(2.0, rel=0.02)
 
 
+@pytest.mark.parametrize("engine", ["python", "native"])
+def test_layered_states_are_read_as_the_sensor_reads(engine):
+    """A noise layer of sd 50 once wrote colour readings of -113 and 188 that every later command
+    refused as a log: a layered state is read within the declared range and at the resolution."""
+    ck = paper_ckpt(round_to=(1.0,)).with_layers([Layer("noise", 50.0)])
+    roll = rollout if engine == "python" else native.rollout
+    colour = roll(ck, PID, windows(2), 60, runs=20, seed=3)[:, 10:, 0]
+    assert colour.min() == 0 and colour.max() == 100  # sd 50 reaches both ends: the test sees the clamp
+    np.testing.assert_array_equal(colour, np.round(colour))
+
+
+@pytest.mark.parametrize("engine", ["python", "native"])
+def test_a_layer_that_makes_a_state_non_finite_is_named(engine):
+    ck = paper_ckpt().with_layers([Layer("quantise", 1e-320)])  # s / 1e-320 overflows to inf
+    roll = rollout if engine == "python" else native.rollout
+    with pytest.raises(ValueError, match="drive state 'color' to a non-finite value"):
+        roll(ck, PID, windows(1), 5)
+
+
 def test_layers_travel_in_the_export_and_envi_sim_applies_them(tmp_path, real_dir):
     ck = paper_ckpt().with_layers([Layer("delay", 2), Layer("saturation", 0, 20.0)])
     layers_file = tmp_path / "m.layers.json"
@@ -145,6 +164,8 @@ def test_layers_travel_in_the_export_and_envi_sim_applies_them(tmp_path, real_di
         ({"kind": "noise", "value": -1}, "finite and not negative"),
         ({"kind": "noise", "value": "1"}, "must be a number"),
         ({"kind": "saturation", "low": 5, "high": 1}, "ordered"),
+        ({"kind": "gain_drift", "value": -1e308}, "at most 10 in size"),
+        ({"kind": "run_gain", "value": 1e300}, "at most 10 in size"),
         ([1, 2], "object with a 'kind'"),
     ],
 )

@@ -438,3 +438,25 @@ def test_both_readers_take_the_columns_the_system_description_declares(tmp_path)
     python, done = both(LINES[0] + ",note", [r.rsplit(",", 2)[0] + ",x" for r in rows], "no-logged")
     assert python is not None and "missing column(s) steer_p" in python
     assert "missing column(s) steer_p" in assert_refused(done, tmp_path / "no-logged", "log_30_0.csv")
+
+
+@pytest.mark.parametrize("which", ["the initial log", "the model"])
+def test_metrics_never_replace_an_input(which, model, init_log, tmp_path):
+    """'--metrics log_30_0.csv' or '--metrics m.onnx' once replaced that input with JSON, exit 0."""
+    target = init_log if which == "the initial log" else tmp_path / "copy.onnx"
+    if which == "the model":
+        target.write_bytes(model.read_bytes())
+    before = target.read_bytes()
+    done = run_sim(target if which == "the model" else model, [init_log], tmp_path, "--metrics", str(target))
+    line = assert_refused(done, tmp_path, f"--metrics {target}: is an input of this command")
+    assert line.endswith("; nothing overwritten")
+    assert target.read_bytes() == before
+
+
+def test_a_log_of_the_window_alone_is_refused_without_steps(model, tmp_path):
+    """A log of exactly l rows once gave a 'simulated' log of sigma_0 alone, exit 0."""
+    path = tmp_path / "log_30_0.csv"
+    path.write_text("\n".join(LINES[: HISTORY + 1]) + "\n")
+    cmd = [envi_sim(), "--model", str(model), "--init", str(path), "--out", str(tmp_path / "sim")]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=60, check=False)
+    assert_refused(done, tmp_path, f"--init {path}: 10 rows, the model's window alone: no row is left to simulate")

@@ -53,7 +53,7 @@ def test_the_command_line_wins_over_the_file(tmp_path, logs_dir):
         ("[split]\ntrain = true\n", "[split] train: True is not a value this option takes"),
         ("[split]\npattern = false\n", "[split] pattern: False is not a value"),
         ("[train]\nepochs = 3\n", "no [split] table"),
-        ("[split\n", "not a readable TOML run file"),
+        ("[split\n", "a run file is not valid TOML"),
     ],
 )
 def test_a_bad_run_file_is_one_line_naming_it(tmp_path, logs_dir, capsys, table, says):

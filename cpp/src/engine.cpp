@@ -119,6 +119,7 @@ struct Runner {
   // first command, a lag's or a play's position, a run's gain), and the memory a run needs in all.
   std::vector<long> layer_offset;
   long layer_memory = 0;
+  bool have_state_layers = false;  // noise, quantise or saturation: a sensor's reading is then re-made
 
   Runner(const Model& model, const Controller& c, const Job& j, Sink& s)
       : m(model), ctrl(c), job(j), sink(s) {
@@ -129,6 +130,7 @@ struct Runner {
       if (layer.kind == K::Delay) layer_memory += (long(layer.value) + 2) * na;
       else if (layer.kind == K::Lag || layer.kind == K::Play) layer_memory += na;
       else if (layer.kind == K::RunGain) layer_memory += 1;
+      have_state_layers |= layer.kind == K::Noise || layer.kind == K::Quantise || layer.kind == K::Saturation;
     }
     trunk_out = m.window_features();
     for (const Dense& d : m.trunk)
@@ -224,6 +226,14 @@ struct Runner {
         else if (layer.kind == K::Saturation)
           out[i] = std::min(std::max(out[i], layer.low), layer.high);
       }
+    }
+    // what a sensor reports: within the declared range, at the resolution (envi_py.simulate.sensor_reading)
+    for (int i = 0; i < ns && have_state_layers; ++i) {
+      if (!std::isfinite(out[i]))
+        throw std::invalid_argument("the effect layers drive state '" + m.states[size_t(i)].name +
+                                 "' to a non-finite value");
+      out[i] = std::min(std::max(out[i], m.states[size_t(i)].low), m.states[size_t(i)].high);
+      if (!m.round_to.empty()) out[i] = std::nearbyint(out[i] / m.round_to[size_t(i)]) * m.round_to[size_t(i)];
     }
   }
 

@@ -120,6 +120,19 @@ void require_regular_file(const std::string& flag, const std::string& path) {
   if (!S_ISREG(st.st_mode)) throw std::invalid_argument(flag + " " + path + ": not a regular file");
 }
 
+// Refuses an output file that is one of the command's inputs (the same file by any path): '--metrics
+// m.onnx' or '--metrics log_30_1.csv' once replaced the model or the initial log, exit 0 (as
+// envi_py.files.refuse_overwriting does for the Python commands).
+void refuse_overwriting(const std::string& flag, const std::string& out, const std::vector<std::string>& inputs) {
+  struct stat o {};
+  if (out == "-" || ::stat(out.c_str(), &o) != 0) return;
+  for (const auto& in : inputs) {
+    struct stat i {};
+    if (::stat(in.c_str(), &i) == 0 && i.st_dev == o.st_dev && i.st_ino == o.st_ino)
+      throw std::invalid_argument(flag + " " + out + ": is an input of this command (" + in + "); nothing overwritten");
+  }
+}
+
 Args parse(int argc, char** argv) {
   Args a;
   for (int i = 1; i < argc; ++i) {
@@ -715,6 +728,12 @@ std::vector<Model> load_members(const std::vector<std::string>& paths) {
 int run(const Args& a) {
   for (const auto& p : a.models) require_regular_file("--model", p);
   for (const auto& p : a.init) require_regular_file("--init", p);
+  if (!a.metrics.empty()) {
+    std::vector<std::string> inputs(a.models);
+    inputs.insert(inputs.end(), a.init.begin(), a.init.end());
+    if (!a.controller_file.empty()) inputs.push_back(a.controller_file);
+    refuse_overwriting("--metrics", a.metrics, inputs);
+  }
   const std::vector<Model> members = load_members(a.models);
   const Model& m = members[0];
   const int M = int(members.size());
@@ -736,6 +755,9 @@ int run(const Args& a) {
   for (const auto& p : a.init) {
     windows.push_back(read_initial_window(p, m));
     long steps = a.steps >= 0 ? a.steps : windows.back().rows - l;
+    if (steps == 0 && a.steps < 0)  // as envi_py.simulate.iter_simulate: a log of sigma_0 alone
+      throw std::invalid_argument("--init " + p + ": " + std::to_string(l) +
+                                  " rows, the model's window alone: no row is left to simulate; give --steps, or a longer log");
     auto g = std::find_if(groups.begin(), groups.end(), [&](const Group& x) { return x.steps == steps; });
     if (g == groups.end()) groups.push_back({steps, {}}), g = groups.end() - 1;
     g->windows.push_back(long(windows.size()) - 1);

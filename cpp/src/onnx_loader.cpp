@@ -631,6 +631,8 @@ Model::EffectLayer effect_layer(const Json& e) {
     throw ModelError(what + "delay: a whole number of ticks up to 1000");
   if (layer.kind == K::Lag && layer.value > 1000)  // envi_py.effect_layers.MAX_LAG
     throw ModelError(what + "lag: a time constant up to 1000 rows");
+  if ((layer.kind == K::GainDrift || layer.kind == K::RunGain) && std::fabs(layer.value) > 10)  // MAX_GAIN
+    throw ModelError(what + "gain_drift and run_gain: a fraction of at most 10 in size");
   if (!(layer.low <= layer.high)) throw ModelError(what + kind->string + ": limits must be ordered numbers");
   return layer;
 }

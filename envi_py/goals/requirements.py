@@ -131,11 +131,19 @@ Requirement = MetricRequirement | StlRequirement
 def parse(req: RequirementSpec, signals: Collection[str]) -> Requirement:
     """The requirement, checked against the signals the runs hold; every problem is a ValueError
     naming the requirement and what is wrong."""
-    if req.kind == "metric":
-        return _parse_metric(req, signals)
-    if req.kind == "stl":
-        return _parse_stl(req, signals)
-    raise ValueError(f"requirement {req.name!r}: kind must be 'metric' or 'stl', not {req.kind!r}")
+    if req.kind not in ("metric", "stl"):
+        raise ValueError(f"requirement {req.name!r}: kind must be 'metric' or 'stl', not {req.kind!r}")
+    if len(req.expr) > MAX_EXPR:
+        raise ValueError(f"requirement {req.name!r}: {len(req.expr)} characters, at most {MAX_EXPR}")
+    try:
+        return _parse_metric(req, signals) if req.kind == "metric" else _parse_stl(req, signals)
+    except (RecursionError, MemoryError):  # both parsers recurse: 5,000 nested '-' once ended in a traceback
+        raise ValueError(f"requirement {req.name!r}: the expression is nested too deeply to parse") from None
+
+
+#: the longest requirement text parsed: a formula is a line, and the STL parser's memory and the
+#: metric parser's recursion grow with its length ('always ' 3,000 times once ran out of memory)
+MAX_EXPR = 2000
 
 
 def satisfied(req: RequirementSpec | Requirement, runs: Runs) -> np.ndarray:

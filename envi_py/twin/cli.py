@@ -11,7 +11,7 @@ from typing import Callable
 
 from envi_py.cli_parser import seed_type
 from envi_py.controllers import ControllerSpec, parse_params
-from envi_py.files import output_folder, read_text
+from envi_py.files import output_folder, plain_tree, read_text
 from envi_py.logs import group_by_param, load_logs, refuse_earlier_logs, remove_logs
 from envi_py.system import lane_keeping, load_system
 
@@ -38,9 +38,14 @@ def _load_profile(path: str, option: str = "--profile") -> TwinProfile:
         text = read_text(path, "a twin profile")
     except ValueError as exc:
         raise ValueError(f"{option} {exc}") from None
+    try:  # a NaN is parsed here and refused by the profile, which names its parameter
+        tree = json.loads(text)
+    except (ValueError, RecursionError) as exc:
+        raise ValueError(f"{option} {path}: not a twin profile JSON ({exc})") from None
+    tree = plain_tree(tree, f"{option} {path}", "a twin profile")
     try:
-        return TwinProfile.from_json(json.loads(text))
-    except (ValueError, TypeError, KeyError, AttributeError, RecursionError) as exc:
+        return TwinProfile.from_json(tree)
+    except (ValueError, TypeError, KeyError, AttributeError) as exc:
         raise ValueError(f"{option} {path}: not a twin profile JSON ({exc})") from None
 
 

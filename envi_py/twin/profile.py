@@ -13,7 +13,7 @@ from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any, Callable
 
-from envi_py.files import read_text
+from envi_py.files import parse_json, read_text
 
 from ..atomic import atomic_write_text
 from .effects import resolve
@@ -82,7 +82,7 @@ class TwinProfile:
     @staticmethod
     def load(path: str | os.PathLike) -> "TwinProfile":
         """The profile in ``path``: a regular file (a named pipe would block the read forever)."""
-        return TwinProfile.from_json(json.loads(read_text(path, "a twin profile")))
+        return TwinProfile.from_json(parse_json(read_text(path, "a twin profile"), str(path), "a twin profile"))
 
     def replace(self, **changes: Any) -> "TwinProfile":
         d = self.to_json()
