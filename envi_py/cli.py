@@ -30,6 +30,7 @@ from .logs import (
     Log,
     LogError,
     load_logs,
+    sidecar_path,
     refuse_earlier_logs,
     staged_logs,
     require_signals,
@@ -175,6 +176,9 @@ def cmd_split(args: argparse.Namespace) -> int:
         target = out / f"{name}.json"
         if target.exists() and not target.is_file():
             raise ValueError(f"{target}: exists and is not a file; nothing written")
+    inputs = [q for lg in logs if lg.path for q in (lg.path, sidecar_path(lg.path))]
+    inputs += [src for src in args.logs if Path(src).is_file()]  # manifests read
+    refuse_overwriting([out / f"{name}.json" for name in parts], inputs, "--out")  # a link to a log, say
     for name, part in parts.items():
         write_manifest(out / f"{name}.json", part, system)
         per = f" ({len(part) // len(groups)} per version)" if len(groups) > 1 and part else ""
@@ -373,7 +377,9 @@ def cmd_simulate(args: argparse.Namespace) -> int:
             "--param sets the parameters of --controller; without it each initial log's own controller runs"
         )
     ckpt = load_model(args)
-    init = require_signals(read_logs(args, "init_logs", min_length=ckpt.config.history), ckpt.schema, args.model)
+    init = require_signals(
+        read_logs(args, "init_logs", min_length=ckpt.config.history), ckpt.schema, args.model, ckpt.record.period_ms
+    )
     note_starts_across_breaks("envi simulate", init, ckpt.config.history)
     inside = [lg.path for lg in init if lg.path is not None and lg.path.resolve().parent == out.resolve()]
     if inside:  # --force would delete the very logs the simulation starts from
@@ -519,7 +525,9 @@ def cmd_check(args: argparse.Namespace) -> int:
     if args.out:
         output_folder(args.out)
     ckpt = load_model(args)
-    real = require_signals(read_logs(args, "real", min_length=ckpt.config.history + 1), ckpt.schema, args.model)
+    real = require_signals(
+        read_logs(args, "real", min_length=ckpt.config.history + 1), ckpt.schema, args.model, ckpt.record.period_ms
+    )
     note_starts_across_breaks("envi check", real, ckpt.config.history)  # each real run starts paired simulations
     system = ckpt.system
     # the requirements of the description the user names, not silently the checkpoint's older copy

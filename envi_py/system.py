@@ -654,6 +654,9 @@ def _from_toml(doc: dict[str, Any], where: str) -> SystemDescription:
         if not isinstance(c, dict):
             raise ValueError("[controller] must be a table")
         controller = ControllerSpec.from_json({"name": c.get("name"), "params": c.get("params", {})})
+        # before the goals, which may read a parameter (the preset's centre is the threshold): a NaN
+        # threshold was once blamed on goal 'steady_count'
+        finite_numbers(controller.params, "[controller] params")
     return SystemDescription(
         name=_text(sysd.get("name", Path(where).stem), "name"),
         schema=schema,

@@ -178,3 +178,60 @@ def test_simulate_refuses_a_log_of_the_window_alone(tmp_path):
         code, err, "simulate", logs / "log_30_0.csv"
     )
     assert not out.exists()
+
+
+def test_split_never_writes_through_a_link_into_a_log_it_read(tmp_path):
+    logs = plain_logs(tmp_path / "logs")
+    out = tmp_path / "split"
+    out.mkdir()
+    (out / "train.json").symlink_to(logs / "log_30_1.csv")
+    before = (logs / "log_30_1.csv").read_bytes()
+    code, err = run_cli(["split", "--logs", str(logs), "--pattern", "log_{x}_{run}.csv", "--out", str(out)])
+    assert "is an input of this command" in assert_one_line(code, err, "split", out / "train.json")
+    assert (logs / "log_30_1.csv").read_bytes() == before
+
+
+def test_a_nan_controller_parameter_is_blamed_on_the_controller(tmp_path):
+    """The preset's goals read the threshold: a NaN there was once reported as goal 'steady_count'."""
+    system = description(tmp_path, params="threshold = nan", extra='[versions]\nparams = ["x"]\n')
+    (tmp_path / "system.toml").write_text(
+        system.read_text().replace('name = "mini"', 'name = "mini"\ngoals_preset = "lane-keeping"')
+    )
+    code, err = run_cli(
+        [
+            "split",
+            "--logs",
+            str(plain_logs(tmp_path / "logs")),
+            "--system",
+            str(system),
+            "--pattern",
+            "log_{x}_{run}.csv",
+            "--out",
+            str(tmp_path / "s"),
+        ]
+    )
+    assert "[controller] params hold a non-finite number (nan)" in assert_one_line(code, err, "split", system)
+
+
+def test_a_model_is_never_simulated_from_logs_of_another_period(tmp_path):
+    """A 40 ms model once simulated 80 ms logs (and scored them against 80 ms real ones) silently."""
+    system = description(tmp_path, period="80", extra='[versions]\nparams = ["x"]\n')
+    logs = plain_logs(tmp_path / "logs", period=80, rows=30)
+    model = paper_ckpt().save(tmp_path / "m.pt")  # trained at 40 ms
+    code, err = run_cli(
+        [
+            "simulate",
+            "--model",
+            str(model),
+            "--init-logs",
+            str(logs),
+            "--system",
+            str(system),
+            "--pattern",
+            "log_{x}_{run}.csv",
+            "--out",
+            str(tmp_path / "sim"),
+        ]
+    )
+    line = assert_one_line(code, err, "simulate", logs / "log_30_0.csv")
+    assert "its rows are 80 ms apart (median), the model" in line and "trained at a 40 ms period" in line

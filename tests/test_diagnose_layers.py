@@ -94,7 +94,7 @@ def test_fitted_layers_are_saved_beside_the_model_and_read_back(tmp_path):
     assert load_layers(model) == (Layer("delay", 2), Layer("saturation", 0, 29.0, 51.0))
     assert fits[0].text() == "delay 2 ticks [2, 2]"
     path.write_text("{not json")
-    with pytest.raises(ValueError, match="m.pt.layers.json: not a layers file"):
+    with pytest.raises(ValueError, match="m.pt.layers.json: a layers file is not valid JSON"):
         load_layers(model)
     assert load_layers(tmp_path / "other.pt") == ()
 

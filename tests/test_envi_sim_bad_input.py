@@ -460,3 +460,14 @@ def test_a_log_of_the_window_alone_is_refused_without_steps(model, tmp_path):
     cmd = [envi_sim(), "--model", str(model), "--init", str(path), "--out", str(tmp_path / "sim")]
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=60, check=False)
     assert_refused(done, tmp_path, f"--init {path}: 10 rows, the model's window alone: no row is left to simulate")
+
+
+def test_an_initial_log_of_another_period_is_refused(model, tmp_path):
+    """The model was trained at 40 ms; rows 80 ms apart are another loop."""
+    path = tmp_path / "log_30_0.csv"
+    slow = [LINES[0]] + [f"{80 * i},{line.split(',', 1)[1]}" for i, line in enumerate(LINES[1:])]
+    path.write_text("\n".join(slow) + "\n")
+    done = run_sim(model, [path], tmp_path)
+    assert_refused(
+        done, tmp_path, f"--init {path}: its rows are 80 ms apart (median), the model was trained at a 40 ms"
+    )

@@ -754,6 +754,15 @@ int run(const Args& a) {
   std::vector<Group> groups;
   for (const auto& p : a.init) {
     windows.push_back(read_initial_window(p, m));
+    if (m.period_ms > 0 && windows.back().time.size() >= 3) {  // as envi_py.logs.require_signals
+      const double median = median_period(windows.back().time);
+      if (std::fabs(median - m.period_ms) > 0.1 * m.period_ms) {
+        std::ostringstream msg;
+        msg << "--init " << p << ": its rows are " << median << " ms apart (median), the model was trained at a "
+            << m.period_ms << " ms period";
+        throw std::invalid_argument(msg.str());
+      }
+    }
     long steps = a.steps >= 0 ? a.steps : windows.back().rows - l;
     if (steps == 0 && a.steps < 0)  // as envi_py.simulate.iter_simulate: a log of sigma_0 alone
       throw std::invalid_argument("--init " + p + ": " + std::to_string(l) +

@@ -44,7 +44,9 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
     hist = ckpt.config.history
 
     def model_logs(attr: str) -> list[Log]:
-        return require_signals(read_logs(args, attr, min_length=hist + 1), ckpt.schema, args.model)
+        return require_signals(
+            read_logs(args, attr, min_length=hist + 1), ckpt.schema, args.model, ckpt.record.period_ms
+        )
 
     real = model_logs("real")
     confirm = model_logs("confirm") if args.confirm else None
