@@ -28,11 +28,22 @@ def plain_logs(folder: Path, period: int = 40, x: int = 30, runs: int = 3, rows:
     return folder
 
 
+def simulate(model: Path, logs: Path, out: Path, *extra: str) -> tuple[int, str]:
+    """``envi simulate`` of ``model`` from the plain logs in ``logs`` into ``out``: exit code, stderr."""
+    argv = ["simulate", "--model", str(model), "--init-logs", str(logs), "--pattern", "log_{x}_{run}.csv"]
+    return run_cli([*argv, "--out", str(out), *extra])
+
+
+def split(out: Path, *sources_and_options: str) -> tuple[int, str]:
+    """``envi split`` of plain logs (named by the lane-keeping pattern) into ``out``: exit code, stderr."""
+    return run_cli(["split", "--logs", *sources_and_options, "--pattern", "log_{x}_{run}.csv", "--out", str(out)])
+
+
 def test_a_symbolic_link_loop_among_the_logs_is_named(tmp_path):
     logs = plain_logs(tmp_path / "logs")
     loop = logs / "log_30_9.csv"
     loop.symlink_to(loop)
-    code, err = run_cli(["split", "--logs", str(logs), "--pattern", "log_{x}_{run}.csv", "--out", str(tmp_path / "s")])
+    code, err = split(tmp_path / "s", str(logs))
     assert "loops" in assert_one_line(code, err, "split", loop)
 
 
@@ -67,21 +78,7 @@ def test_every_reader_of_json_and_toml_uses_the_checks(tmp_path):
     layers = tmp_path / "layers.json"
     layers.write_text('{"layers": [{"layer": {"kind": "noise", "value": ' + HUGE + "}}]}")
     model = paper_ckpt("gaussian").save(tmp_path / "m.pt")
-    code, err = run_cli(
-        [
-            "simulate",
-            "--model",
-            str(model),
-            "--init-logs",
-            str(logs),
-            "--pattern",
-            "log_{x}_{run}.csv",
-            "--layers",
-            str(layers),
-            "--out",
-            out,
-        ]
-    )
+    code, err = simulate(model, logs, Path(out), "--layers", str(layers))
     assert "too large" in assert_one_line(code, err, "simulate", layers)
     side = logs / "log_30_0.meta.json"
     side.write_text('{"schema_version": ' + HUGE + "}")
@@ -137,22 +134,10 @@ def test_plain_logs_of_another_period_than_the_description_are_refused(tmp_path)
     """80 ms logs beside 40 ms ones were split, verified and simulated as 40 ms ones."""
     logs = plain_logs(tmp_path / "a")
     slow = plain_logs(tmp_path / "b", period=80, x=50)
-    code, err = run_cli(
-        ["split", "--logs", str(logs), str(slow), "--pattern", "log_{x}_{run}.csv", "--out", str(tmp_path / "s")]
-    )
+    code, err = split(tmp_path / "s", str(logs), str(slow))
     line = assert_one_line(code, err, "split", slow / "log_50_0.csv")
     assert "rows are 80 ms apart (median), but the system description 'lane-keeping' says a 40 ms period" in line
-    code, err = run_cli(
-        [
-            "split",
-            "--logs",
-            str(plain_logs(tmp_path / "c", period=41)),
-            "--pattern",
-            "log_{x}_{run}.csv",
-            "--out",
-            str(tmp_path / "s"),
-        ]
-    )
+    code, err = split(tmp_path / "s", str(plain_logs(tmp_path / "c", period=41)))
     assert code == 0, err  # the real robot's 41 ms rows are its 40 ms loop
 
 
@@ -161,19 +146,7 @@ def test_simulate_refuses_a_log_of_the_window_alone(tmp_path):
     logs = plain_logs(tmp_path / "logs", runs=1, rows=10)
     model = paper_ckpt().save(tmp_path / "m.pt")
     out = tmp_path / "sim"
-    code, err = run_cli(
-        [
-            "simulate",
-            "--model",
-            str(model),
-            "--init-logs",
-            str(logs),
-            "--pattern",
-            "log_{x}_{run}.csv",
-            "--out",
-            str(out),
-        ]
-    )
+    code, err = simulate(model, logs, out)
     assert "the model's window alone: no row is left to simulate" in assert_one_line(
         code, err, "simulate", logs / "log_30_0.csv"
     )
@@ -197,19 +170,7 @@ def test_a_nan_controller_parameter_is_blamed_on_the_controller(tmp_path):
     (tmp_path / "system.toml").write_text(
         system.read_text().replace('name = "mini"', 'name = "mini"\ngoals_preset = "lane-keeping"')
     )
-    code, err = run_cli(
-        [
-            "split",
-            "--logs",
-            str(plain_logs(tmp_path / "logs")),
-            "--system",
-            str(system),
-            "--pattern",
-            "log_{x}_{run}.csv",
-            "--out",
-            str(tmp_path / "s"),
-        ]
-    )
+    code, err = split(tmp_path / "s", str(plain_logs(tmp_path / "logs")), "--system", str(system))
     assert "[controller] params hold a non-finite number (nan)" in assert_one_line(code, err, "split", system)
 
 
@@ -218,20 +179,6 @@ def test_a_model_is_never_simulated_from_logs_of_another_period(tmp_path):
     system = description(tmp_path, period="80", extra='[versions]\nparams = ["x"]\n')
     logs = plain_logs(tmp_path / "logs", period=80, rows=30)
     model = paper_ckpt().save(tmp_path / "m.pt")  # trained at 40 ms
-    code, err = run_cli(
-        [
-            "simulate",
-            "--model",
-            str(model),
-            "--init-logs",
-            str(logs),
-            "--system",
-            str(system),
-            "--pattern",
-            "log_{x}_{run}.csv",
-            "--out",
-            str(tmp_path / "sim"),
-        ]
-    )
+    code, err = simulate(model, logs, tmp_path / "sim", "--system", str(system))
     line = assert_one_line(code, err, "simulate", logs / "log_30_0.csv")
     assert "its rows are 80 ms apart (median), the model" in line and "trained at a 40 ms period" in line
