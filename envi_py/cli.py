@@ -363,7 +363,7 @@ MAX_SIMULATED_ROWS = 100_000_000
 def cmd_simulate(args: argparse.Namespace) -> int:
     from .effect_layers import describe
     from .logs import group_by_controller
-    from .simulate import choose_engine, iter_simulate, versions_to_simulate
+    from .simulate import choose_engine, draws_at_random, iter_simulate, versions_to_simulate
 
     _positive(args, "runs")
     _at_most(args, runs=100_000_000)
@@ -414,6 +414,11 @@ def cmd_simulate(args: argparse.Namespace) -> int:
             why = unsupported(ckpt, spec, args.mean)
             if why:
                 note(f"envi simulate: the native engine cannot run {spec.label()} ({why}); using PyTorch")
+    if args.runs > 1 and not draws_at_random(ckpt, args.mean):
+        note(
+            f"envi simulate: the model draws nothing at random ({'--mean' if args.mean else 'a deterministic head'}"
+            f"): the {args.runs} runs of each initial log are one run written {args.runs} times"
+        )
     t0 = time.perf_counter()
     n = 0
     release()  # every check has passed: the notes before the simulations, not after them

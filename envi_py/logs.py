@@ -132,6 +132,7 @@ class LogMeta:
             controller = None if spec is None else spec.to_json()
             if spec is not None:
                 finite_numbers(spec.params, "controller params")
+                _no_numbers_as_text(spec.params)
                 if spec.name in REGISTRY:  # built here: a bad gain stops the read, not a training's end
                     spec.build(len(schema.states), len(schema.actions))
         except ValueError as exc:
@@ -163,6 +164,21 @@ class LogMeta:
             provenance=dict(provenance),
             breaks=tuple(breaks),
         )
+
+
+def _no_numbers_as_text(params: dict[str, Any]) -> None:
+    """A ValueError for a sidecar controller parameter written as text that reads as a number
+    (``"x": "30"``): the controller took it, but its version was never x = 30 (a verification
+    found no real runs of it)."""
+    stack: list[tuple[str, Any]] = list(params.items())
+    while stack:
+        key, value = stack.pop()
+        if isinstance(value, str) and _NUMBER.match(value.strip()):
+            raise ValueError(f"controller parameter {key!r} is the text {value[:40]!r}; write the number itself")
+        if isinstance(value, dict):
+            stack.extend((f"{key}.{k}", v) for k, v in value.items())
+        elif isinstance(value, list):
+            stack.extend((f"{key}.{i}", v) for i, v in enumerate(value))
 
 
 @dataclass
@@ -792,9 +808,23 @@ def _version_params(log: Log, system: SystemDescription | None) -> dict[str, Any
 def _matches(params: dict[str, Any], where: dict[str, Any]) -> bool:
     for k, want in where.items():
         allowed = want if isinstance(want, (list, tuple, set)) else [want]
-        if params.get(k) not in allowed and str(params.get(k)) not in {str(a) for a in allowed}:
+        have = params.get(k)
+        if have not in allowed and str(have) not in {str(a) for a in allowed} and not _same_number(have, allowed):
             return False
     return True
+
+
+def _same_number(value: Any, allowed: Iterable[Any]) -> bool:
+    """Whether ``value`` equals one of ``allowed`` as numbers: '--where x=3e1' selects x = 30."""
+
+    def number(x: Any) -> float | None:
+        try:
+            return float(x)
+        except (TypeError, ValueError, OverflowError):
+            return None
+
+    v = number(value)
+    return v is not None and any(number(a) == v for a in allowed)
 
 
 def group_by_param(logs: Iterable[Log], key: str) -> dict[Any, list[Log]]:

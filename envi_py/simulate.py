@@ -118,6 +118,17 @@ def rollout(
     return out
 
 
+def draws_at_random(ckpt: Checkpoint, mean: bool = False) -> bool:
+    """Whether two runs from one initial window can differ: a sampled head, a seed ensemble (each run
+    drawn by one member), a noise or per-run gain layer, or intervals drawn for a 'dt' channel."""
+    return (
+        (ckpt.config.stochastic and not mean)
+        or ckpt.size > 1
+        or any(layer.kind in ("noise", "run_gain") for layer in ckpt.layers)
+        or ("dt" in ckpt.config.extras and ckpt.config.intervals is not None)
+    )
+
+
 def sensor_reading(ckpt: Checkpoint, seen: np.ndarray) -> np.ndarray:
     """What a sensor reports of the layered states ``seen`` (B, |s|): within each state's declared
     range and at its resolution, as the model's own states are (a noise layer of sd 50 once wrote

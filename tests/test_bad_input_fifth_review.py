@@ -4,14 +4,18 @@ line naming the file or option, exit code 2, with nothing already written touche
 
 from __future__ import annotations
 
+import json
+
 from pathlib import Path
 
 import pytest
 
+from envi_py.controllers import ControllerSpec
 from envi_py.files import MAX_DEPTH, parse_json, parse_toml
 from envi_py.goals.requirements import MAX_EXPR, RequirementSpec, parse
 from envi_py.model import Checkpoint, ModelConfig
 from envi_py.system import pattern_regex
+from envi_py.twin import generate, write_logs
 from tests.test_bad_input_audit import assert_one_line, run_cli
 from tests.test_bad_input_fourth_review import description
 from tests.test_export import paper_ckpt
@@ -182,3 +186,37 @@ def test_a_model_is_never_simulated_from_logs_of_another_period(tmp_path):
     code, err = simulate(model, logs, tmp_path / "sim", "--system", str(system))
     line = assert_one_line(code, err, "simulate", logs / "log_30_0.csv")
     assert "its rows are 80 ms apart (median), the model" in line and "trained at a 40 ms period" in line
+
+
+def test_a_sidecar_parameter_written_as_text_is_refused(tmp_path):
+    """``"x": "30"`` built the controller, but its version never matched the real x = 30."""
+    logs = tmp_path / "twin"
+    write_logs(generate(ControllerSpec("lane-keeping", {"x": 30}), 2, 20, seed=1), logs)
+    side = sorted(logs.glob("*.meta.json"))[0]
+    meta = json.loads(side.read_text())
+    meta["controller"]["params"]["x"] = "30"
+    side.write_text(json.dumps(meta))
+    code, err = run_cli(["split", "--logs", str(logs), "--out", str(tmp_path / "s")])
+    assert "controller parameter 'x' is the text '30'; write the number itself" in assert_one_line(
+        code, err, "split", side
+    )
+
+
+def test_where_selects_a_version_by_its_number_however_written(tmp_path):
+    logs = plain_logs(tmp_path / "logs")
+    for written in ("30", "3e1", "30.0"):
+        code, err = split(tmp_path / "s", str(logs), "--where", f"x={written}")
+        assert code == 0, (written, err)
+        assert len(json.loads((tmp_path / "s" / "train.json").read_text())["logs"]) == 3
+
+
+def test_identical_runs_are_said_to_be_one(tmp_path):
+    """A deterministic model (or --mean) writes the same run --runs times: verify would count each."""
+    logs = plain_logs(tmp_path / "logs", runs=1)
+    code, err = simulate(paper_ckpt().save(tmp_path / "m.pt"), logs, tmp_path / "sim", "--runs", "3")
+    assert code == 0, err
+    assert "the 3 runs of each initial log are one run written 3 times" in err
+    code, err = simulate(paper_ckpt("gaussian").save(tmp_path / "g.pt"), logs, tmp_path / "sim2", "--runs", "3")
+    assert code == 0 and "one run written" not in err, err
+    sims = sorted((tmp_path / "sim2").glob("*.csv"))
+    assert len(sims) == 3 and sims[0].read_text() != sims[1].read_text()  # sampled: the note would be wrong
