@@ -29,6 +29,8 @@ from .files import parse_json, read_text
 
 ACTION_LAYERS = ("delay", "lag", "play", "gain_drift", "run_gain")
 STATE_LAYERS = ("noise", "quantise", "saturation")
+#: the layers that draw at random: two runs from one window differ under them
+RANDOM_LAYERS = ("noise", "run_gain")
 LAYERS = ACTION_LAYERS + STATE_LAYERS
 #: the longest delay a layer may hold (its run memory is that many commands per run)
 MAX_DELAY = 1000

@@ -10,11 +10,16 @@ import json
 import math
 import os
 import stat
+import sys
 import tempfile
-import tomllib
 from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover - Python 3.10
+    import tomli as tomllib
 
 #: deepest nesting of lists and objects any JSON or TOML input may have (a sidecar holds 3)
 MAX_DEPTH = 32

@@ -479,15 +479,26 @@ def _natural_key(p: Path) -> list[Any]:
     return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", p.name)]
 
 
+#: two control periods differ when they are more than this fraction apart: a simulated log records its
+#: initial log's measured period (40 or 41 ms for a 40 ms loop)
+PERIOD_TOLERANCE = 0.1
+
+
+def off_period(log: Log, period_ms: float) -> float | None:
+    """The log's median row interval when it is another period than ``period_ms`` (beyond
+    :data:`PERIOD_TOLERANCE`); None when it agrees or the log has too few rows to say."""
+    if len(log) < 3:
+        return None
+    median = float(np.median(np.diff(log.time)))
+    return median if abs(median - period_ms) > PERIOD_TOLERANCE * period_ms else None
+
+
 def _period_agrees(log: Log, system: SystemDescription) -> None:
     """A log without sidecar is taken at the description's period: refuse one whose rows are another
-    period apart (median interval off by more than 10 %, the bar between control periods that
-    :func:`load_logs` uses). 80 ms logs beside 40 ms ones were once split, verified and simulated
-    against a 40 ms model without a word."""
-    if len(log) < 3 or system.period_ms is None:
-        return
-    median = float(np.median(np.diff(log.time)))
-    if abs(median - system.period_ms) > 0.1 * system.period_ms:
+    period apart (median interval off by more than :data:`PERIOD_TOLERANCE`). 80 ms logs beside
+    40 ms ones were once split, verified and simulated against a 40 ms model without a word."""
+    median = None if system.period_ms is None else off_period(log, system.period_ms)
+    if median is not None:
         raise LogError(
             f"{log.path}: its rows are {median:g} ms apart (median), but the system description "
             f"{system.name!r} says a {system.period_ms:g} ms period; give logs of that period or a "
@@ -761,9 +772,8 @@ def load_logs(
     timed = [lg for lg in logs if lg.meta.period_ms is not None]
     for lg in timed[1:]:
         ref = timed[0]
-        # one model, one control period: never mixed. A simulated log records its initial log's measured
-        # period (40 or 41 ms for a 40 ms loop), so only a difference beyond 10 % is another period.
-        if abs(lg.meta.period_ms - ref.meta.period_ms) > 0.1 * ref.meta.period_ms:
+        # one model, one control period: never mixed
+        if abs(lg.meta.period_ms - ref.meta.period_ms) > PERIOD_TOLERANCE * ref.meta.period_ms:
             raise LogError(
                 f"{lg.path or lg.name}: recorded at a {lg.meta.period_ms:g} ms period, {ref.path or ref.name} "
                 f"at {ref.meta.period_ms:g} ms (mixed control periods in one dataset)"
@@ -780,13 +790,12 @@ def require_signals(
     40 ms model once simulated from 80 ms logs without a word."""
     want = [c.name for c in schema.states], [c.name for c in schema.actions]
     for lg in logs:
-        if period_ms is not None and len(lg) >= 3:
-            median = float(np.median(np.diff(lg.time)))
-            if abs(median - period_ms) > 0.1 * period_ms:
-                raise LogError(
-                    f"{lg.path or lg.name}: its rows are {median:g} ms apart (median), the model {model} "
-                    f"was trained at a {period_ms:g} ms period"
-                )
+        median = None if period_ms is None else off_period(lg, period_ms)
+        if median is not None:
+            raise LogError(
+                f"{lg.path or lg.name}: its rows are {median:g} ms apart (median), the model {model} "
+                f"was trained at a {period_ms:g} ms period"
+            )
         have = [c.name for c in lg.meta.schema.states], [c.name for c in lg.meta.schema.actions]
         if have != want:
             raise LogError(

@@ -20,18 +20,12 @@ from __future__ import annotations
 
 import argparse
 import math
-import sys
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 from .atomic import atomic_write_text
 from .files import parse_toml, read_text
-
-if sys.version_info >= (3, 11):
-    pass
-else:  # pragma: no cover - Python 3.10
-    pass
 
 #: Namespace entries that are not options of a command.
 NOT_OPTIONS = {"func", "parser", "debug", "config", "help"}

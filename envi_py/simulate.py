@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from .controllers import ControllerSpec, in_range
-from .effect_layers import LayerStack, describe, layers_json
+from .effect_layers import RANDOM_LAYERS, LayerStack, describe, layers_json
 from .logs import Log, LogMeta, group_by_controller
 from .model import Checkpoint
 from .system import LogSchema
@@ -124,7 +124,7 @@ def draws_at_random(ckpt: Checkpoint, mean: bool = False) -> bool:
     return (
         (ckpt.config.stochastic and not mean)
         or ckpt.size > 1
-        or any(layer.kind in ("noise", "run_gain") for layer in ckpt.layers)
+        or any(layer.kind in RANDOM_LAYERS for layer in ckpt.layers)
         or ("dt" in ckpt.config.extras and ckpt.config.intervals is not None)
     )
 

@@ -35,7 +35,6 @@ import difflib
 import json
 import math
 import re
-import sys
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Iterable
@@ -44,11 +43,6 @@ import numpy as np
 
 from .controllers import LOOPS, REGISTRY, ControllerSpec, finite_numbers
 from .files import parse_toml, read_text, regular_file
-
-if sys.version_info >= (3, 11):
-    pass
-else:  # pragma: no cover - Python 3.10
-    pass
 
 ROLES = ("state", "action", "logged", "ignore")
 #: A column name a CSV header can hold as is: no separator, quote or line break, no surrounding spaces.
