@@ -21,7 +21,7 @@ from .cli_parser import EnviParser, seed_type
 from .controllers import ControllerSpec, finite_numbers, parse_params
 from .dataset import EXTRA_CHANNELS
 from .interrupt import Terminated, exit_code, signals_interrupt
-from .notes import held_notes, note, release
+from .notes import held_notes, note, one_line, release
 from .files import output_folder, refuse_overwriting, refuse_writing_among_logs, writable_file
 from .diagnose.cli import register as register_diagnose
 from .experiments.cli import register as register_experiment
@@ -33,7 +33,7 @@ from .logs import (
     sidecar_path,
     refuse_earlier_logs,
     staged_logs,
-    require_signals,
+    logs_fit_model,
     write_log,
     write_manifest,
 )
@@ -377,7 +377,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
             "--param sets the parameters of --controller; without it each initial log's own controller runs"
         )
     ckpt = load_model(args)
-    init = require_signals(
+    init = logs_fit_model(
         read_logs(args, "init_logs", min_length=ckpt.config.history), ckpt.schema, args.model, ckpt.record.period_ms
     )
     note_starts_across_breaks("envi simulate", init, ckpt.config.history)
@@ -530,7 +530,7 @@ def cmd_check(args: argparse.Namespace) -> int:
     if args.out:
         output_folder(args.out)
     ckpt = load_model(args)
-    real = require_signals(
+    real = logs_fit_model(
         read_logs(args, "real", min_length=ckpt.config.history + 1), ckpt.schema, args.model, ckpt.record.period_ms
     )
     note_starts_across_breaks("envi check", real, ckpt.config.history)  # each real run starts paired simulations
@@ -539,12 +539,8 @@ def cmd_check(args: argparse.Namespace) -> int:
     reqs = requirements_of(load_system(args.system) if args.system else system, args.require or [], args.probability)
     for v in args.unseen or []:  # a misspelt or NaN parameter, before the simulations
         finite_numbers(parse_where_one(v), f"--unseen {v!r} values")
-        unknown = sorted(set(parse_where_one(v)) - set(system.versions.params)) if system else []
-        if system and system.versions.params and unknown:
-            raise ValueError(
-                f"--unseen {v!r}: system {system.name!r} has no version parameter {unknown[0]!r} "
-                f"(its parameters: {', '.join(system.versions.params)})"
-            )
+        if system:
+            system.check_version_fields(parse_where_one(v), f"--unseen {v!r}")
     unseen = [
         system.controller_for(parse_where_one(v)) if system and system.controller else None for v in args.unseen or []
     ]
@@ -974,10 +970,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (LogError, ValueError, OSError, KeyError) as exc:
         if args.debug:
             raise
-        msg = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        msg = one_line(str(exc)) or type(exc).__name__
         if isinstance(exc, OSError) and exc.filename and exc.strerror:  # not '[Errno 17] File exists: ...'
             why = "exists and is not a folder" if isinstance(exc, FileExistsError) else exc.strerror
-            msg = f"{exc.filename}: {why}"
+            msg = one_line(f"{exc.filename}: {why}")
         print(f"envi {args.command}: error: {msg}", file=sys.stderr)
         return 2
     except KeyboardInterrupt as exc:

@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING
 
 from .cli_parser import EnviParser
 from .interrupt import exit_code, signals_interrupt
+from .notes import one_line
 
 if TYPE_CHECKING:
     from .model import Checkpoint
@@ -38,7 +39,7 @@ def main(argv: list[str] | None = None) -> int:
         with signals_interrupt():  # a kill removes the temporary file, as Ctrl-C does
             path, ckpt = _export(args)
     except ValueError as exc:
-        print(f"envi-export: error: {str(exc).splitlines()[0]}", file=sys.stderr)
+        print(f"envi-export: error: {one_line(str(exc)) or type(exc).__name__}", file=sys.stderr)
         return 2
     except KeyboardInterrupt as exc:
         print(f"envi-export: interrupted; {args.output} is left as it was", file=sys.stderr)

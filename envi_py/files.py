@@ -77,10 +77,24 @@ def refuse_writing_among_logs(
             )
 
 
+def text_name(path: str | os.PathLike, flag: str) -> Path:
+    """``path`` when its name is UTF-8 text; else a ValueError showing its bytes escaped. Why: reports,
+    sidecars and provenance record output names as text, and a name with a byte that is not UTF-8
+    (``m\\xff.pt``) once failed there with a codec message naming no file, the model already saved."""
+    path = Path(path)
+    try:
+        str(path).encode("utf-8")
+    except UnicodeEncodeError:
+        shown = os.fsencode(path).decode("utf-8", "backslashreplace")
+        raise ValueError(f"{flag} {shown}: the name is not UTF-8 text; name the output in UTF-8") from None
+    return path
+
+
 def writable_file(path: str | os.PathLike, flag: str) -> Path:
     """``path`` as a file a command will write at the end of its work, refused before the work when
-    its folder cannot be made or written in (a training once ran to its end, then failed to save)."""
-    path = Path(path)
+    its name is not text (:func:`text_name`) or its folder cannot be made or written in (a training
+    once ran to its end, then failed to save)."""
+    path = text_name(path, flag)
     if path.is_dir():
         raise ValueError(f"{flag} {path}: is a folder; name the file to write")
     folder = path.parent
@@ -95,8 +109,9 @@ def writable_file(path: str | os.PathLike, flag: str) -> Path:
 
 def output_folder(path: str | os.PathLike, flag: str = "--out") -> Path:
     """``path`` as a folder a command will write into, refused before any work when a file is there
-    (once found only when the report was written, after all the work)."""
-    path = Path(path)
+    (once found only when the report was written, after all the work), or whose name is not text
+    (:func:`text_name`)."""
+    path = text_name(path, flag)
     if path.exists() and not path.is_dir():
         raise ValueError(f"{flag} {path}: exists and is not a folder")
     return path

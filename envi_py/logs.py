@@ -781,7 +781,7 @@ def load_logs(
     return logs
 
 
-def require_signals(
+def logs_fit_model(
     logs: Sequence[Log], schema: LogSchema, model: str | os.PathLike, period_ms: float | None = None
 ) -> list[Log]:
     """The logs, if they hold the states and actions the model was trained on (in its order) and,

@@ -128,6 +128,8 @@ class ModelConfig:
             raise ValueError(f"limits must give each of the {self.n_state} states a finite low <= high: {self.limits}")
         if "play" in self.extras and not self.play_width > 0:
             raise ValueError("the 'play' channel needs a play_width > 0 (a fraction of the action range)")
+        if self.play_width and "play" not in self.extras:  # a width that would shape nothing, said not ignored
+            raise ValueError("a play width (--play-width) is the 'play' channel's: add that extra (--extras play)")
 
     @property
     def channels(self) -> int:
@@ -435,6 +437,15 @@ class Checkpoint:
         """The same learnt model (shared, not copied) simulated with ``layers`` around it."""
         if len(layers) > MAX_LAYERS:
             raise ValueError(f"{len(layers)} effect layers, at most {MAX_LAYERS}")
+        for layer in layers:  # clipping limits that miss a state's range pin it to the range's edge, unsaid
+            if layer.kind != "saturation":
+                continue
+            for c in self.schema.states:
+                if layer.low > c.high or layer.high < c.low:
+                    raise ValueError(
+                        f"effect layer {layer.text()} lies outside state {c.name!r}'s range [{c.low:g}, {c.high:g}]: "
+                        "every reading would be the range's edge"
+                    )
         return replace(self, layers=tuple(layers))
 
     @property

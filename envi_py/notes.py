@@ -21,6 +21,13 @@ _held: list[str] = []
 _released = True  # notes are said at once, except inside a command's span before its release
 
 
+def one_line(text: str) -> str:
+    """``text`` as one line, its line breaks shown as ``\\n``. Why: a message names files, and a file
+    name may hold a line break; cut at the first one, the error line lost the rest of the name and
+    the reason, and printed whole it became two lines for one mistake."""
+    return "\\n".join(text.strip().splitlines())
+
+
 def note(line: str) -> None:
     """Say ``line`` on standard error once the command's checks have passed."""
     if _released:
@@ -49,7 +56,7 @@ def held_notes(command: str) -> Iterator[None]:
     _released = False
 
     def show(message: Warning | str, *_: object, **__: object) -> None:
-        note(f"{command}: warning: {str(message).strip().splitlines()[0] if str(message).strip() else message}")
+        note(f"{command}: warning: {one_line(str(message)) or message}")
 
     try:
         with warnings.catch_warnings():

@@ -332,6 +332,17 @@ class SystemDescription:
 
     # ------------------------------------------------------------------ versions of a log
 
+    def check_version_fields(self, fields: dict[str, Any], what: str) -> None:
+        """Refuse a field that is not one of the declared version parameters (``what`` names the
+        option): set as it is, a misspelt gain became a controller parameter of that name, and the
+        controller blamed its own structure instead."""
+        unknown = sorted(set(fields) - set(self.versions.params))
+        if self.versions.params and unknown:
+            raise ValueError(
+                f"{what}: system {self.name!r} has no version parameter {unknown[0]!r} "
+                f"(its parameters: {', '.join(self.versions.params)})"
+            )
+
     def controller_for(self, fields: dict[str, Any]) -> ControllerSpec | None:
         """The controller of a log whose file name gave ``fields`` (version parameters)."""
         if self.controller is None:

@@ -75,6 +75,8 @@ def test_a_state_of_another_training_is_refused(tmp_path):
         train("bc", train_logs, val_logs, state_path=state, resume=True, **{**KW, "epochs": 3, "seed": 4})
     with pytest.raises(ValueError, match=r"\(it differs in epochs\)"):  # the setting is named
         train("bc", train_logs, val_logs, state_path=state, resume=True, **{**KW, "epochs": 5})
+    with pytest.raises(ValueError, match=r"\(it differs in hidden\)"):  # named once, though hyper and config hold it
+        train("bc", train_logs, val_logs, state_path=state, resume=True, **{**KW, "epochs": 3, "hidden": (6,)})
     with pytest.raises(ValueError, match=r"\(it differs in (limits, )?training data\)"):  # limits follow the data
         train("bc", _logs(4, 7), val_logs, state_path=state, resume=True, **{**KW, "epochs": 3})
     with pytest.raises(ValueError, match="no training state"):

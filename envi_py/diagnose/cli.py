@@ -27,7 +27,7 @@ def runs_fit_in_memory(runs: int) -> None:
 
 def _cmd_diagnose(args: argparse.Namespace) -> int:
     from ..cli import read_logs
-    from ..logs import Log, require_signals
+    from ..logs import Log, logs_fit_model
     from ..model import Checkpoint
     from .layers import layers_path
     from .report import kept_model_name, layer_shown_to_help, write_diagnosis
@@ -44,7 +44,7 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
     hist = ckpt.config.history
 
     def model_logs(attr: str) -> list[Log]:
-        return require_signals(
+        return logs_fit_model(
             read_logs(args, attr, min_length=hist + 1), ckpt.schema, args.model, ckpt.record.period_ms
         )
 

@@ -68,6 +68,7 @@ def train(
     a member's weights then differ in the last bits from a one-process training of its seed."""
     if not train_logs:
         raise ValueError("no training logs")
+    refuse_shared_logs(train_logs, val_logs)
     system = system or describe_schema(train_logs[0].meta.schema)
     kwargs = {**system.training.for_algorithm(name), **kwargs}
     if name != "random" and "selection" not in kwargs:
@@ -107,6 +108,21 @@ def train(
     finally:
         pool.close()
     return Checkpoint.ensemble([done[k] for k in range(members)])
+
+
+def refuse_shared_logs(train_logs: Sequence[Log], val_logs: Sequence[Log]) -> None:
+    """A validation log with a training log's rows (the same file, or a copy) is an error: the epoch
+    would be chosen on data the model was fitted to, which cannot see it overfit."""
+    seen = {lg.sha256(): lg for lg in train_logs}
+    for lg in val_logs:
+        twin = seen.get(lg.sha256())
+        if twin is not None:
+            other = twin.path or twin.name
+            same = "is" if (lg.path or lg.name) == other else f"holds the rows of {other},"
+            raise ValueError(
+                f"{lg.path or lg.name}: this validation log {same} a training log; model selection needs "
+                "logs the model was not fitted to"
+            )
 
 
 @dataclass(frozen=True)

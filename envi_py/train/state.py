@@ -49,7 +49,7 @@ def differences(old: dict[str, Any], new: dict[str, Any]) -> list[str]:
     """What differs between two trainings' identities, by name: a hyper-parameter or model setting
     (``epochs``, ``hidden``), ``seed``, ``training data`` or ``validation data``."""
     names = {"data": "training data", "validation": "validation data"}
-    out = []
+    out: list[str] = []
     for key in sorted(set(old) | set(new)):
         a, b = old.get(key), new.get(key)
         if a == b:
@@ -58,7 +58,8 @@ def differences(old: dict[str, Any], new: dict[str, Any]) -> list[str]:
             out += [k for k in sorted(set(a) | set(b)) if a.get(k) != b.get(k)]
         else:
             out.append(names.get(key, key))
-    return out
+    # a setting recorded both as a hyper-parameter and in the model's config (``hidden``) is one difference
+    return list(dict.fromkeys(out))
 
 
 class TrainingState:

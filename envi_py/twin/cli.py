@@ -13,6 +13,7 @@ from envi_py.cli_parser import seed_type
 from envi_py.controllers import ControllerSpec, parse_params
 from envi_py.files import output_folder, plain_tree, read_text
 from envi_py.logs import group_by_param, load_logs, refuse_earlier_logs, remove_logs
+from envi_py.notes import one_line
 from envi_py.system import lane_keeping, load_system
 
 from .car import generate_car, generate_car_versions, write_car_logs
@@ -61,8 +62,7 @@ def _refusing(sub: str, func: Callable[[argparse.Namespace], int]) -> Callable[[
         except (ValueError, OSError, KeyError) as exc:  # a LogError is a ValueError
             if getattr(args, "debug", False):
                 raise
-            text = str(exc).strip()
-            msg = _os_message(exc) if isinstance(exc, OSError) else text.splitlines()[0] if text else type(exc).__name__
+            msg = one_line(_os_message(exc) if isinstance(exc, OSError) else str(exc)) or type(exc).__name__
             print(f"envi twin {sub}: error: {msg}", file=sys.stderr)
             return 2
 
@@ -153,7 +153,12 @@ def _generate_car(args: argparse.Namespace) -> str:
         if args.version is not None:
             raise ValueError("give either --version or --param/--controller, not both")
         params = parse_params(args.param, "--param")
-        spec = ControllerSpec(args.controller, params) if args.controller else load_system("car").controller_for(params)
+        if args.controller:
+            spec = ControllerSpec(args.controller, params)
+        else:
+            car = load_system("car")
+            car.check_version_fields(params, f"--param {' '.join(args.param or [])}")
+            spec = car.controller_for(params)
         if spec is None:
             raise ValueError("the car system description declares no controller")
         spec.build(n_state=2, n_action=2)  # fail on a bad controller before any work
