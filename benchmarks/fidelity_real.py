@@ -77,6 +77,7 @@ ALGORITHMS: dict[str, tuple[str, dict[str, Any]]] = {
     "bc-h256": ("bc", {"head": "gaussian", "members": 1, "hidden": (256, 256)}),
     "bc-res": ("bc", {"residual": True}),  # the mean head predicts the change from the last reading (the car's best)
     "bc-context": ("bc", {"context": True}),  # sigma_0's per-run mean and spread as an input all run long
+    "bc-cosine": ("bc", {"lr_schedule": "cosine"}),  # the step size annealed to 0 over the epoch cap
     "bcxgail-bcw4": ("bcxgail", {"bc_weight": 4.0}),
     "gail": ("gail", {}),
     "bcxgail": ("bcxgail", {}),

@@ -37,7 +37,7 @@ from .logs import (
     write_log,
     write_manifest,
 )
-from .system import MAX_MEMBERS, SystemDescription, check_hidden, describe_schema, load_system
+from .system import LR_SCHEDULES, MAX_MEMBERS, SystemDescription, check_hidden, describe_schema, load_system
 from .twin.cli import register as register_twin
 
 if TYPE_CHECKING:  # torch is imported only once a command needs a model
@@ -298,6 +298,10 @@ def cmd_train(args: argparse.Namespace) -> int:
             kwargs["step_noise"] = args.step_noise
         if args.lr is not None:
             kwargs["lr"] = args.lr
+        if args.lr_schedule is not None:  # else the system description's [training] default
+            if args.algorithm != "bc":
+                raise ValueError(f"--lr-schedule is behaviour cloning's step size, not {args.algorithm}'s")
+            kwargs["lr_schedule"] = args.lr_schedule
         if args.members is not None:  # else the system description's [training] default
             kwargs["members"] = args.members
         if hidden is not None:  # else the description's, else the trainer's
@@ -674,6 +678,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="bc: behaviour cloning; gail, bcxgail: adversarial (PPO); random: the paper's baseline",
     )
     p.add_argument("--epochs", type=int, default=300, help="training epochs")
+    p.add_argument(
+        "--lr-schedule",
+        choices=LR_SCHEDULES,
+        default=None,
+        help="BC's step size over the epochs: constant, or cosine (annealed to 0 over --epochs, then trained to "
+        "that cap whatever --patience says) (default: the system description's [training] lr_schedule, else "
+        "constant)",
+    )
     p.add_argument(
         "--lr", type=float, default=None, help="learning rate (default: the algorithm's: BC 1e-3, GAIL/BCxGAIL 5e-5)"
     )

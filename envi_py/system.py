@@ -177,6 +177,8 @@ class Versions:
 
 #: the shapes a Gaussian head's step noise may take (:mod:`envi_py.train.step_noise`)
 STEP_NOISES = ("gaussian", "student-t")
+#: BC's step-size schedules (:func:`envi_py.train.bc.learning_rate`)
+LR_SCHEDULES = ("constant", "cosine")
 #: most members a seed ensemble may have (each is a whole training)
 MAX_MEMBERS = 32
 
@@ -226,6 +228,8 @@ class TrainingDefaults:
     hidden: tuple[int, ...] | None = None  # the network's hidden widths; None: the trainer's (256, 256)
     #: simulated runs per validation log at each closed-loop validation; None: the trainer's (5)
     select_runs: int | None = None
+    #: BC's step size over the epochs: "constant", or "cosine" (annealed to 0 over the epoch cap)
+    lr_schedule: str = "constant"
 
     def for_algorithm(self, algorithm: str) -> dict[str, Any]:
         """The keyword arguments ``algorithm``'s trainer takes from these defaults: the residual head
@@ -245,6 +249,8 @@ class TrainingDefaults:
             out["members"] = self.members
         if algorithm == "bc" and self.hidden:
             out["hidden"] = self.hidden
+        if algorithm == "bc" and self.lr_schedule != "constant":  # measured for BC; GAIL's PPO keeps its own
+            out["lr_schedule"] = self.lr_schedule
         return out
 
     def to_json(self) -> dict[str, Any]:
@@ -256,6 +262,7 @@ class TrainingDefaults:
             "members": self.members,
             "hidden": None if self.hidden is None else list(self.hidden),
             "select_runs": self.select_runs,
+            "lr_schedule": self.lr_schedule,
         }
 
 
@@ -283,7 +290,10 @@ def _training(d: Any) -> TrainingDefaults:
         isinstance(select_runs, bool) or not isinstance(select_runs, int) or not 1 <= select_runs <= 1000
     ):
         raise ValueError(f"[training] select_runs must be a whole number in 1..1000, not {select_runs!r:.40}")
-    return TrainingDefaults(residual, float(noise), step_noise, context, members, hidden, select_runs)
+    schedule = d.get("lr_schedule", "constant")
+    if schedule not in LR_SCHEDULES:
+        raise ValueError(f"[training] lr_schedule must be one of {', '.join(LR_SCHEDULES)}, not {schedule!r:.40}")
+    return TrainingDefaults(residual, float(noise), step_noise, context, members, hidden, select_runs, schedule)
 
 
 @dataclass(frozen=True)
@@ -605,7 +615,16 @@ TOML_KEYS: dict[str, tuple[str, ...]] = {
     "[versions]": ("pattern", "params", "map"),
     "[controller]": ("name", "params"),
     "[[requirements]]": ("name", "expr", "kind", "probability"),
-    "[training]": ("residual", "input_noise", "step_noise", "context", "members", "hidden", "select_runs"),
+    "[training]": (
+        "residual",
+        "input_noise",
+        "step_noise",
+        "context",
+        "members",
+        "hidden",
+        "select_runs",
+        "lr_schedule",
+    ),
 }
 
 

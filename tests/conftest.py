@@ -54,3 +54,13 @@ def mini(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     ckpt = train("bc", load_logs(logs), [], epochs=2, hidden=(8, 8), history=5, seed=0, members=1)
     ckpt.save(d / "m.pt")
     return {"dir": d, "logs": logs, "model": d / "m.pt", "onnx": export(ckpt, d / "m.onnx")}
+
+
+@pytest.fixture(scope="module")
+def car_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Car twin logs: 2 runs of 2 versions (for the commands' options, not for fidelity)."""
+    from envi_py.twin.car import generate_car_versions, write_car_logs
+
+    out = tmp_path_factory.mktemp("car")
+    write_car_logs(generate_car_versions(2, seed=1, versions=[0, 2]), out)
+    return out

@@ -14,13 +14,6 @@ from envi_py.system import SHIPPED_DIR, TrainingDefaults, load_system
 from envi_py.twin.car import generate_car_versions, write_car_logs
 
 
-@pytest.fixture(scope="module")
-def car_dir(tmp_path_factory):
-    out = tmp_path_factory.mktemp("car")
-    write_car_logs(generate_car_versions(2, seed=1, versions=[0, 2]), out)
-    return out
-
-
 def test_the_options_reach_the_checkpoint(car_dir, tmp_path):
     out = tmp_path / "m.pt"
     argv = ["train", "--logs", str(car_dir), "--system", "car", "--epochs", "1", "--hidden", "8", "--quiet"]
@@ -63,7 +56,8 @@ def test_the_system_description_sets_the_defaults_and_the_command_line_wins(car_
         assert main([*base, *extra, "-o", str(out)]) == 0, extra
         ck = Checkpoint.load(out)
         assert ck.config.residual is residual and ck.record.hyper["input_noise"] == noise, extra
-    assert load_system("car").training == TrainingDefaults(residual=True, input_noise=0.5, select_runs=10)
+    car = TrainingDefaults(residual=True, input_noise=0.5, select_runs=10, lr_schedule="cosine")
+    assert load_system("car").training == car
     lane = TrainingDefaults(step_noise="student-t", members=3, hidden=(128, 128))
     assert load_system("lane-keeping").training == lane
     assert lane.for_algorithm("gail") == {"step_noise": "student-t"}  # members and widths: measured for BC

@@ -15,6 +15,7 @@ validation logs; the epoch kept and when training stops (``epochs`` is a cap) ar
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
@@ -25,7 +26,7 @@ from tqdm import tqdm
 
 from ..dataset import Dataset
 from ..logs import Log
-from ..system import SystemDescription
+from ..system import LR_SCHEDULES, SystemDescription
 from ..model import EnvModel, Checkpoint
 from .common import SelectionSettings, Selector, model_config, new_checkpoint
 from .input_noise import InputNoise
@@ -80,6 +81,7 @@ def train_bc(
     resume: bool = False,
     multistep: int = 0,
     input_noise: float = 0.0,
+    lr_schedule: str = "constant",
     **model_extra: Any,
 ) -> Checkpoint:
     """Train a model by behaviour cloning on ``train_logs``; select on ``val_logs`` by closed-loop error.
@@ -90,12 +92,19 @@ def train_bc(
     ``multistep`` > 0 adds the loss of the model unrolled that many steps on its own predictions
     (:class:`.multistep.MultiStepLoss`) to each log's one-step loss; ``input_noise`` > 0 perturbs
     the states of the training windows by that many times their typical step (:class:`.input_noise.InputNoise`).
+    ``lr_schedule`` "cosine" anneals the step size to 0 over ``epochs`` (:func:`learning_rate`) and then
+    trains to that cap, whatever ``selection.patience`` says: the annealed end is the part of the
+    training whose closed loop no longer jumps from one evaluation to the next.
 
     With ``state_path`` the whole training state is written there (atomically) after every
     validation, and ``resume`` continues from it: a run killed at any moment and resumed gives
     the same checkpoint as an uninterrupted one (see :class:`.state.TrainingState`)."""
+    if lr_schedule not in LR_SCHEDULES:  # before any work, not at the first epoch
+        raise ValueError(f"lr schedule must be one of {', '.join(LR_SCHEDULES)}, not {lr_schedule!r}")
     cfg = model_config(train_logs, history, hidden, head, **model_extra)
     selection = selection or SelectionSettings()
+    if lr_schedule != "constant":  # an annealed schedule runs to its end: its small last steps are its point
+        selection = replace(selection, patience=0)
     hyper = {
         "epochs": epochs,
         "lr": lr,
@@ -107,6 +116,7 @@ def train_bc(
         "selection": selection.to_json(),
         "multistep": multistep,
         "input_noise": input_noise,
+        "lr_schedule": lr_schedule,
     }
     ckpt = new_checkpoint("bc", train_logs, val_logs, cfg, seed, hyper, system=system)
     data = ckpt.dataset(train_logs, cut_at_breaks=True)
@@ -124,6 +134,8 @@ def train_bc(
     ckpt.model.train()
     bar = tqdm(range(start, epochs + 1), desc="bc", disable=not progress, leave=False)
     for epoch in bar:
+        for group in opt.param_groups:
+            group["lr"] = learning_rate(lr, lr_schedule, epoch, epochs)
         total = 0.0
         for i in rng.permutation(len(xs)):
             loss = bc_loss(ckpt.model, xs[i] if noisy is None else noisy(xs[i], rng), ys[i], evs[i])
@@ -141,6 +153,16 @@ def train_bc(
             if selector.should_stop():
                 return selector.finish(ckpt, epoch)
     return selector.finish(ckpt, epochs)
+
+
+def learning_rate(lr: float, schedule: str, epoch: int, epochs: int) -> float:
+    """The step size of ``epoch`` (1-based) of ``epochs``: ``lr`` throughout, or annealed from ``lr``
+    towards 0 along half a cosine over the epoch cap. A function of the epoch alone, so a resumed
+    training continues on the same schedule."""
+    if schedule == "constant":
+        return lr
+    # "cosine"
+    return lr * 0.5 * (1.0 + float(np.cos(np.pi * (epoch - 1) / max(epochs, 1))))
 
 
 def one_step_loss(ckpt: Checkpoint, logs: Sequence[Log]) -> Callable[[Checkpoint], float] | None:
