@@ -162,6 +162,9 @@ CONFIGS: dict[str, tuple[str, dict[str, Any]]] = {
     "default-ens3": ("bc", {"members": 3}),  # as lane keeping's default
     # the car's default before its cosine step size: a constant step, stopped after 10 evaluations without progress
     "default-constant": ("bc", {"lr_schedule": "constant"}),
+    # the description's defaults with a fitted step-noise shape instead of normal draws (lane keeping's tails)
+    "default-student-t": ("bc", {"step_noise": "student-t"}),
+    "default-two-scale": ("bc", {"step_noise": "two-scale"}),
     # twice the selection's simulated runs per validation log, twice its patience: a less noisy choice of epoch
     "bc-res-sel": ("bc", {"residual": True, "selection": SelectionSettings(runs=10, patience=20)}),
     TWIN: ("none", {}),

@@ -37,7 +37,15 @@ from .logs import (
     write_log,
     write_manifest,
 )
-from .system import LR_SCHEDULES, MAX_MEMBERS, SystemDescription, check_hidden, describe_schema, load_system
+from .system import (
+    LR_SCHEDULES,
+    MAX_MEMBERS,
+    STEP_NOISES,
+    SystemDescription,
+    check_hidden,
+    describe_schema,
+    load_system,
+)
 from .twin.cli import register as register_twin
 
 if TYPE_CHECKING:  # torch is imported only once a command needs a model
@@ -294,7 +302,9 @@ def cmd_train(args: argparse.Namespace) -> int:
             kwargs["context"] = args.context
         if args.step_noise is not None:  # else the system description's [training] default
             if args.head == "deterministic" and args.step_noise != "gaussian":
-                raise ValueError("--step-noise student-t shapes a Gaussian head's draws; --head deterministic has none")
+                raise ValueError(
+                    f"--step-noise {args.step_noise} shapes a Gaussian head's draws; --head deterministic has none"
+                )
             kwargs["step_noise"] = args.step_noise
         if args.lr is not None:
             kwargs["lr"] = args.lr
@@ -728,11 +738,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--step-noise",
-        choices=("gaussian", "student-t"),
+        choices=STEP_NOISES,
         default=None,
-        help="a Gaussian head's draws: normal, or a Student-t of the same variance whose tails are fitted "
-        "after training, in closed loop on the validation logs (default: the system description's [training] "
-        "step_noise: student-t for lane keeping, as measured; else gaussian)",
+        help="a Gaussian head's draws: normal, a Student-t of the same variance, or a two-scale normal of "
+        "the same variance (a share of steps drawn wider), the shape fitted after training in closed loop "
+        "on the validation logs (default: the system description's [training] step_noise: student-t for "
+        "lane keeping, as measured; else gaussian)",
     )
     p.add_argument(
         "--multistep",

@@ -88,6 +88,7 @@ def metadata(ckpt: Checkpoint) -> dict[str, str]:
         RESIDUAL_KEY: residual_metadata(ckpt),
         "envi.layers": layers_json(ckpt.layers),
         "envi.noise_dof": list(cfg.noise_dof),
+        "envi.noise_mix": [list(pk) for pk in cfg.noise_mix],
         "envi.context": cfg.context,
         "envi.config": asdict(cfg),
         "envi.algorithm": rec.algorithm,

@@ -47,6 +47,9 @@ LIMIT_LEVEL_TOL = 1e-5
 #: the Student-t step noise's degrees of freedom (a variance needs more than 2; beyond 30 it is normal to
 #: within what a few hundred windows can tell, and the native engine draws one normal per degree)
 MIN_DOF, MAX_DOF = 3, 30
+#: a two-scale normal step noise's bounds: the share of wide steps below one half (a larger one is the
+#: narrow steps' mixture turned round), their scale ratio above 1 and at most 20
+MAX_MIX_SHARE, MAX_MIX_SCALE = 0.5, 20.0
 
 
 @dataclass
@@ -82,6 +85,10 @@ class ModelConfig:
     # whole nu >= 3 from a Student-t with nu degrees of freedom scaled to unit variance (the same
     # spread, heavier tails; fitted after training by :mod:`envi_py.train.step_noise`). Empty: all normal.
     noise_dof: tuple[int, ...] = ()
+    # or, per state, a two-scale normal (p, k): a share p of steps drawn with k times the scale of the
+    # rest, scaled to unit variance (occasional sharp steps, their size bounded; fitted as the dof are).
+    # (0, 1) draws that state as noise_dof says. Empty: none.
+    noise_mix: tuple[tuple[float, float], ...] = ()
 
     def __post_init__(self) -> None:
         self.hidden = tuple(int(h) for h in self.hidden)
@@ -99,6 +106,19 @@ class ModelConfig:
             raise ValueError(
                 f"noise_dof must give each of the {self.n_state} states 0 (normal) or a whole number of "
                 f"degrees of freedom in {MIN_DOF}..{MAX_DOF}, not {self.noise_dof}"
+            )
+        self.noise_mix = tuple((float(p), float(k)) for p, k in self.noise_mix)
+        none = [(p, k) == (0.0, 1.0) for p, k in self.noise_mix]
+        mixed = [0 < p < MAX_MIX_SHARE and 1 < k <= MAX_MIX_SCALE for p, k in self.noise_mix]
+        if self.noise_mix and (len(self.noise_mix) != self.n_state or not all(a or b for a, b in zip(none, mixed))):
+            raise ValueError(
+                f"noise_mix must give each of the {self.n_state} states (0, 1) (none) or a share "
+                f"0 < p < {MAX_MIX_SHARE} of steps at k times the others' scale, 1 < k <= {MAX_MIX_SCALE:g}, "
+                f"not {self.noise_mix}"
+            )
+        if any(d and m for d, m in zip(self.noise_dof, mixed)):
+            raise ValueError(
+                "a state's step noise is a Student-t (noise_dof) or a two-scale normal (noise_mix), not both"
             )
         if any(not 0 <= i < self.n_state for i, _ in self.limit_events):
             raise ValueError(f"limit events name states outside 0..{self.n_state - 1}: {self.limit_events}")
@@ -232,15 +252,21 @@ class EnvModel(nn.Module):
         return mean, log_std
 
     def step_noise(self, shape: torch.Size, generator: torch.Generator) -> torch.Tensor:
-        """Unit-variance draws (B, |s|) of each state's step-noise shape (``config.noise_dof``): a
-        normal one, or a Student-t as a normal over the root of a chi-square of nu normals, scaled by
-        sqrt((nu - 2) / nu). Heavy tails, not more spread: on the real lane-keeping logs the
-        largest jerk of a run (the comfort metric) has a tail a normal step noise never draws."""
+        """Unit-variance draws (B, |s|) of each state's step-noise shape: a normal one, a Student-t
+        (``config.noise_dof``) as a normal over the root of a chi-square of nu normals, scaled by
+        sqrt((nu - 2) / nu), or a two-scale normal (``config.noise_mix``), k times wider at a share p
+        of steps, scaled by 1 / sqrt(1 - p + p k^2). Heavy tails, not more spread: on the real
+        lane-keeping logs the largest jerk of a run (the comfort metric) has a tail a normal step
+        noise never draws."""
         z = torch.randn(shape, generator=generator)
         for i, nu in enumerate(self.config.noise_dof):
             if nu:
                 chi2 = (torch.randn(shape[0], nu, generator=generator) ** 2).sum(dim=1)
                 z[:, i] = z[:, i] * torch.sqrt((nu - 2) / chi2)
+        for i, (p, k) in enumerate(self.config.noise_mix):
+            if p:
+                wide = torch.rand(shape[0], generator=generator) < p
+                z[:, i] = z[:, i] * torch.where(wide, k, 1.0) / math.sqrt(1 - p + p * k * k)
         return z
 
     def step(self, x: torch.Tensor, generator: torch.Generator | None) -> tuple[torch.Tensor, torch.Tensor | None]:
@@ -310,9 +336,9 @@ def _content_hash(
 def _members_agree(first: Checkpoint, members: Sequence[EnvModel]) -> None:
     """Refuse ensemble members that would not read and say what ``first`` does: one configuration
     (but for the step-noise shape each fits after training); schema and normaliser are shared."""
-    base = replace(first.config, noise_dof=())
+    base = replace(first.config, noise_dof=(), noise_mix=())
     for k, m in enumerate(members):
-        if replace(m.config, noise_dof=()) != base:
+        if replace(m.config, noise_dof=(), noise_mix=()) != base:
             raise ValueError(f"member {k} reads or says other things than member 0 (another configuration)")
 
 

@@ -20,7 +20,7 @@ model can always say which signals it reads and writes. It declares
   everything that trains: demo, experiment) uses unless told otherwise: ``residual`` (the mean head
   predicts the change from the last reading), ``input_noise`` (behaviour cloning's window
   perturbation, in typical logged steps), ``step_noise`` (a Gaussian head's draws: ``gaussian``,
-  or ``student-t`` with tails fitted after training), ``context`` (sigma_0's per-state mean and
+  or ``student-t`` or ``two-scale`` with tails fitted after training), ``context`` (sigma_0's per-state mean and
   spread as an input all run long, so a run keeps what its start showed of it), ``members`` (a
   seed ensemble of that many trainings, each simulated run drawn by one of them), ``hidden`` (the
   network's widths) and ``select_runs`` (simulated runs per validation log when choosing the epoch).
@@ -176,7 +176,7 @@ class Versions:
 
 
 #: the shapes a Gaussian head's step noise may take (:mod:`envi_py.train.step_noise`)
-STEP_NOISES = ("gaussian", "student-t")
+STEP_NOISES = ("gaussian", "student-t", "two-scale")
 #: BC's step-size schedules (:func:`envi_py.train.bc.learning_rate`)
 LR_SCHEDULES = ("constant", "cosine")
 #: most members a seed ensemble may have (each is a whole training)

@@ -45,8 +45,8 @@ def test_the_smoke_run_scores_every_version_over_several_simulations(real_dir, t
     report = json.loads(out.read_text())
     rows = {r["algorithm"]: r for r in report["summary"]}
     bc = rows["bc-gaussian"]
-    (dof,) = bc["noise_dof"]
-    assert dof and 3 <= dof[0] <= 30  # lane keeping's description fits Student-t tails
+    ((shape,),) = bc["noise_shapes"]  # one fold, one model
+    assert shape in {f"t{nu}" for nu in range(3, 31)}, shape  # lane keeping's description fits Student-t tails
     assert set(rows) == {"random", "bc-gaussian", "bc-gaussian:normal-draws"}
     assert all(math.isnan(v) for v in bc["kld_mean_ci95"])  # one model: no interval, rather than a fake one
     for cell in report["cells"]:

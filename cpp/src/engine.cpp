@@ -104,6 +104,8 @@ struct Workspace {
 constexpr uint32_t kLayerStream = 0x40000000u;
 // A Student-t step noise's chi-square draws: state i's j-th at channel kDofStream | i << 8 | j.
 constexpr uint32_t kDofStream = 0x20000000u;
+// A two-scale step noise's choice of scale: state i's uniform stream kMixStream | i.
+constexpr uint32_t kMixStream = 0x10000000u;
 constexpr uint32_t kRunGainStep = 0xFFFFFFFFu;
 
 struct Runner {
@@ -174,11 +176,17 @@ struct Runner {
     }
   }
 
-  // A unit-variance draw of state i's step noise for run `run` at step t: normal, or a Student-t of
+  // A unit-variance draw of state i's step noise for run `run` at step t: normal, a two-scale normal
+  // (k times the scale with probability p, the choice on uniform stream kMixStream | i), or a Student-t of
   // nu degrees of freedom as a normal over the root of a chi-square of nu further normals (keys
   // kDofStream | i << 8 | j), scaled by sqrt((nu - 2) / nu) (EnvModel.step_noise).
   double step_noise(uint64_t run, long t, int i) const {
     double z = normal(job.seed, run, uint32_t(t), uint32_t(i));
+    if (!m.noise_mix.empty() && m.noise_mix[size_t(i)].first > 0) {
+      const auto [p, k] = m.noise_mix[size_t(i)];
+      const bool wide = uniform(job.seed, run, uint32_t(t), kMixStream | uint32_t(i)) < p;
+      return z * (wide ? k : 1.0) / std::sqrt(1 - p + p * k * k);
+    }
     const int nu = m.noise_dof.empty() ? 0 : m.noise_dof[size_t(i)];
     if (!nu) return z;
     double chi2 = 0;

@@ -734,6 +734,24 @@ void read_metadata(Model& m) {
       if (!m.noise_dof.empty() && m.noise_dof.size() != m.states.size())
         throw ModelError("metadata 'envi.noise_dof' must give one value per state");
     }
+    if (md.count("envi.noise_mix") && !md["envi.noise_mix"].is_null()) {
+      // envi_py.model.MAX_MIX_SHARE, MAX_MIX_SCALE
+      const char* what = "metadata 'envi.noise_mix' must hold [0, 1] (none) or [p, k] with 0 < p < 0.5 and 1 < k <= 20 per state";
+      for (const Json& e : md["envi.noise_mix"].as_array()) {
+        if (e.type != Json::Type::Array || e.as_array().size() != 2) throw ModelError(what);
+        for (const Json& v : e.as_array())
+          if (v.type != Json::Type::Number) throw ModelError(what);
+        auto pk = e.as_numbers();
+        const bool none = pk[0] == 0 && pk[1] == 1, mixed = pk[0] > 0 && pk[0] < 0.5 && pk[1] > 1 && pk[1] <= 20;
+        if (!none && !mixed) throw ModelError(what);
+        m.noise_mix.push_back({pk[0], pk[1]});
+      }
+      if (!m.noise_mix.empty() && m.noise_mix.size() != m.states.size())
+        throw ModelError("metadata 'envi.noise_mix' must give one [p, k] per state");
+      for (size_t i = 0; i < m.noise_mix.size() && i < m.noise_dof.size(); ++i)
+        if (m.noise_mix[i].first > 0 && m.noise_dof[i])
+          throw ModelError("metadata 'envi.noise_mix' and 'envi.noise_dof' both shape state " + std::to_string(i));
+    }
     if (md.count("envi.context") && !md["envi.context"].is_null()) {
       const Json& c = md["envi.context"];
       if (c.type != Json::Type::Bool) throw ModelError("metadata 'envi.context' must be true or false");

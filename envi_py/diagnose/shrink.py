@@ -38,7 +38,8 @@ def scoring_of(ckpt: Checkpoint, skip: int | None = None) -> Scoring:
 def _config_of(ckpt: Checkpoint) -> dict[str, Any]:
     """The model settings a retraining repeats (the step-noise shape is fitted after training, from
     the ``step_noise`` setting, not set)."""
-    return {k: v for k, v in asdict(ckpt.config).items() if k not in ("n_state", "n_action", "kind", "noise_dof")}
+    fitted = ("n_state", "n_action", "kind", "noise_dof", "noise_mix")
+    return {k: v for k, v in asdict(ckpt.config).items() if k not in fitted}
 
 
 def changes_model(ckpt: Checkpoint, finding: Finding) -> bool:

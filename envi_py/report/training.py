@@ -59,9 +59,23 @@ def curve_rows(selection: dict[str, Any], losses: Sequence[dict[str, Any]] = ())
     return out
 
 
+def fitted_step_noise(selection: dict[str, Any]) -> str:
+    """The step-noise shape a model's fit chose, per state (``state: shape``), "-" when none was fitted
+    (normal draws asked for, or a deterministic head). Records written before the two-scale family
+    hold degrees of freedom only."""
+    fit = selection.get("step_noise")
+    if not fit:
+        return "-"
+    parts = []
+    for st in fit.get("states", []):
+        shape = st.get("shape") or (f"t{st['dof']}" if st.get("dof") else "normal")
+        parts.append(f"{st.get('state', '?')}: {shape}")
+    return ", ".join(parts) or "-"
+
+
 def member_rows(rec: Any) -> list[list[str]]:
-    """The verdict's rows: one per model, each seed ensemble member with its own seed, kept epoch and
-    closed-loop error there (a single model is one row)."""
+    """The verdict's rows: one per model, each seed ensemble member with its own seed, kept epoch,
+    closed-loop error there and fitted step-noise shape (a single model is one row)."""
     sel = rec.selection
     members = sel.get("members") or [{"seed": rec.seed, **sel}]
     out = []
@@ -78,6 +92,7 @@ def member_rows(rec: Any) -> list[list[str]]:
                 str(len(curve)),
                 str(best if best is not None else "-"),
                 f"{err:.4f}" if err is not None and math.isfinite(err) else "-",
+                fitted_step_noise(m),
             ]
         )
     return out
@@ -142,6 +157,7 @@ def training_report(ckpt: Any, model_path: Path, rows: Sequence[dict[str, float]
             "epochs evaluated",
             "selected epoch",
             "closed-loop error",
+            "step noise",
         ],
         member_rows(rec),
         numeric=frozenset({2, 3, 4, 5, 6}),

@@ -58,7 +58,8 @@ def train(
     in the checkpoint (from their schema when none is given), so the model says what it reads; its
     ``[training]`` defaults (residual head, input noise, step-noise shape, ensemble members, hidden
     widths, validation runs) apply unless ``kwargs`` say otherwise (``selection`` for the runs).
-    ``step_noise="student-t"`` fits a Gaussian head's tails after training (:mod:`.step_noise`).
+    ``step_noise="student-t"`` or ``"two-scale"`` fits a Gaussian head's tails after training
+    (:mod:`.step_noise`).
     ``members=K`` trains K models from seeds ``seed``..``seed+K-1``
     and returns them as one seed ensemble (:meth:`Checkpoint.ensemble`); a resumable training keeps
     one state file per member (``<state>.member<k>`` beyond the first), and GAIL's loss curves are

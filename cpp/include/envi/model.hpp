@@ -80,6 +80,9 @@ struct Model {
   // The Gaussian head's step-noise shape per state (metadata 'envi.noise_dof'; empty: all normal):
   // 0 is a normal draw, nu >= 3 a Student-t of nu degrees of freedom scaled to unit variance.
   std::vector<int> noise_dof;
+  // Or, per state, a two-scale normal (metadata 'envi.noise_mix'; empty: none): {p, k} draws a share
+  // p of steps at k times the scale of the rest, scaled to unit variance; {0, 1} leaves the state to noise_dof.
+  std::vector<std::pair<double, double>> noise_mix;
 
   // A run context (metadata 'envi.context'; envi_py.dataset.context_of): the network's input ends
   // with each state's mean and population sd over sigma_0's l normalised rows, fixed for the run. At
