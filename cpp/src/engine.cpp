@@ -238,8 +238,8 @@ struct Runner {
     // what a sensor reports: within the declared range, at the resolution (envi_py.simulate.sensor_reading)
     for (int i = 0; i < ns && have_state_layers; ++i) {
       if (!std::isfinite(out[i]))
-        throw std::invalid_argument("the effect layers drive state '" + m.states[size_t(i)].name +
-                                 "' to a non-finite value");
+        throw std::invalid_argument("the effect layers " + m.describe_layers() + " drive state '" +
+                                    m.states[size_t(i)].name + "' to a non-finite value");
       out[i] = std::min(std::max(out[i], m.states[size_t(i)].low), m.states[size_t(i)].high);
       if (!m.round_to.empty()) out[i] = std::nearbyint(out[i] / m.round_to[size_t(i)]) * m.round_to[size_t(i)];
     }

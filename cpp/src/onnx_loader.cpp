@@ -4,6 +4,7 @@
 // are decoded; unknown fields are skipped by their wire type, as protobuf itself does.
 #include <algorithm>
 #include <cmath>
+#include <cstdio>
 #include <cstring>
 #include <fstream>
 #include <iterator>
@@ -598,22 +599,57 @@ std::vector<ChannelInfo> channels(const Json& list) {
   return out;
 }
 
+using LayerKind = Model::EffectLayer::Kind;
+// Each layer kind's name and unit, as envi_py.effect_layers.UNITS.
+struct LayerKindName {
+  const char* name;
+  LayerKind kind;
+  const char* unit;
+};
+constexpr LayerKindName kLayerKinds[] = {
+    {"delay", LayerKind::Delay, "ticks"},          {"lag", LayerKind::Lag, "rows"},
+    {"play", LayerKind::Play, "action units"},     {"gain_drift", LayerKind::GainDrift, "fraction"},
+    {"run_gain", LayerKind::RunGain, "fraction"},  {"noise", LayerKind::Noise, "state units"},
+    {"quantise", LayerKind::Quantise, "state units"}, {"saturation", LayerKind::Saturation, "state units"}};
+
+// A number as Python's format(v, "g") writes it (six significant digits, the same rules as C's %g).
+std::string g_format(double v) {
+  char buf[32];
+  std::snprintf(buf, sizeof buf, "%g", v);
+  return buf;
+}
+
+}  // namespace
+
+std::string Model::EffectLayer::text() const {
+  for (const auto& k : kLayerKinds)
+    if (k.kind == kind)
+      return kind == LayerKind::Saturation ? "saturation [" + g_format(low) + ", " + g_format(high) + "]"
+                                           : std::string(k.name) + " " + g_format(value) + " " + k.unit;
+  return "?";
+}
+
+std::string Model::describe_layers() const {
+  std::string out;
+  for (const auto& layer : layers) out += (out.empty() ? "" : ", ") + layer.text();
+  return out.empty() ? "none" : out;
+}
+
+namespace {
+
 // One entry of metadata 'envi.layers', checked as envi_py.effect_layers.Layer checks it.
 Model::EffectLayer effect_layer(const Json& e) {
   using K = Model::EffectLayer::Kind;
-  static const std::pair<const char*, K> kinds[] = {
-      {"delay", K::Delay}, {"lag", K::Lag}, {"play", K::Play}, {"gain_drift", K::GainDrift}, {"run_gain", K::RunGain},
-      {"noise", K::Noise}, {"quantise", K::Quantise}, {"saturation", K::Saturation}};
   const std::string what = "metadata 'envi.layers': ";
   const Json* kind = e.type == Json::Type::Object ? e.find("kind") : nullptr;
   if (!kind || kind->type != Json::Type::String) throw ModelError(what + "each layer is an object with a 'kind'");
   Model::EffectLayer layer;
   bool known = false;
-  for (const auto& [name, k] : kinds)
-    if (kind->string == name) layer.kind = k, known = true;
+  for (const auto& k : kLayerKinds)
+    if (kind->string == k.name) layer.kind = k.kind, known = true;
   if (!known) {
     std::string names;
-    for (const auto& [name, k] : kinds) names += std::string(names.empty() ? "'" : ", '") + name + "'";
+    for (const auto& k : kLayerKinds) names += std::string(names.empty() ? "'" : ", '") + k.name + "'";
     throw ModelError(what + "unknown effect layer '" + kind->string + "'; known kinds: " + names);
   }
   auto number = [&](const char* key, double missing) {

@@ -74,8 +74,12 @@ struct Model {
     Kind kind = Kind::Delay;
     double value = 0.0;
     double low = -INFINITY, high = INFINITY;
+    // As envi_py.effect_layers.Layer.text says it: 'delay 2 ticks', 'saturation [0, 20]'.
+    std::string text() const;
   };
   std::vector<EffectLayer> layers;
+  // The layers in one phrase, as envi_py.effect_layers.describe: 'delay 2 ticks, noise 1.5 state units'.
+  std::string describe_layers() const;
 
   // The Gaussian head's step-noise shape per state (metadata 'envi.noise_dof'; empty: all normal):
   // 0 is a normal draw, nu >= 3 a Student-t of nu degrees of freedom scaled to unit variance.
