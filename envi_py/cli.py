@@ -113,7 +113,7 @@ def cmd_init(args: argparse.Namespace) -> int:
     """Draft a system description from a folder of logs for the user to edit."""
     from .draft import draft_system
 
-    out = Path(args.output)
+    out = writable_file(args.output, "--output")  # a name that is not text once wrote its draft, then noted it garbled
     if out.exists() and not args.force:
         raise ValueError(f"{out}: exists; choose another --output or pass --force")
     logs = Path(args.logs)

@@ -29,6 +29,7 @@ def written(folder: Path) -> list[str]:
         ("train", "--output", "m\udcff.pt"),  # once saved the model, its state and curves, then failed on the report
         ("simulate", "--out", "sim\udcff"),
         ("verify", "--out", "report\udcff"),
+        ("init", "--output", "d\udcff.toml"),  # once wrote its draft, then named it garbled in its note
     ],
 )
 def test_an_output_name_that_is_not_utf8_is_refused_before_any_work(mini, tmp_path, command, flag, name):
@@ -39,6 +40,7 @@ def test_an_output_name_that_is_not_utf8_is_refused_before_any_work(mini, tmp_pa
         "train": ["train", "--logs", str(mini["logs"]), "--epochs", "2", "--members", "1", "-o", target],
         "simulate": ["simulate", "--model", str(mini["model"]), "--init-logs", str(mini["logs"]), "--out", target],
         "verify": ["verify", "--real", str(mini["logs"]), "--sim", str(mini["logs"]), "--out", target],
+        "init": ["init", "--logs", str(mini["logs"]), "-o", target],
     }[command]
     code, err = run_cli(argv)
     line = assert_one_line(code, err, command, flag)
