@@ -23,8 +23,8 @@ training seeds and ``--sim-seeds`` simulations of each test block (one simulatio
 the real-vs-real level is likewise a geometric mean of single comparisons); the headline is the mean
 of those over the five versions, as in the issue's table. A single model whose step noise has a
 fitted shape (Student-t or two-scale) is also scored with normal draws (``<name>:normal-draws``: the
-same model, paired); with ``--ensemble`` each fold's models of every training seed are also scored as one seed ensemble
-(``<name>:seed-ensemble``, as ``envi train --members`` makes it; paired with its members). The
+same model, paired); with ``--ensemble`` each fold's models of every training seed are also scored
+as one seed ensemble (``<name>:seed-ensemble``, as ``envi train --members`` makes it; paired with its members). The
 headline carries a 95 % bootstrap interval over the trained models. W1 per goal metric (the paper's
 eight, divided by their possible range) and training wall time are reported beside it.
 """
@@ -56,7 +56,7 @@ from envi_py.simulate import simulate_versions
 from envi_py.system import lane_keeping
 from envi_py.train import train
 from envi_py.train.common import SelectionSettings
-from envi_py.train.step_noise import Shape
+from envi_py.train.step_noise import NORMAL, set_shape, shapes_of
 
 DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "lane-keeping-fot"
 TRAIN_X = (10, 30, 50)
@@ -225,19 +225,14 @@ def run_cell(
         return [cell], ckpt
     # the same model with normal draws: what the fitted tails change, paired on one training
     normal = replace(ckpt, model=copy.deepcopy(ckpt.model))
-    normal.config.noise_dof, normal.config.noise_mix = (), ()
+    set_shape(normal, [NORMAL] * normal.config.n_state)
     return [cell, {**cell, "algorithm": f"{name}{NORMAL_DRAWS}", "per_x": score(normal, parts, seed, args, cfg)}], ckpt
 
 
 def noise_shapes(ckpt: Checkpoint) -> list[str]:
     """The first state's step-noise shape of each member (one for a single model), as the fit names it."""
-    out = []
-    for k in range(ckpt.size):
-        cfg = ckpt.member(k).config if ckpt.members else ckpt.config
-        dof = cfg.noise_dof[0] if cfg.noise_dof else 0
-        mix = cfg.noise_mix[0] if cfg.noise_mix else (0.0, 1.0)
-        out.append(Shape(dof=dof, mix=mix).label)
-    return out
+    members = [ckpt.member(k) for k in range(ckpt.size)] if ckpt.members else [ckpt]
+    return [shapes_of(m)[0].label for m in members]
 
 
 #: suffix of a cell that simulates a model of fitted step-noise shape with normal draws instead

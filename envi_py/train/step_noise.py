@@ -145,6 +145,14 @@ def fit_noise_shape(
     }
 
 
+def shapes_of(ckpt: Checkpoint) -> tuple[Shape, ...]:
+    """Each state's step-noise shape as the model draws it: what :func:`set_shape` set."""
+    n = ckpt.config.n_state
+    dof = ckpt.config.noise_dof or (0,) * n
+    mix = ckpt.config.noise_mix or (NORMAL.mix,) * n
+    return tuple(Shape(dof=d, mix=m) for d, m in zip(dof, mix))
+
+
 def set_shape(ckpt: Checkpoint, shapes: Sequence[Shape]) -> None:
     """Make the model draw step noise of ``shapes`` (one per state; all normal: none set), in place."""
     dof = tuple(s.dof for s in shapes)
