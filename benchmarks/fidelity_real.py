@@ -1,7 +1,7 @@
 """Fidelity of envi's environment models on the real lane-keeping logs (issue 19).
 
 Usage: ``python benchmarks/fidelity_real.py [--quick] [--algorithms bc-gaussian,bc-deterministic]
-[--n 3,20] [--folds 2] [--seeds 1] [--ensemble] [--epochs 300] [--out bench_out/fidelity.json]``.
+[--n 3,20] [--folds 2] [--seeds 1] [--ensemble] [--epochs 300] [--save-dir D] [--out bench_out/fidelity.json]``.
 
 Protocol. One model per (algorithm, n, fold, seed) is trained on x = 10, 30, 50 and verified on all
 five versions (x = 20 and 40 are never seen). The logs of one version are consecutive 4 s slices of
@@ -80,6 +80,8 @@ ALGORITHMS: dict[str, tuple[str, dict[str, Any]]] = {
     "bc-context": ("bc", {"context": True}),  # sigma_0's per-run mean and spread as an input all run long
     "bc-cosine": ("bc", {"lr_schedule": "cosine"}),  # the step size annealed to 0 over the epoch cap
     "bc-two-scale": ("bc", {"step_noise": "two-scale"}),  # a share of steps drawn wider; bc-default: Student-t
+    "bc-input-noise": ("bc", {"input_noise": 0.5}),  # windows perturbed by half a logged step, as the car's
+    "bc-ms5": ("bc", {"multistep": 5}),  # plus the loss of 5-step unrolls on the model's own predictions
     "bcxgail-bcw4": ("bcxgail", {"bc_weight": 4.0}),
     "gail": ("gail", {}),
     "bcxgail": ("bcxgail", {}),
@@ -208,6 +210,8 @@ def run_cell(
     start = time.perf_counter()
     ckpt = train(algo, train_logs, val_logs, seed=seed, history=args.history, **kwargs)
     train_s = time.perf_counter() - start
+    if args.save_dir is not None:  # a probe of the simulation (a noise shape, a bound) reuses these weights
+        ckpt.save(args.save_dir / saved_name(name, n, fold, seed))
     cell = {
         "algorithm": name,
         "n": n,
@@ -227,6 +231,12 @@ def run_cell(
     normal = replace(ckpt, model=copy.deepcopy(ckpt.model))
     set_shape(normal, [NORMAL] * normal.config.n_state)
     return [cell, {**cell, "algorithm": f"{name}{NORMAL_DRAWS}", "per_x": score(normal, parts, seed, args, cfg)}], ckpt
+
+
+def saved_name(name: str, n: int, fold: int, seed: int) -> str:
+    """The file ``--save-dir`` keeps one trained model under: every cell's coordinates, so a model is
+    found again by what it was trained on."""
+    return f"{name}_n{n}_fold{fold}_seed{seed}.pt"
 
 
 def noise_shapes(ckpt: Checkpoint) -> list[str]:
@@ -514,6 +524,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         "--jobs", type=int, default=1, help="an ensemble's members trained at once (envi train --jobs); timing only"
     )
     p.add_argument("--quick", action="store_true", help="smoke configuration: bc-gaussian, n=3, 1 fold, 20 epochs")
+    p.add_argument(
+        "--save-dir",
+        type=Path,
+        help="keep every trained model there (<algorithm>_n<n>_fold<f>_seed<s>.pt), to probe its simulation later",
+    )
     p.add_argument("--out", type=Path, help="JSON file to write")
     args = p.parse_args(argv)
     if args.quick:

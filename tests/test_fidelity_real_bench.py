@@ -12,6 +12,9 @@ from pathlib import Path
 
 import numpy as np
 
+from envi_py.metrics import MetricConfig
+from envi_py.model import Checkpoint
+
 BENCH = Path(__file__).resolve().parents[1] / "benchmarks" / "fidelity_real.py"
 
 
@@ -40,8 +43,9 @@ def test_the_headline_interval_resamples_the_trained_models(monkeypatch):
 
 def test_the_smoke_run_scores_every_version_over_several_simulations(real_dir, tmp_path, monkeypatch):
     bench = load_bench(monkeypatch)
-    out = tmp_path / "f.json"
-    assert bench.main(["--quick", "--sim-seeds", "3", "--data", str(real_dir), "--out", str(out)]) == 0
+    out, kept = tmp_path / "f.json", tmp_path / "models"
+    argv = ["--quick", "--sim-seeds", "3", "--data", str(real_dir), "--save-dir", str(kept)]
+    assert bench.main([*argv, "--out", str(out)]) == 0
     report = json.loads(out.read_text())
     rows = {r["algorithm"]: r for r in report["summary"]}
     bc = rows["bc-gaussian"]
@@ -58,6 +62,14 @@ def test_the_smoke_run_scores_every_version_over_several_simulations(real_dir, t
     assert paired[0]["train_seconds"] == paired[1]["train_seconds"]  # one training, scored both ways
     assert paired[0]["per_x"]["10"]["kld_per_sim_seed"] != paired[1]["per_x"]["10"]["kld_per_sim_seed"]
     assert report["real_vs_real"]["10"]["shifts"] == 40
+    # --save-dir keeps the very model that was scored: reloaded, it scores the same on the same blocks
+    assert sorted(p.name for p in kept.iterdir()) == ["bc-gaussian_n3_fold0_seed0.pt", "random_n3_fold0_seed0.pt"]
+    args = bench.parse_args(argv)
+    logs = bench.load_logs(real_dir, bench.lane_keeping().with_pattern("log_{x}_{run}.csv"), min_length=11)
+    by_x = {x: [lg for lg in logs if lg.param.get("x") == x] for x in bench.ALL_X}
+    parts = {x: bench.blocks(by_x[x], 0, 1, 3, args.val, args.test, x in bench.TRAIN_X) for x in bench.ALL_X}
+    again = bench.score(Checkpoint.load(kept / "bc-gaussian_n3_fold0_seed0.pt"), parts, 0, args, MetricConfig(skip=10))
+    assert again[10]["kld_per_sim_seed"] == paired[0]["per_x"]["10"]["kld_per_sim_seed"]
 
 
 def test_a_seed_ensemble_is_the_folds_models_as_envi_ships_them(real_dir, tmp_path, monkeypatch):
