@@ -161,6 +161,13 @@ def blocks(logs: list[Log], fold: int, folds: int, n: int, val: int, test: int, 
     return Blocks(order[:test], order[v0 : v0 + val], order[t0 : t0 + n], twin)
 
 
+def logs_by_version(data: Path, history: int) -> dict[int, list[Log]]:
+    """Every version's real logs in file order (neighbours are consecutive slices of one run), those
+    too short to hold a window and a next row left out: what the blocks are cut from."""
+    logs = load_logs(data, lane_keeping().with_pattern("log_{x}_{run}.csv"), min_length=history + 1)
+    return {x: [lg for lg in logs if lg.param.get("x") == x] for x in ALL_X}
+
+
 def colour(logs: list[Log]) -> np.ndarray:
     """The scored channel of every run, (runs, T)."""
     return np.stack([lg.states[:, 0] for lg in logs])
@@ -550,8 +557,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     torch.set_num_threads(args.threads)
     try:
-        logs = load_logs(args.data, lane_keeping().with_pattern("log_{x}_{run}.csv"), min_length=args.history + 1)
-        by_x = {x: [lg for lg in logs if lg.param.get("x") == x] for x in ALL_X}
+        by_x = logs_by_version(args.data, args.history)
         for x in ALL_X:  # fail before any training when a block layout does not fit
             for f in range(args.folds):
                 blocks(by_x[x], f, args.folds, max(args.n), args.val, args.test, x in TRAIN_X)

@@ -65,8 +65,7 @@ def test_the_smoke_run_scores_every_version_over_several_simulations(real_dir, t
     # --save-dir keeps the very model that was scored: reloaded, it scores the same on the same blocks
     assert sorted(p.name for p in kept.iterdir()) == ["bc-gaussian_n3_fold0_seed0.pt", "random_n3_fold0_seed0.pt"]
     args = bench.parse_args(argv)
-    logs = bench.load_logs(real_dir, bench.lane_keeping().with_pattern("log_{x}_{run}.csv"), min_length=11)
-    by_x = {x: [lg for lg in logs if lg.param.get("x") == x] for x in bench.ALL_X}
+    by_x = bench.logs_by_version(real_dir, args.history)
     parts = {x: bench.blocks(by_x[x], 0, 1, 3, args.val, args.test, x in bench.TRAIN_X) for x in bench.ALL_X}
     again = bench.score(Checkpoint.load(kept / "bc-gaussian_n3_fold0_seed0.pt"), parts, 0, args, MetricConfig(skip=10))
     assert again[10]["kld_per_sim_seed"] == paired[0]["per_x"]["10"]["kld_per_sim_seed"]
