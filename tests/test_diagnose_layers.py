@@ -23,12 +23,25 @@ from envi_py.train import train
 
 
 @pytest.fixture(scope="module")
-def clean_model():
+def clean_logs():
+    """Logs of the clean steered twin: 12 to train on, 3 to validate on."""
+    return world_logs("steered", LANE, 15, 100, {}, 0)
+
+
+@pytest.fixture(scope="module")
+def clean_model(clean_logs):
     """A small BC model of the clean steered twin, trained as the validation trains (its tiny size)."""
     torch.set_num_threads(1)
-    fit = world_logs("steered", LANE, 15, 100, {}, 0)
     return train(
-        "bc", fit[:12], fit[12:], seed=0, epochs=80, lr=1e-3, history=4, head="deterministic", **validation_training()
+        "bc",
+        clean_logs[:12],
+        clean_logs[12:],
+        seed=0,
+        epochs=80,
+        lr=1e-3,
+        history=4,
+        head="deterministic",
+        **validation_training(),
     )
 
 
@@ -82,6 +95,25 @@ def test_a_layer_fitted_on_a_world_without_the_effect_changes_nothing(clean_mode
     assert fit.layer.identity and fit.interval == [0.0, 0.0], fit.text()
     c = confirm(clean_model, fit.layer, world_logs("steered", LANE, 12, 100, {}, 2), boot=100)
     assert c["shrink"] == 0 and c["shrink_ci"] == [0.0, 0.0] and c["within_1.5_floor"]
+
+
+def test_a_delay_fitted_where_the_model_never_went_is_said_to_be_a_guess(clean_model, clean_logs):
+    """A 2-tick delay drives the loop into states the clean model never saw: the one-step fit still
+    picks some delay, but its windows lie outside the training windows, so it is reported as not
+    identifiable and its interval is the whole grid. The clean world's own logs are within them."""
+    train_logs = clean_logs[:12]
+    affected = world_logs("steered", LANE, 12, 100, {"delay": 2}, 1)
+    delayed = fit_layer(clean_model, "delay", affected, 2, 0, 50, train_logs)
+    assert delayed.support is not None and delayed.support["outside_share"] > 0.9, delayed.support
+    assert not delayed.identifiable and delayed.interval == [0.0, 10.0]
+    assert "not identifiable with this model (any value in [0, 10])" in delayed.text()
+    assert delayed.to_json()["short"] == f"{delayed.layer.text()}, not identifiable"
+    clean = fit_layer(clean_model, "delay", world_logs("steered", LANE, 12, 100, {}, 1), 2, 0, 50, train_logs)
+    assert clean.identifiable and clean.support["outside_share"] <= 0.5 and clean.interval == [0.0, 0.0]
+    # without training logs the support is not checked, and a fit by simulation has none to check
+    assert fit_layer(clean_model, "delay", affected, boot=20).support is None
+    noise = fit_layer(clean_model, "noise", world_logs("steered", LANE, 6, 100, {}, 1), 2, 0, 20, train_logs)
+    assert noise.support is None and noise.identifiable
 
 
 def test_fitted_layers_are_saved_beside_the_model_and_read_back(tmp_path):

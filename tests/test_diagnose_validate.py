@@ -246,22 +246,31 @@ def test_injected_effects_are_given_in_the_units_of_their_layers():
 def test_the_layer_table_counts_coverage_and_the_floor():
     from envi_py.diagnose.validate import layer_table
 
-    def row(seed, covered, within, shrink):
+    def row(seed, covered, within, shrink, identifiable=True):
         r = _world_result("diffdrive", "delay", "memory_delay", "memory_delay", mode="verification", seed=seed)
         r["layer"] = {
             "fitted": f"delay {seed} ticks [{seed}, {seed}]",
             "injected": {"kind": "delay", "value": 2.0},
-            "covered": covered,
+            "identifiable": identifiable,
+            "outside_share": 0.1 if identifiable else 1.0,
             "within_1.5_floor": within,
             "shrink": shrink,
             "shrink_ci": [shrink - 0.1, shrink + 0.1],
         }
+        if identifiable:  # an extrapolation's interval is the whole grid: its coverage is not scored
+            r["layer"]["covered"] = covered
         return r
 
-    lines = layer_table([row(2, True, True, 0.8), row(3, False, True, 0.6), row(1, False, False, 0.4)])
-    line = next(x for x in lines if x.startswith("| shipped | diffdrive | delay |"))
-    assert "| 3 | delay 2 ticks [2, 2]; delay 3 ticks [3, 3]; delay 1 ticks [1, 1] | delay 2 |" in line
-    assert "| 1/3 (33%, 1%-91%) | 2/3 (67%, 9%-99%) | +60% [+50%, +70%] |" in line
+    rows = [row(2, True, True, 0.8), row(3, False, True, 0.6), row(1, False, False, 0.4)]
+    rows.append(row(5, True, False, 0.5, identifiable=False))
+    line = next(x for x in layer_table(rows) if x.startswith("| shipped | diffdrive | delay |"))
+    fitted = "delay 2 ticks [2, 2]; delay 3 ticks [3, 3]; delay 1 ticks [1, 1]; delay 5 ticks [5, 5]"
+    assert f"| 4 | {fitted} | delay 2 |" in line
+    noise = row(6, True, True, 0.3)
+    noise["case"], noise["layer"]["outside_share"] = "noise", None  # a fit by simulation: not checked
+    noise_line = next(x for x in layer_table([noise]) if x.startswith("| shipped | diffdrive | noise |"))
+    assert "| delay 2 | - | 1/1 (100%, 3%-100%) |" in noise_line
+    assert "| 3/4 (75%, 19%-99%) | 1/3 (33%, 1%-91%) | 2/4 (50%, 7%-93%) | +55% [+45%, +65%] |" in line
 
 
 def test_a_fix_is_said_as_the_train_options_that_make_it():

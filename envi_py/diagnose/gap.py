@@ -18,6 +18,7 @@ from scipy import stats
 
 from ..goals.evaluate import goal_unit
 from ..logs import Log
+from ..model import Checkpoint
 from ..verdicts import fair_floor, w1_normalised
 from ..verify import Scoring, fair_reference
 from .effects import holm, n_eff
@@ -293,6 +294,11 @@ def coverage(train_windows: np.ndarray, sim_windows: np.ndarray, seed: int = 0, 
         "median_distance": float(np.median(dist)),
         "train_median_distance": float(np.median(ref)),
     }
+
+
+def model_windows(ckpt: Checkpoint, logs: Sequence[Log]) -> np.ndarray:
+    """The model's input windows of ``logs`` (N, l*W), normalised: what :func:`coverage` compares."""
+    return np.concatenate(ckpt.dataset(logs).X)[:, : ckpt.config.history * ckpt.config.row_width]
 
 
 def windows_of(traces: np.ndarray, norm_encode: Any, history: int, skip: int) -> np.ndarray:

@@ -27,6 +27,19 @@ logs used neither for fitting nor for choosing the effect: the matched W1 and th
 :func:`envi_py.verify.fair_reference` before and after, and a bootstrap interval of the shrink over
 confirmation logs (:func:`scipy.stats.bootstrap`).
 
+A one-step fit is only as good as the model's predictions on the windows it is fed, so it is checked
+for support (given the training logs): the fitting windows, commands through the chosen layer, are
+compared with the training windows (:func:`~.gap.coverage`, nearest neighbours in normalised units).
+When more than :data:`MAX_OUTSIDE` of them lie outside what the training windows cover, the value is
+an extrapolation and is reported as not identifiable, its interval the whole grid. Why: a model of
+the clean steered twin at x = 30 never sees the states a 2-tick delay drives the loop into (readings
+5-75 against 26-54); there the fit picked 4-5 ticks with bootstrap intervals such as [5, 5], and a
+replay of the delayed logs' commands through the clean twin itself gives exactly 2. On that world
+(seeds 80-82) every delay, lag and play fit of verification mode had 100 % of its windows outside
+(median distance 2-470 against 0.005-0.008 for held-out clean logs, whose outside share was
+0.02-0.32). Trained instead on clean logs that reach those states (a hysteresis controller, or 10 %
+random command flips; seeds 80-83), the same fit of the delayed logs gives 2 in 4 of 4.
+
 A fitted layer is saved as JSON beside the model (``<model>.layers.json``); ``envi simulate
 --layers`` and ``envi-export --layers`` carry it into simulation, on either engine.
 """
@@ -49,11 +62,15 @@ from ..logs import Log, group_by_controller
 from ..model import Checkpoint
 from ..simulate import initial_windows, rollout
 from ..verify import Scoring, fair_reference
-from .gap import cut_logs
+from .gap import coverage, cut_logs, model_windows
 from .shrink import scoring_of
 
 #: Fitted on one-step residuals (the rest by simulation; see the module's docstring).
 RESIDUAL_FIT = ("delay", "lag", "play", "gain_drift")
+
+#: Above this share of fitting windows outside the training windows' cover, a one-step fit is an
+#: extrapolation (see the module's docstring; steered world: clean logs 0.02-0.32, affected 1.00).
+MAX_OUTSIDE = 0.5
 
 #: Which layers stand for each diagnosis candidate (``jitter`` has none: an interval-dependent step
 #: needs the model to take the interval, which only retraining gives).
@@ -111,10 +128,15 @@ def _simulate_table(ckpt: Checkpoint, scoring: Scoring, v: _Version, layer: Laye
     return scoring.table(scoring.runs(simulate_layered(ckpt, v.spec, v.logs, layer, runs, seed)))
 
 
+def _through(logs: Sequence[Log], layer: Layer) -> list[Log]:
+    """The logs as the model sees them with ``layer``: the same states, the commands through it."""
+    return [Log(None, lg.time, lg.states, layered_commands((layer,), lg.actions), lg.meta) for lg in logs]
+
+
 def _one_step_sse(ckpt: Checkpoint, logs: Sequence[Log], layer: Layer) -> np.ndarray:
     """Per log: the sum of squared one-step errors (each state over its normalising half range) of
     the model fed the real windows with the commands through ``layer``."""
-    seen = [Log(None, lg.time, lg.states, layered_commands((layer,), lg.actions), lg.meta) for lg in logs]
+    seen = _through(logs, layer)
     hist, ns = ckpt.config.history, ckpt.config.n_state
     half = ckpt.norm.half[:ns]
     out = []
@@ -170,9 +192,25 @@ class Fit:
     fit_logs: list[str] = field(default_factory=list)
     boot: int = 0
     criterion: str = ""
+    #: the fitting windows against the training windows (:func:`~.gap.coverage`); None when not checked
+    support: dict[str, Any] | None = None
+
+    @property
+    def identifiable(self) -> bool:
+        """False when the fit is an extrapolation (see :data:`MAX_OUTSIDE`); True when unchecked."""
+        return self.support is None or self.support["outside_share"] <= MAX_OUTSIDE
 
     def text(self) -> str:
         lo, hi = self.interval
+        if not self.identifiable:
+            assert self.support is not None
+            return (
+                f"{self.layer.text()}, not identifiable with this model (any value in [{lo:g}, {hi:g}]): "
+                f"{self.support['outside_share']:.0%} of the fitting windows lie "
+                f"outside the training logs' states (median distance {self.support['median_distance']:.3g} "
+                f"against {self.support['train_median_distance']:.3g} between training windows), so the "
+                "model extrapolates there; training logs that reach those states would pin it"
+            )
         if self.layer.kind == "saturation":
             return f"{self.layer.text()} (bootstrap over logs: upper limit [{lo:g}, {hi:g}])"
         return f"{self.layer.text()} [{lo:g}, {hi:g}]"
@@ -181,7 +219,10 @@ class Fit:
         return {
             "layer": self.layer.to_json(),
             "text": self.text(),
+            "short": self.text() if self.identifiable else f"{self.layer.text()}, not identifiable",
             "interval": self.interval,
+            "identifiable": self.identifiable,
+            "support": self.support,
             "objective": self.objective,
             "fit_logs": self.fit_logs,
             "boot": self.boot,
@@ -203,8 +244,17 @@ def grid_interval(chosen: Sequence[float]) -> list[float]:
     return [float(np.percentile(values, 2.5, method="lower")), float(np.percentile(values, 97.5, method="higher"))]
 
 
-def fit_layer(ckpt: Checkpoint, kind: str, logs: Sequence[Log], runs: int = 2, seed: int = 0, boot: int = 200) -> Fit:
-    """Fit one layer kind on ``logs`` (see the module's docstring); ``runs`` simulations per log."""
+def fit_layer(
+    ckpt: Checkpoint,
+    kind: str,
+    logs: Sequence[Log],
+    runs: int = 2,
+    seed: int = 0,
+    boot: int = 200,
+    train_logs: Sequence[Log] = (),
+) -> Fit:
+    """Fit one layer kind on ``logs`` (see the module's docstring); ``runs`` simulations per log. With
+    ``train_logs`` (the model's training logs) a one-step fit is checked for support."""
     if kind not in LAYERS:
         raise ValueError(f"unknown effect layer {kind!r}; known: {', '.join(LAYERS)}")
     scoring = scoring_of(ckpt)
@@ -236,6 +286,12 @@ def fit_layer(ckpt: Checkpoint, kind: str, logs: Sequence[Log], runs: int = 2, s
         criterion = "mean normalised W1 over the goals, simulated against real runs"
     best = int(np.argmin(full))
     interval = grid_interval(chosen) if chosen else [_key_value(grid[best])] * 2
+    support = None
+    if kind in RESIDUAL_FIT and train_logs and ckpt.config.plain:
+        support = coverage(model_windows(ckpt, train_logs), model_windows(ckpt, _through(logs, grid[best])), seed)
+        if support["outside_share"] > MAX_OUTSIDE:  # an extrapolation: the logs do not pin the value
+            values = [_key_value(layer) for layer in grid]
+            interval = [min(values), max(values)]
     return Fit(
         grid[best],
         interval,
@@ -243,6 +299,7 @@ def fit_layer(ckpt: Checkpoint, kind: str, logs: Sequence[Log], runs: int = 2, s
         [lg.name for lg in logs],
         boot,
         criterion,
+        support,
     )
 
 
@@ -320,13 +377,15 @@ def fit_and_confirm(
     runs: int = 2,
     seed: int = 0,
     boot: int = 200,
+    train_logs: Sequence[Log] = (),
 ) -> dict[str, Any] | None:
-    """The layers standing for a diagnosed candidate, each fitted on ``fit_logs``; the one of smallest
-    goal gap on the fitting logs is confirmed on ``confirm_logs``. None when the candidate has no layer."""
+    """The layers standing for a diagnosed candidate, each fitted on ``fit_logs`` (checked for support
+    against ``train_logs``, the model's training logs); the one of smallest goal gap on the fitting
+    logs is confirmed on ``confirm_logs``. None when the candidate has no layer."""
     kinds = FOR_CANDIDATE.get(candidate, ())
     if not kinds:
         return None
-    fits = [fit_layer(ckpt, k, fit_logs, runs, seed, boot) for k in kinds]
+    fits = [fit_layer(ckpt, k, fit_logs, runs, seed, boot, train_logs) for k in kinds]
     best = fits[0] if len(fits) == 1 else min(fits, key=lambda f: goal_gap(ckpt, f.layer, fit_logs, runs, seed))
     return {
         "candidate": candidate,

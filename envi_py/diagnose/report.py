@@ -292,7 +292,7 @@ def _layer_section(d: Diagnosis) -> list[Section]:
                     ["fitted layer", "gap before", "gap after", "floor", "shrink (95%)", "within 1.5x the floor"],
                     [
                         [
-                            f["text"],
+                            f["short"],
                             f"{c['before']:.4f}",
                             f"{c['after']:.4f}",
                             f"{c['floor']:.4f}",
@@ -302,6 +302,7 @@ def _layer_section(d: Diagnosis) -> list[Section]:
                     ],
                     numeric=frozenset({1, 2, 3, 4}),
                 ),
+                *([] if f["identifiable"] else [Text(f"The fitted value is a guess: {f['text']}.")]),
             ],
         )
     ]

@@ -24,6 +24,7 @@ from .gap import (
     gap_test,
     goal_gaps,
     horizon_gap,
+    model_windows,
     ratio_text,
     residual_map,
     share_text,
@@ -333,7 +334,7 @@ def _coverage(
             "train_median_distance": float("nan"),
         }
     hist, skip = ckpt.config.history, scoring_of(ckpt).skip
-    train_w = np.concatenate(ckpt.dataset(train_logs).X)[:, : hist * ckpt.config.row_width]
+    train_w = model_windows(ckpt, train_logs)
     sims_full = [
         rollout(ckpt, spec, initial_windows(group, hist), min(len(g) for g in group) - hist, runs=1, seed=seed)
         for spec, group in group_by_controller(choose).items()
@@ -454,7 +455,7 @@ def diagnose(
     layer = None
     if retrain and sig:
         say(f"6/6 fitting a {sig[0].effect} layer around the model and confirming it on {len(confirm_l)} logs")
-        layer = fit_and_confirm(ckpt, sig[0].candidate, choose, confirm_l, runs=2, seed=seed)
+        layer = fit_and_confirm(ckpt, sig[0].candidate, choose, confirm_l, 2, seed, train_logs=train_logs)
     misfit, misfit_each = misfit_by_signal(res)
     held = held_out_fit(ckpt, res, len(choose), val_logs)
     return Diagnosis(

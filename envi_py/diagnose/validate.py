@@ -177,9 +177,13 @@ def injected_layer(case: Case, period_ms: float) -> tuple[str, float] | None:
     return None
 
 
-def _layer_trial(ckpt: Any, case: Case, diag: Sequence[Log], d: Any, size: Size, seed: int) -> dict[str, Any] | None:
+def _layer_trial(
+    ckpt: Any, case: Case, diag: Sequence[Log], d: Any, size: Size, seed: int, train_logs: Sequence[Log]
+) -> dict[str, Any] | None:
     """Shrink where the gap is: the layers of the diagnosed top candidate, fitted on the logs the
-    diagnosis chose on and confirmed on its confirmation logs (used for neither)."""
+    diagnosis chose on (checked for support against the model's ``train_logs``) and confirmed on its
+    confirmation logs (used for neither). Whether the interval covers the injected value is scored
+    for an identifiable fit only: an extrapolation's interval is the whole grid, which covers anything."""
     from .layers import FOR_CANDIDATE, fit_and_confirm
 
     top = d.significant[0].candidate if d.significant else None
@@ -188,22 +192,25 @@ def _layer_trial(ckpt: Any, case: Case, diag: Sequence[Log], d: Any, size: Size,
     by_name = {lg.name: lg for lg in diag}
     choose = [by_name[n] for n in d.choose_logs]
     confirm = [by_name[n] for n in d.confirm_logs]
-    r = fit_and_confirm(ckpt, top, choose, confirm, runs=size.runs, seed=seed, boot=200)
+    r = fit_and_confirm(ckpt, top, choose, confirm, size.runs, seed, 200, train_logs)
     assert r is not None
     fit, conf = r["fit"], r["confirm"]
     layer = fit["layer"]
     out = {
         "candidate": top,
         "kind": layer["kind"],
-        "fitted": fit["text"],
+        "fitted": fit["short"],
         "value": layer["high"] if layer["kind"] == "saturation" else layer["value"],
         "interval": fit["interval"],
+        "identifiable": fit["identifiable"],
+        "outside_share": None if fit["support"] is None else fit["support"]["outside_share"],
         **{k: conf[k] for k in ("before", "after", "floor", "shrink", "shrink_ci", "within_1.5_floor")},
     }
     truth = injected_layer(case, ckpt.period_ms)
     if truth is not None:
         out["injected"] = {"kind": truth[0], "value": truth[1]}
-        out["covered"] = truth[0] == layer["kind"] and fit["interval"][0] <= truth[1] <= fit["interval"][1]
+        if fit["identifiable"]:
+            out["covered"] = truth[0] == layer["kind"] and fit["interval"][0] <= truth[1] <= fit["interval"][1]
     return out
 
 
@@ -317,7 +324,7 @@ def trial(
     if mode == "verification" and case.expected is not None:
         out["where"] = _where(ckpt, case, size, seed, world)
         if layers:
-            layer = _layer_trial(ckpt, case, diag, d, size, seed)
+            layer = _layer_trial(ckpt, case, diag, d, size, seed, train_logs)
             if layer is not None:
                 out["layer"] = layer
     return out
@@ -668,9 +675,11 @@ def layer_table(
     results: Sequence[dict[str, Any]], worlds: Sequence[str] = WORLDS, procedures: Sequence[str] = ("shipped",)
 ) -> list[str]:
     """Markdown lines: per world and case, the verification-mode trials whose diagnosed candidate had
-    an effect layer: the fitted parameters, how often the interval covers the injected value (where
-    the units correspond), how often the layered model is within 1.5x the fair floor on the
-    confirmation logs, and the median shrink with the median of its bootstrap interval's ends."""
+    an effect layer: the fitted parameters, how often a fit checked for support (a one-step fit) is
+    identifiable (its windows within the training windows' cover), how often an identifiable fit's
+    interval covers the injected value (where the units correspond), how often the layered model is
+    within 1.5x the fair floor on the confirmation logs, and the median shrink with the median of its
+    bootstrap interval's ends."""
     rows = [r for r in results if "layer" in r and r.get("world", TUNED_ON) in worlds and _procedure(r) in procedures]
     if not rows:
         return []
@@ -679,9 +688,9 @@ def layer_table(
         "Shrink where the gap is (verification mode; effect layer of the diagnosed candidate fitted on the "
         "choose logs, gap re-measured on the confirmation logs):",
         "",
-        "| procedure | world | case | trials | fitted (interval) | injected | interval covers | within 1.5x floor | "
-        "median shrink [median CI] |",
-        "|---|---|---|---:|---|---|---|---|---|",
+        "| procedure | world | case | trials | fitted (interval) | injected | identifiable | interval covers "
+        "(identifiable fits) | within 1.5x floor | median shrink [median CI] |",
+        "|---|---|---|---:|---|---|---|---|---|---|",
     ]
     for pr, w in [(pr, w) for pr in procedures for w in worlds]:
         here = [r for r in rows if _procedure(r) == pr and r.get("world", TUNED_ON) == w]
@@ -694,6 +703,7 @@ def layer_table(
             lines.append(
                 f"| {pr} | {w} | {c} | {len(ls)} | {'; '.join(x['fitted'] for x in ls)} | "
                 f"{', '.join(sorted(inj)) or '-'} | "
+                f"{_rate([x['identifiable'] for x in ls if x.get('outside_share') is not None])} | "
                 f"{_rate(cov)} | {_rate([x['within_1.5_floor'] for x in ls])} | "
                 f"{float(np.median([x['shrink'] for x in ls])):+.0%} [{lo:+.0%}, {hi:+.0%}] |"
             )
