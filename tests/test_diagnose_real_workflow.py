@@ -58,3 +58,9 @@ def test_multi_version_model_is_diagnosed_against_all_five_versions(real_dir, tm
     share = d["coverage"]["outside_share"]
     text = f"{share:.1%}" if share < 0.1 else f"{share:.0%}"
     assert f"{text} of simulated windows lie outside" in verdict and f"Coverage: {text} of" in md
+    # and of the diagnosed logs' own windows (x = 20 and 40 were never trained on), said in both places
+    own = d["coverage"]["diagnosed_outside_share"]
+    assert 0.0 <= own <= 1.0
+    own_text = f"{own:.1%}" if own < 0.1 else f"{own:.0%}"
+    assert f"and {own_text} of the diagnosed logs' own windows" in verdict
+    assert f"and {own_text} of the diagnosed logs' own windows are farther" in md

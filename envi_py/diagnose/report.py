@@ -571,8 +571,13 @@ def write_diagnosis(
             "Training-data coverage and logs",
             [
                 Text(
-                    f"Coverage: {share_text(d.coverage['outside_share'])} of simulated windows are farther from the "
-                    "training windows than 95% of training windows are from each other."
+                    f"Coverage: {share_text(d.coverage['outside_share'])} of simulated windows"
+                    + (
+                        f" and {share_text(d.coverage['diagnosed_outside_share'])} of the diagnosed logs' own windows"
+                        if np.isfinite(d.coverage.get("diagnosed_outside_share", float("nan")))
+                        else ""
+                    )
+                    + " are farther from the training windows than 95% of training windows are from each other."
                 ),
                 Text("Logs used to choose the effect: " + ", ".join(d.choose_logs)),
                 Text("Confirmation logs: " + ", ".join(d.confirm_logs)),

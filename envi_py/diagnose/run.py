@@ -32,7 +32,7 @@ from .gap import (
 )
 from .residuals import ResidualSet, one_step_residuals
 from .data_quality import data_quality
-from .layers import fit_and_confirm
+from .layers import MAX_OUTSIDE, fit_and_confirm
 from .shrink import scoring_of, shrink, simulate_groups, version_label
 from .stages import refit_gaussian, spread_check, stage_text
 
@@ -150,7 +150,7 @@ class Diagnosis:
             + (stage_text(stage, stage["mean_w1_before"], stage["mean_w1_after"]) if stage else "")
             + self._gap_text()
             + self._horizon_text()
-            + f"{share_text(self.coverage['outside_share'])} of simulated windows lie outside the training data. "
+            + self._coverage_text()
         )
         if self.no_gap:
             return text + (
@@ -191,6 +191,22 @@ class Diagnosis:
                 f"{', within 1.5x the floor' if c['within_1.5_floor'] else ''})."
             )
         return text
+
+    def _coverage_text(self) -> str:
+        """Where the model runs outside its training data: its simulated windows, and the diagnosed logs'
+        own windows, which the one-step tests and a fitted command layer feed it."""
+        c = self.coverage
+        text = f"{share_text(c['outside_share'])} of simulated windows lie outside the training data"
+        diagnosed = c.get("diagnosed_outside_share", float("nan"))
+        if not np.isfinite(diagnosed):
+            return text + ". "
+        text += f", and {share_text(diagnosed)} of the diagnosed logs' own windows"
+        if diagnosed > MAX_OUTSIDE:
+            return text + (
+                ": these logs visit states the training logs never show, where the model extrapolates, so "
+                "the size of an effect fitted there is a guess. "
+            )
+        return text + ". "
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -324,14 +340,19 @@ def _gaps(ckpt: Checkpoint, choose: Sequence[Log], runs: int, seed: int) -> tupl
 def _coverage(
     ckpt: Checkpoint, choose: Sequence[Log], train_logs: Sequence[Log], runs: int, seed: int
 ) -> dict[str, Any]:
-    """Share of simulated windows outside what the training windows cover (NaN for a model whose
-    input is not the plain window)."""
+    """Share of simulated windows outside what the training windows cover, and the same of the
+    diagnosed logs' own windows (``diagnosed_*``: where the model's one-step predictions, and so the
+    residual tests and a fitted command layer, rest on extrapolation); NaN for a model whose input is
+    not the plain window."""
     if not ckpt.config.plain:
+        nan = float("nan")
         return {
-            "threshold": float("nan"),
-            "outside_share": float("nan"),
-            "median_distance": float("nan"),
-            "train_median_distance": float("nan"),
+            "threshold": nan,
+            "outside_share": nan,
+            "median_distance": nan,
+            "train_median_distance": nan,
+            "diagnosed_outside_share": nan,
+            "diagnosed_median_distance": nan,
         }
     hist, skip = ckpt.config.history, scoring_of(ckpt).skip
     train_w = model_windows(ckpt, train_logs)
@@ -340,7 +361,12 @@ def _coverage(
         for spec, group in group_by_controller(choose).items()
     ]
     sim_w = np.concatenate([windows_of(s, ckpt.norm.encode, hist, skip) for s in sims_full])
-    return coverage(train_w, sim_w.astype(np.float32), seed)
+    diagnosed = coverage(train_w, model_windows(ckpt, choose), seed)
+    return {
+        **coverage(train_w, sim_w.astype(np.float32), seed),
+        "diagnosed_outside_share": diagnosed["outside_share"],
+        "diagnosed_median_distance": diagnosed["median_distance"],
+    }
 
 
 def residual_correlation(res: ResidualSet, max_lag: int = 25) -> list[dict[str, Any]]:
