@@ -206,10 +206,10 @@ class Fit:
             assert self.support is not None
             return (
                 f"{self.layer.text()}, not identifiable with this model (any value in [{lo:g}, {hi:g}]): "
-                f"{self.support['outside_share']:.0%} of the fitting windows lie "
-                f"outside the training logs' states (median distance {self.support['median_distance']:.3g} "
+                f"{self.support['outside_share']:.0%} of the fitting windows lie outside the training logs' "
+                f"windows of readings and commands (median distance {self.support['median_distance']:.3g} "
                 f"against {self.support['train_median_distance']:.3g} between training windows), so the "
-                "model extrapolates there; training logs that reach those states would pin it"
+                "model extrapolates there; training logs that reach those readings and commands would pin it"
             )
         if self.layer.kind == "saturation":
             return f"{self.layer.text()} (bootstrap over logs: upper limit [{lo:g}, {hi:g}])"

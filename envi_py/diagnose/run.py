@@ -203,8 +203,9 @@ class Diagnosis:
         text += f", and {share_text(diagnosed)} of the diagnosed logs' own windows"
         if diagnosed > MAX_OUTSIDE:
             return text + (
-                ": these logs visit states the training logs never show, where the model extrapolates, so "
-                "the size of an effect fitted there is a guess. "
+                ": these logs hold readings and commands the training logs never show (a controller version "
+                "never trained on does: its commands are new), where the model extrapolates or interpolates, "
+                "so the size of an effect fitted there is a guess. "
             )
         return text + ". "
 
