@@ -212,7 +212,8 @@ class Fit:
                 f"{self.support['outside_share']:.0%} of the fitting windows lie outside the training logs' "
                 f"windows of readings and commands (median distance {self.support['median_distance']:.3g} "
                 f"against {self.support['train_median_distance']:.3g} between training windows), so the "
-                "model extrapolates there; training logs that reach those readings and commands would pin it"
+                "model extrapolates there and the value cannot be checked; training logs that reach those "
+                "readings and commands would let it be"
             )
         if self.layer.kind == "saturation":
             return f"{self.layer.text()} (bootstrap over logs: upper limit [{lo:g}, {hi:g}])"
