@@ -178,7 +178,7 @@ def test_holm():
 
 
 def test_misfit_share_separates_a_wrong_model_from_noise():
-    """A residual that is a smooth function of the window (the model is wrong where it has seen
+    """A residual that is a smooth function of the window (the model is wrong alike wherever the logs show
     similar windows) is misfit; white noise is not."""
     assert misfit_share(synthetic()) > 0.9
     assert misfit_share(synthetic(CASES["noise"])) < 0.1

@@ -168,7 +168,7 @@ def _compare(y: np.ndarray, x0: np.ndarray, x1: np.ndarray, run: np.ndarray) -> 
 
 def misfit_share(res: Residuals) -> float:
     """The part of the one-step residual mean square that is a smooth function of the window (it
-    cancels between look-alike windows): the model is wrong where it has seen similar windows.
+    cancels between look-alike windows): the model is wrong alike wherever the logs show similar windows.
     Large when the logs come from a world the training logs do not show; no added effect fixes
     that, training on such logs does."""
     p = res.pairs

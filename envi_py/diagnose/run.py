@@ -116,9 +116,9 @@ class Diagnosis:
         h = self.held_out
         if h is None:
             return (
-                f"{share} of the one-step error is a smooth function of the window: the model is wrong where "
-                "it has seen similar windows (no held-out logs of the training world to tell whether these logs "
-                "come from another world). "
+                f"{share} of the one-step error is a smooth function of the window: the model is wrong alike "
+                "wherever these logs show similar windows (no held-out logs of the training world to tell whether "
+                "these logs come from another world). "
             )
         comparison = (
             f"its one-step error on these logs is {h['rms_ratio']:.2f}x that on {h['n_held_out']} of its own "
@@ -127,8 +127,8 @@ class Diagnosis:
         if h["worse"]:
             return (
                 f"{share} of the one-step error is a smooth function of the window and {comparison}: the model "
-                "is wrong where it has seen similar windows, as when these logs come from a world the training "
-                "logs do not show; training on such logs, not an added effect, closes that part. "
+                "is wrong alike wherever these logs show similar windows, as when these logs come from a world "
+                "the training logs do not show; training on such logs, not an added effect, closes that part. "
             )
         return (
             f"{share} of the one-step error is a smooth function of the window, but {comparison}: the model is "
