@@ -14,6 +14,7 @@ from envi_py.diagnose.effects import (
     lattice_step,
     misfit_share,
     run_candidates,
+    typical_share,
 )
 from envi_py.dataset import play_offsets
 from envi_py.diagnose.residuals import BEYOND, PLAY_WIDTHS, Residuals, ResidualSet
@@ -153,6 +154,36 @@ def test_gaussian_model_calibrated_noise_is_not_flagged():
     res.pred_std = np.full(len(res), 0.5)  # under-dispersed model
     noise = next(f for f in run_candidates(ResidualSet.of(res), ckpt()) if f.effect == "noise")
     assert noise.significant
+
+
+def test_typical_share_is_one_for_gaussian_scatter_and_small_for_a_few_jumps():
+    rng = np.random.default_rng(0)
+    assert typical_share(rng.normal(0, 3.0, 20_000)) > 0.95
+    assert 0.45 < typical_share(rng.standard_t(3, 20_000)) < 0.65
+    jumps = rng.normal(0, 0.5, 20_000)
+    jumps[::25] += rng.choice([-20.0, 20.0], 800)  # every 25th step kicked: 4 % of them
+    assert typical_share(jumps) < 0.05
+    assert typical_share(np.zeros(10)) == 1.0
+
+
+def _kicked(res, rng):
+    """A disturbance at every 25th step of each run, holding most of the residual mean square."""
+    return np.where(res.row % 25 == 0, rng.choice([-12.0, 12.0], len(res)), 0.0) + rng.normal(0, 0.3, len(res))
+
+
+def test_a_few_large_jumps_are_not_noise_while_as_much_scatter_at_every_step_is():
+    """A periodic kick (a bump in the track) carries most of the residual mean square in 4 % of the
+    steps. Noise is scatter at every step, so it is not named; the same mean square spread over
+    every step is. The model predicts the scatter of the ordinary steps (a Gaussian head)."""
+    kicked = synthetic(_kicked)
+    kicked.pred_std = np.full(len(kicked), 0.3)
+    noise = next(f for f in run_candidates(ResidualSet.of(kicked), ckpt()) if f.effect == "noise")
+    assert not noise.significant, (noise.p_holm, noise.share)
+    spread = float(np.sqrt(np.mean((kicked.r - synthetic().r) ** 2)))
+    even = synthetic(lambda res, rng: rng.normal(0, spread, len(res)))
+    even.pred_std = np.full(len(even), 0.3)
+    noise = next(f for f in run_candidates(ResidualSet.of(even), ckpt()) if f.effect == "noise")
+    assert noise.significant and noise.share > 0.5, (noise.p_holm, noise.share)
 
 
 def _finding(effect: str, share: float, p_holm: float, significant: bool) -> Finding:

@@ -287,24 +287,26 @@ def test_a_fix_is_said_as_the_train_options_that_make_it():
 def test_the_shipped_procedure_trains_with_the_defaults_and_refits_a_model_too_certain_for_the_world():
     """What a user runs: envi train's defaults (output rounded to the declared resolution) and the
     staged diagnosis, which refits a deterministic model of a world that varies (the differential-drive
-    robot's wheel slip) with a Gaussian head before ranking the rest. As tuned, the same trial keeps
-    the deterministic model, which leads with noise and names the unrounded output's quantisation.
+    robot's wheel slip, here with a grip and speed of its own in every run) with a Gaussian head
+    before ranking the rest. As tuned, the same trial keeps the deterministic model, which leads
+    with noise and names the unrounded output's quantisation. The refit narrows this trial's gap
+    (mean normalised W1 0.041 -> 0.035) and never names the output's quantisation.
 
-    The refit about halves this trial's gap (mean normalised W1 0.034 -> 0.019 with lane keeping's
-    128-wide default) and what the injected lag leaves at this size (24 logs, 2 runs each) is a
-    significant gap, named as the lag ('memory_delay'). How close this is to the edge: with 256-wide
-    models and the closed-loop tail fit (2026-11-27) the refit left 0.015, no significant gap, and
-    nothing was named. It never names the output's quantisation."""
-    shipped = trial(BY_NAME["lag"], seed=0, size=TINY, shrink=False, world="diffdrive")
+    A lagging actuator is not randomness: the deterministic model's errors are a few large ones
+    where the loop turns, not scatter at every step (the noise test counts what a typical step
+    carries), so it is not refitted, and the lag is named ('memory_delay'). Before the noise test
+    counted the typical step, this trial was refitted first and named the lag after the refit."""
+    shipped = trial(BY_NAME["run_variation"], seed=0, size=TINY, shrink=False, world="diffdrive")
     stage = shipped["stage"]
     assert shipped["procedure"] == "shipped" and stage["refit"] is True, shipped
     assert 0 < stage["mean_w1_after"] < stage["mean_w1_before"], stage  # the refit narrowed the gap
     assert "quantisation" not in shipped["significant"], shipped
-    assert shipped["gap_significant"] is True and shipped["top"] == "memory_delay", shipped
-    tuned = trial(BY_NAME["lag"], seed=0, size=TINY, shrink=False, world="diffdrive", procedure="as-tuned")
+    tuned = trial(BY_NAME["run_variation"], seed=0, size=TINY, shrink=False, world="diffdrive", procedure="as-tuned")
     assert tuned["procedure"] == "as-tuned" and tuned["stage"]["refit"] is False, tuned
     assert tuned["stage"]["mean_w1_before"] > 0 and tuned["stage"]["mean_w1_after"] is None, tuned
     assert tuned["top"] == "noise" and "quantisation" in tuned["significant"], tuned
+    lag = trial(BY_NAME["lag"], seed=0, size=TINY, shrink=False, world="diffdrive")
+    assert lag["stage"] is None and lag["gap_significant"] is True and lag["top"] == "memory_delay", lag
     with pytest.raises(ValueError, match="procedure must be one of shipped, as-tuned"):
         trial(BY_NAME["noise"], seed=0, size=TINY, procedure="tuned")
 

@@ -232,16 +232,34 @@ def _features(res: Residuals, ckpt: Checkpoint) -> np.ndarray:
     return np.column_stack(cols)
 
 
+def typical_share(e: np.ndarray) -> float:
+    """How much of the mean square of ``e`` a typical value carries: the robust (median absolute
+    deviation) variance over the mean square, at most 1. About 1 for Gaussian scatter, about
+    0.55 for t-distributed scatter of 3 degrees of freedom, and small when a few large jumps (a
+    bump, a kick) carry most of it: the noise estimate of wavelet denoising, which keeps sparse
+    features out of the noise level in the same way."""
+    ms = float(np.mean(e**2))
+    if ms <= 0:
+        return 1.0
+    return min(1.0, float(stats.median_abs_deviation(e, scale="normal")) ** 2 / ms)
+
+
 def test_noise(res: Residuals, ckpt: Checkpoint) -> tuple[float, float, float, str]:
     """Unmodelled noise: half the squared residual difference of look-alike windows, extrapolated to
     zero window distance (misfit grows with distance, noise does not) after removing what the other
     candidates explain, against the variance the model predicts (Gaussian head) or, for a
-    deterministic model, the resolution floor (a lattice's step^2/12, at least (0.5% of range)^2)."""
+    deterministic model, the resolution floor (a lattice's step^2/12, at least (0.5% of range)^2).
+    Noise is scatter at every step, so the estimate counts only what a typical step carries
+    (:func:`typical_share`): a few large jumps, an occasional disturbance no candidate stands for,
+    would otherwise read as a noise many times the real one, which a noise layer then spreads
+    over every step."""
     p = res.pairs
     y = _diff(res, res.r)
     x = np.column_stack([_null(res), _features(res, ckpt), _run_effects(res)])
     coef, *_ = np.linalg.lstsq(x, y, rcond=None)
-    h = (y - x @ coef) ** 2 / 2
+    # the shape of the differences themselves: a least-squares fit of the other candidates' columns
+    # smears a few large jumps over every residual
+    h = typical_share(y) * (y - x @ coef) ** 2 / 2
     # Look-alike windows all at one distance (e.g. identical windows of a quantised sensor) leave
     # nothing to extrapolate from: then the mean is the estimate.
     a = np.column_stack([np.ones(len(h)), p.d2]) if np.ptp(p.d2) > 1e-12 else np.ones((len(h), 1))
