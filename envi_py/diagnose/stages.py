@@ -7,7 +7,8 @@ that randomness first and the diagnosis leads with "noise" whatever else is miss
 checked first, where the randomness shows and where it matters:
 
 - one step: the real readings scatter from step to step by more than the window explains and the
-  sensor's resolution allows (the noise candidate's test, :func:`~.effects.test_noise`, p <=
+  sensor's resolution allows, counted at a typical step (a lagging loop's few large errors are not
+  randomness; the noise candidate's test, :func:`~.effects.test_noise`, p <=
   :data:`LEVEL` Bonferroni over the states, and at least :data:`~.effects.MIN_SHARE` of the
   prediction error between similar situations);
 - the goals: per controller version and goal, the standard deviation of the simulated runs against
