@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from envi_py.diagnose.layers import fit_and_confirm
-from envi_py.diagnose.validate import ALL_CASES, injected_layer, world_logs
+from envi_py.diagnose.validate import ALL_CASES, covers, injected_layer, world_logs
 from envi_py.train import train
 
 CASES = ("delay", "delay_x50", "lag", "noise", "quantise", "saturation", "backlash")
@@ -50,10 +50,9 @@ def main() -> None:
             ckpt = models[key]
             shown = world_logs(args.world, case.controller, 12, 100, case.effects, seed + 1_000)
             other = world_logs(args.world, case.controller, 12, 100, case.effects, seed + 2_000)
-            r = fit_and_confirm(ckpt, case.expected, shown, other, 2, seed, 200, train_logs=clean[key])
+            r = fit_and_confirm(ckpt, case.expected, shown, other, runs=2, seed=seed, boot=200, train_logs=clean[key])
             assert r is not None
             truth = injected_layer(case, ckpt.period_ms)
-            lo, hi = r["fit"]["interval"]
             c = r["confirm"]
             rows.append(
                 {
@@ -64,11 +63,7 @@ def main() -> None:
                     "support": r["fit"]["support"],
                     "injected": truth,
                     "identifiable": r["fit"]["identifiable"],
-                    # an extrapolation's interval is the whole grid: its coverage says nothing
-                    "covered": r["fit"]["identifiable"]
-                    and truth is not None
-                    and truth[0] == r["fit"]["layer"]["kind"]
-                    and lo <= truth[1] <= hi,
+                    "covered": bool(covers(r["fit"], truth)),
                     "shrink": c["shrink"],
                     "shrink_ci": c["shrink_ci"],
                     "before_over_floor": c["before"] / c["floor"],
@@ -85,7 +80,7 @@ def main() -> None:
         inj = f"{r['injected'][0]} {r['injected'][1]:g}" if r["injected"] else "-"
         lo, hi = r["shrink_ci"]
         print(
-            f"| {r['case']} | {r['seed']} | {inj} | {r['fitted']} | {covers(r)} | "
+            f"| {r['case']} | {r['seed']} | {inj} | {r['fitted']} | {coverage_cell(r)} | "
             f"{r['before_over_floor']:.1f} | {r['after_over_floor']:.1f} | {r['shrink']:+.0%} [{lo:+.0%}, {hi:+.0%}] |"
         )
     known = [r for r in rows if r["identifiable"]]
@@ -100,7 +95,7 @@ def main() -> None:
     out.write_text(json.dumps(rows, indent=1) + "\n")
 
 
-def covers(r: dict) -> str:
+def coverage_cell(r: dict) -> str:
     """Whether the interval covers the injected value; '-' for a fit that is not identifiable."""
     return ("yes" if r["covered"] else "no") if r["identifiable"] else "-"
 

@@ -482,7 +482,7 @@ def diagnose(
     layer = None
     if retrain and sig:
         say(f"6/6 fitting a {sig[0].effect} layer around the model and confirming it on {len(confirm_l)} logs")
-        layer = fit_and_confirm(ckpt, sig[0].candidate, choose, confirm_l, 2, seed, train_logs=train_logs)
+        layer = fit_and_confirm(ckpt, sig[0].candidate, choose, confirm_l, runs=2, seed=seed, train_logs=train_logs)
     misfit, misfit_each = misfit_by_signal(res)
     held = held_out_fit(ckpt, res, len(choose), val_logs)
     return Diagnosis(

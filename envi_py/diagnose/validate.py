@@ -177,6 +177,16 @@ def injected_layer(case: Case, period_ms: float) -> tuple[str, float] | None:
     return None
 
 
+def covers(fit: dict[str, Any], truth: tuple[str, float] | None) -> bool | None:
+    """Whether a fitted layer (:meth:`~.layers.Fit.to_json`) holds the injected one: same kind, value
+    within the interval. None when there is no truth to score or the fit is not identifiable (an
+    extrapolation's interval is the whole grid, which covers anything)."""
+    if truth is None or not fit["identifiable"]:
+        return None
+    lo, hi = fit["interval"]
+    return truth[0] == fit["layer"]["kind"] and lo <= truth[1] <= hi
+
+
 def _layer_trial(
     ckpt: Any, case: Case, diag: Sequence[Log], d: Any, size: Size, seed: int, train_logs: Sequence[Log]
 ) -> dict[str, Any] | None:
@@ -192,7 +202,7 @@ def _layer_trial(
     by_name = {lg.name: lg for lg in diag}
     choose = [by_name[n] for n in d.choose_logs]
     confirm = [by_name[n] for n in d.confirm_logs]
-    r = fit_and_confirm(ckpt, top, choose, confirm, size.runs, seed, 200, train_logs)
+    r = fit_and_confirm(ckpt, top, choose, confirm, runs=size.runs, seed=seed, boot=200, train_logs=train_logs)
     assert r is not None
     fit, conf = r["fit"], r["confirm"]
     layer = fit["layer"]
@@ -209,8 +219,9 @@ def _layer_trial(
     truth = injected_layer(case, ckpt.period_ms)
     if truth is not None:
         out["injected"] = {"kind": truth[0], "value": truth[1]}
-        if fit["identifiable"]:
-            out["covered"] = truth[0] == layer["kind"] and fit["interval"][0] <= truth[1] <= fit["interval"][1]
+        covered = covers(fit, truth)
+        if covered is not None:
+            out["covered"] = covered
     return out
 
 
