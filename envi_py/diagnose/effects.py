@@ -583,14 +583,21 @@ CANDIDATES: tuple[Candidate, ...] = (
     ),
     # The play test is conditioned on the rows before the window, so a closed loop's slow transients
     # do not reach it: in 160 negative-control trials (seeds 0-79, both modes, bang-bang and PID
-    # steering) it was never Holm-significant, while injected backlash often explains only 1-3%.
+    # steering) it was never Holm-significant. It has no share bar: play acts only at reversals, so its
+    # share stays small when its closed-loop gap is not (injected backlash on diffdrive, seeds
+    # 100-119: 0.3-2.2% with gaps of 9-49x the floor; a 1% bar hid 9 of 20), and the closed-loop gap
+    # test is the guard against a negligible effect. That guard is needed: under PID the clean
+    # diffdrive robot's own motor dead zone makes the test significant in 10 of 25 negative controls
+    # (seeds 80-84, 100-119), each with no significant gap. Chosen on diffdrive's figures, which is
+    # said where they are reported; on steered (seeds 80-84, 100-119) it names 3 more backlash trials
+    # and no false alarm.
     Candidate(
         "backlash",
         "dead zone or backlash",
         test_backlash,
         _play_channel,
         ("backlash", "deadzone"),
-        min_share=0.01,
+        min_share=0.0,
         per_action=True,
     ),
     Candidate(
