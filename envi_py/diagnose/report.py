@@ -25,8 +25,8 @@ from .run import Diagnosis
 
 def _own_bars() -> str:
     """The candidates whose share bar is not the common one, for the report's legend."""
-    own = [c for c in CANDIDATES if c.min_share is not None]
-    return ", ".join(f"{f'{c.min_share:.0%}' if c.min_share else 'no bar'} for {c.name}" for c in own)
+    bars = {c.name: f"{c.min_share:.0%}" if c.min_share else "no bar" for c in CANDIDATES if c.min_share is not None}
+    return ", ".join(f"{bar} for {name}" for name, bar in bars.items())
 
 
 def residual_map_figure(d: Diagnosis) -> Any:
