@@ -226,6 +226,22 @@ def test_a_small_play_is_named_whatever_its_share():
         assert not any(f.significant for f in run_candidates(ResidualSet.of(synthetic(None, seed, 0.2)), ckpt()))
 
 
+def test_a_share_the_model_shows_on_its_own_held_out_logs_counts_only_beyond_it():
+    """Logs of another world show what the model misses on its own world too (a window too short for
+    the world's own memory). Given the share the memory test finds on the model's held-out logs, memory
+    counts for what it explains beyond that: nothing when the two are alike, the rest when the logs
+    show more."""
+    res = ResidualSet.of(synthetic(lambda r, rng: 0.3 * r.beyond[:, 0]))
+    alone = next(f for f in run_candidates(res, ckpt()) if f.effect == "memory_delay")
+    assert alone.significant and alone.share > 0.1 and alone.excess == alone.share
+    alike = run_candidates(res, ckpt(), held_out={"memory_delay": alone.share})
+    memory = next(f for f in alike if f.effect == "memory_delay")
+    assert memory.share == alone.share and memory.excess == 0 and not memory.significant
+    assert not any(f.significant for f in alike), [(f.effect, f.share) for f in alike]
+    less = next(f for f in run_candidates(res, ckpt(), held_out={"memory_delay": alone.share / 2}) if f.significant)
+    assert less.effect == "memory_delay" and less.excess == pytest.approx(alone.share / 2)
+
+
 def test_backlash_is_fixed_with_a_play_channel_of_the_width_found():
     res = synthetic(CASES["backlash"])
     finding = next(f for f in run_candidates(ResidualSet.of(res), ckpt()) if f.effect == "backlash")

@@ -197,8 +197,8 @@ def register(sub: Any) -> None:
         choices=WORLDS,
         default=[TUNED_ON],
         help="world families: steered (the line follower every threshold was chosen on), diffdrive (a "
-        "differential-drive robot on a curved track, never used to choose a threshold, though the jitter, noise "
-        "and backlash rules were read off it); two print the cross-world table",
+        "differential-drive robot on a curved track, never used to choose a threshold, though the jitter, noise, "
+        "backlash and held-out share rules were read off it); two print the cross-world table",
     )
     v.add_argument(
         "--procedure",

@@ -22,6 +22,12 @@ model was not trained on. For that case a candidate may also have a *what-if* (:
 the model is fed its inputs as the effect would have changed them, and the part of the raw
 residual mean square that removes is a second route to significance (:data:`WHAT_IF_BAR`).
 
+When the diagnosed logs come from another world than the model's training logs (they fit worse
+than its own held-out logs), the model's own shortcomings show in them too: a model of too short a
+window lacks memory on its training world as much as on any other. There a share counts only for
+what it explains beyond the share the same test finds on the held-out logs (:attr:`Finding.excess`):
+what changed between the worlds, not what the model always missed.
+
 Significant candidates are ranked by the larger of their two shares, with one exception for nested
 candidates (:data:`NESTED`): backlash is a particular memory, of the last reversal. Rows before the
 window approximate any dependence on history, hysteresis included, so the memory test's share stays
@@ -33,7 +39,7 @@ significant, backlash is named first and memory follows it.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 from scipy import stats
@@ -60,15 +66,23 @@ class Finding:
     candidate: str = ""  # the library candidate (:data:`CANDIDATES`); the effect's name when empty
     signal: str = ""  # the channel it is tied to (a state, or an action for an action's candidate)
     state: str = ""  # the state whose residuals show it
+    # the share the same test finds on the model's own held-out logs, counted against ``share`` when
+    # the diagnosed logs come from another world (:func:`run_candidates`); 0 otherwise
+    held_out: float = 0.0
 
     def __post_init__(self) -> None:
         if not self.candidate:
             object.__setattr__(self, "candidate", self.effect)
 
     @property
+    def excess(self) -> float:
+        """The share beyond what the test finds on the model's own held-out logs."""
+        return max(0.0, self.share - self.held_out)
+
+    @property
     def weight(self) -> float:
         """What ranks significant findings: the larger of the two shares."""
-        return max(self.share, self.what_if)
+        return max(self.excess, self.what_if)
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -80,6 +94,7 @@ class Finding:
             "p": self.p,
             "p_holm": self.p_holm,
             "share": self.share,
+            "held_out_share": self.held_out,
             "what_if": self.what_if,
             "significant": self.significant,
             "detail": self.detail,
@@ -667,13 +682,16 @@ def run_candidates(
     min_share: float = MIN_SHARE,
     candidates: Sequence[Candidate] = CANDIDATES,
     logs: Sequence[Log] | None = None,
+    held_out: Mapping[str, float] | None = None,
 ) -> list[Finding]:
     """Every candidate's finding on every channel it is tied to, significant ones first (by weight),
     then the rest by p-value.
 
     With the ``logs`` the residuals came from, candidates that have a what-if also try it; such a
     candidate has two routes to significance (its pair test's share, or its what-if's), and its
-    p-value is the smaller of the two, doubled (Bonferroni)."""
+    p-value is the smaller of the two, doubled (Bonferroni). ``held_out`` (by finding name) holds
+    the shares the same tests find on the model's own held-out logs: a share counts for what it
+    explains beyond that (:attr:`Finding.excess`), in the bar and in the ranking."""
     raw, bars = [], []
     for c in candidates:
         ws = c.what_if(ckpt, logs, res) if c.what_if is not None and logs is not None else None
@@ -692,6 +710,9 @@ def run_candidates(
                 detail += f"; {c.no_fix}"
             name = _named(c, channel, res)
             what_if = max(0.0, w.share) if w else 0.0
+            own = (held_out or {}).get(name, 0.0)
+            if own > 0:
+                detail += f"; {_pct(own)} on the model's own held-out logs"
             raw.append(
                 Finding(
                     name,
@@ -704,12 +725,13 @@ def run_candidates(
                     candidate=c.name,
                     signal=channel,
                     state=view.name,
+                    held_out=own,
                 )
             )
             bars.append(c.bar(min_share))
     adj = holm([f.p for f in raw])
     out = [
-        replace(f, p_holm=float(a), significant=bool(a < alpha and (f.share >= bar or f.what_if >= WHAT_IF_BAR)))
+        replace(f, p_holm=float(a), significant=bool(a < alpha and (f.excess >= bar or f.what_if >= WHAT_IF_BAR)))
         for f, a, bar in zip(raw, adj, bars)
     ]
     out.sort(key=lambda f: (not f.significant, -f.weight if f.significant else f.p_holm))
@@ -724,7 +746,7 @@ def _nested_first(findings: list[Finding], alpha: float) -> list[Finding]:
     """When the leading finding is a general effect and a specific form of it is significant beyond
     it, the specific one leads: it says what the general test only approximates. Not when the
     general one leads by its what-if: that names the form of the memory already (a lagging actuator)."""
-    if not findings or not findings[0].significant or findings[0].what_if > findings[0].share:
+    if not findings or not findings[0].significant or findings[0].what_if > findings[0].excess:
         return findings
     lead = findings[0]
     for specific, general in NESTED.items():

@@ -231,31 +231,35 @@ CANDIDATES_TEXT = (
     "*share* is the part of those differences' mean square the effect accounts for; "
     "*what-if* is the part of the one-step residual mean square removed by feeding the model its inputs "
     "as the effect would have changed them (no retraining; it sees a misfit the pairs cannot); "
-    "significant = p_holm < 0.05 and share >= {min_share:.0%} ({own}) or what-if >= {what_if:.0%}; backlash, "
+    "significant = p_holm < 0.05 and share >= {min_share:.0%} ({own}) or what-if >= {what_if:.0%}; when the "
+    "logs fit worse than the model's own held-out logs (another world), the share counts beyond the share on "
+    "those (*held-out*: what the model misses on its own world too); backlash, "
     "a specific memory, is also significant (and named first) when memory leads by its share and backlash "
     "explains something beyond the rows before the window."
 )
 
 
 def _candidates_section(d: Diagnosis) -> Section:
+    counted = bool(d.held_out and d.held_out["worse"])  # shares counted beyond the held-out logs'
     return Section(
         "Candidate effects",
         [
             Text(CANDIDATES_TEXT.format(min_share=MIN_SHARE, own=_own_bars(), what_if=WHAT_IF_BAR)),
             Table(
-                ["effect", "significant", "p (Holm)", "share", "what-if", "evidence"],
+                ["effect", "significant", "p (Holm)", "share", "held-out", "what-if", "evidence"],
                 [
                     [
                         f.effect,
                         "yes" if f.significant else "no",
                         f"{f.p_holm:.2g}",
                         share_text(f.share),
+                        share_text(f.held_out) if counted else "-",
                         share_text(f.what_if),
                         f.detail,
                     ]
                     for f in d.findings
                 ],
-                numeric=frozenset({2, 3, 4}),
+                numeric=frozenset({2, 3, 4, 5}),
             ),
         ],
     )
