@@ -8,7 +8,8 @@ import pytest
 
 from envi_py.controllers import ControllerSpec
 from envi_py.diagnose.residuals import one_step_residuals
-from envi_py.diagnose.run import Diagnosis, held_out_fit
+from envi_py.diagnose.effects import CANDIDATES, run_candidates
+from envi_py.diagnose.run import Diagnosis, held_out_fit, own_shares
 from envi_py.train import train
 from envi_py.twin import TwinProfile, generate
 
@@ -48,3 +49,16 @@ def test_the_sentence_follows_the_test():
     )
     assert WORLD in said({**base, "rms_ratio": 3.0, "p": 0.001, "worse": True})
     assert WORLD not in said(None) and "no held-out logs" in said(None)
+
+
+def test_own_shares_are_measured_only_for_logs_of_another_world(model):
+    """A candidate's share on the held-out logs is counted against it only when the diagnosed logs
+    fit worse (another world); on logs of the training world whatever the model misses is the finding."""
+    ckpt, held_out = model
+    lagged = generate(LANE, 12, 100, {"lag": 200.0}, seed=23, profile=TwinProfile())
+    h = held_out_fit(ckpt, one_step_residuals(ckpt, lagged), len(lagged), held_out)
+    own = own_shares(ckpt, h, held_out)
+    on_held_out = run_candidates(one_step_residuals(ckpt, held_out), ckpt)
+    assert h["worse"] and own == {f.effect: f.share for f in on_held_out}
+    assert {c.name for c in CANDIDATES} <= set(own) and all(0 <= v <= 1 for v in own.values())
+    assert own_shares(ckpt, {**h, "worse": False}, held_out) == {} and own_shares(ckpt, None, held_out) == {}
