@@ -9,7 +9,7 @@ import pytest
 from envi_py.controllers import ControllerSpec
 from envi_py.diagnose.residuals import one_step_residuals
 from envi_py.diagnose.effects import CANDIDATES, run_candidates
-from envi_py.diagnose.run import Diagnosis, held_out_fit, own_shares
+from envi_py.diagnose.run import OTHER_WORLD_RMS, Diagnosis, held_out_fit, own_shares
 from envi_py.train import train
 from envi_py.twin import TwinProfile, generate
 
@@ -62,3 +62,4 @@ def test_own_shares_are_measured_only_for_logs_of_another_world(model):
     assert h["worse"] and own == {f.effect: f.share for f in on_held_out}
     assert {c.name for c in CANDIDATES} <= set(own) and all(0 <= v <= 1 for v in own.values())
     assert own_shares(ckpt, {**h, "worse": False}, held_out) == {} and own_shares(ckpt, None, held_out) == {}
+    assert h["rms_ratio"] >= OTHER_WORLD_RMS and own_shares(ckpt, {**h, "rms_ratio": 1.3}, held_out) == {}

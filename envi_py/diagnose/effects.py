@@ -81,7 +81,7 @@ class Finding:
 
     @property
     def weight(self) -> float:
-        """What ranks significant findings: the larger of the two shares."""
+        """What ranks significant findings: the larger of the share beyond the held-out logs and the what-if."""
         return max(self.excess, self.what_if)
 
     def to_json(self) -> dict[str, Any]:

@@ -20,7 +20,7 @@ from ..report.stats import Correlations
 from .effects import CANDIDATES, MIN_SHARE, WHAT_IF_BAR
 from .gap import ratio_text, share_text
 from .layers import save_layers
-from .run import Diagnosis
+from .run import OTHER_WORLD_RMS, Diagnosis, another_world
 
 
 def _own_bars() -> str:
@@ -232,19 +232,21 @@ CANDIDATES_TEXT = (
     "*what-if* is the part of the one-step residual mean square removed by feeding the model its inputs "
     "as the effect would have changed them (no retraining; it sees a misfit the pairs cannot); "
     "significant = p_holm < 0.05 and share >= {min_share:.0%} ({own}) or what-if >= {what_if:.0%}; when the "
-    "logs fit worse than the model's own held-out logs (another world), the share counts beyond the share on "
-    "those (*held-out*: what the model misses on its own world too); backlash, "
+    "logs fit significantly and at least {other:g}x worse than the model's own held-out logs (another world), "
+    "the share counts beyond the share on those (*held-out*: what the model misses on its own world too); backlash, "
     "a specific memory, is also significant (and named first) when memory leads by its share and backlash "
     "explains something beyond the rows before the window."
 )
 
 
 def _candidates_section(d: Diagnosis) -> Section:
-    counted = bool(d.held_out and d.held_out["worse"])  # shares counted beyond the held-out logs'
+    counted = another_world(d.held_out)  # shares counted beyond the held-out logs'
     return Section(
         "Candidate effects",
         [
-            Text(CANDIDATES_TEXT.format(min_share=MIN_SHARE, own=_own_bars(), what_if=WHAT_IF_BAR)),
+            Text(
+                CANDIDATES_TEXT.format(min_share=MIN_SHARE, own=_own_bars(), what_if=WHAT_IF_BAR, other=OTHER_WORLD_RMS)
+            ),
             Table(
                 ["effect", "significant", "p (Holm)", "share", "held-out", "what-if", "evidence"],
                 [

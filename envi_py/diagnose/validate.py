@@ -324,9 +324,10 @@ def trial(
             }
             for f in d.findings
         },
-        # the held-out fit test (:func:`~.run.held_out_fit`): when "worse", shares counted beyond
-        # the model's own held-out logs
+        # the held-out fit test (:func:`~.run.held_out_fit`) and its RMS ratio: shares were counted
+        # beyond the model's own held-out logs when it found another world (:func:`~.run.another_world`)
         "held_out_worse": bool(d.held_out and d.held_out["worse"]),
+        "held_out_rms_ratio": d.held_out["rms_ratio"] if d.held_out else None,
         "residual_rms": d.residual_map[0]["rmse"],
         "misfit": d.misfit,
         "gap_ratio": d.gaps[0]["gaps"][0]["ratio"],
