@@ -9,7 +9,7 @@ from dataclasses import replace
 import pytest
 
 from envi_py.cli import main
-from envi_py.diagnose.validate import CASES, Case, Size, score, to_markdown, trial
+from envi_py.diagnose.validate import CASES, Case, Size, _logs, score, to_markdown, trial, unseen
 
 #: Small enough for a unit test, large enough that every case below is named on seed 0.
 TINY = Size(train=12, val=3, diagnose=24, steps=100, epochs=80, lr=1e-3, history=4, runs=2)
@@ -335,3 +335,15 @@ def test_results_of_one_procedure_are_never_taken_for_the_other(tmp_path, capsys
     missed, right = "0/1 (0%, 0%-98%)", "1/1 (100%, 3%-100%)"
     assert f"| jitter | effect | {missed} | {missed} | {right} | {right} |" in out
     assert len((tmp_path / "results.jsonl").read_text().splitlines()) == len(rows)  # nothing was rerun
+
+
+def test_a_validation_log_repeating_a_training_run_is_left_out():
+    """The steered twin's quantised loop repeated a training run exactly at seeds 110 and 115, and
+    training refused the trial; the repeat is left out of the validation logs, the rest kept."""
+    quantise = next(c for c in CASES if c.name == "quantise")
+    fit = _logs(quantise, 25, 100, 110)
+    train_logs, val_logs = fit[:20], fit[20:]
+    kept = unseen(val_logs, train_logs)
+    trained_rows = {lg.sha256() for lg in train_logs}
+    assert any(lg.sha256() in trained_rows for lg in val_logs) and len(kept) == len(val_logs) - 1
+    assert not any(lg.sha256() in trained_rows for lg in kept) and unseen(kept, train_logs) == kept
