@@ -454,8 +454,10 @@ def diagnose(
 
     In stages: the logs' data quality first; then whether the model's class is wrong (a deterministic
     model against runs that vary, :mod:`.stages`), in which case it is refitted with the Gaussian
-    head (unless ``refit`` is False) and the rest is the diagnosis of the refit. Before any stage, a
-    controller version with too few logs to measure its gap is refused (:func:`require_runs`).
+    head (unless ``refit`` is False) and the rest is the diagnosis of the refit. On logs of another
+    world, candidates count beyond their shares on the model's own held-out logs (:func:`own_shares`).
+    Before any stage, a controller version with too few logs to measure its gap is refused
+    (:func:`require_runs`).
     A seed ensemble is diagnosed through its first member: the diagnosis reads one model's one-step
     residuals and retrains one model, so its gaps are that member's."""
     say = progress or (lambda _text: None)
