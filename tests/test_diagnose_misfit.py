@@ -53,7 +53,8 @@ def test_the_sentence_follows_the_test():
 
 def test_own_shares_are_measured_only_for_logs_of_another_world(model):
     """A candidate's share on the held-out logs is counted against it only when the diagnosed logs
-    fit worse (another world); on logs of the training world whatever the model misses is the finding."""
+    fit significantly and clearly worse (another world); on logs of the training world whatever the
+    model misses is the finding."""
     ckpt, held_out = model
     lagged = generate(LANE, 12, 100, {"lag": 200.0}, seed=23, profile=TwinProfile())
     h = held_out_fit(ckpt, one_step_residuals(ckpt, lagged), len(lagged), held_out)

@@ -9,7 +9,7 @@ from matplotlib.patches import Rectangle
 
 from envi_py.diagnose.effects import Finding
 from envi_py.diagnose.gap import floor_ratio, gap_test, horizon_gap, oscillation_rows, ratio_text, share_text
-from envi_py.diagnose.report import horizon_figure, metrics_figure, residual_map_figure
+from envi_py.diagnose.report import _candidates_section, horizon_figure, metrics_figure, residual_map_figure
 from envi_py.diagnose.run import Diagnosis, significant_gap
 
 VERSIONS = [f"x={x}" for x in (10, 20, 30, 40, 50)]
@@ -91,6 +91,21 @@ def test_a_gap_no_candidate_explains_is_none_of_the_candidates():
     quiet = Finding("noise", 1.0, 0.5, 0.0, "color scatters by sd 0.2 %", {}, p_holm=1.0)
     d = _diagnosis(0.001, findings=[quiet])
     assert d.gap_test["significant"] and "None of the candidates explains the gap" in d.verdict()
+
+
+def test_the_held_out_share_is_shown_where_it_was_counted():
+    """The candidate table gives each share's held-out counterpart only when the logs fit
+    significantly and clearly worse than the held-out logs, which is when it was counted."""
+    memory = Finding("memory_delay", 9.0, 1e-9, 0.06, "rows before", {}, p_holm=1e-8, held_out=0.05)
+    held = {"rms_ratio": 2.0, "p": 0.001, "worse": True, "n_logs": 20, "n_held_out": 5}
+
+    def rows(held_out):
+        d = _diagnosis(0.001, findings=[memory])
+        d.held_out = held_out
+        return _candidates_section(d).blocks[1].rows
+
+    assert rows(held)[0][3:5] == ["6.0%", "5.0%"] and memory.excess == pytest.approx(0.01)
+    assert rows({**held, "rms_ratio": 1.2})[0][4] == "-" and rows(None)[0][4] == "-"
 
 
 def test_one_number_per_concept():
