@@ -48,6 +48,10 @@ def test_the_sentence_follows_the_test():
         {**base, "worse": False}
     )
     assert WORLD in said({**base, "rms_ratio": 3.0, "p": 0.001, "worse": True})
+    # significantly but only slightly worse: logs of the training world do that now and then (the
+    # held-out logs chose the epoch), so "another world" is one predicate with the held-out shares
+    slightly = said({**base, "rms_ratio": 1.2, "p": 0.01, "worse": True})
+    assert WORLD not in slightly and "about as imprecise on logs of its own" in slightly
     assert WORLD not in said(None) and "no held-out logs" in said(None)
 
 

@@ -124,7 +124,7 @@ class Diagnosis:
             f"its one-step error on these logs is {h['rms_ratio']:.2f}x that on {h['n_held_out']} of its own "
             f"held-out logs (median RMS per log; Mann-Whitney p={h['p']:.2g}, {h['n_logs']} logs)"
         )
-        if h["worse"]:
+        if another_world(h):
             return (
                 f"{share} of the one-step error is a smooth function of the window and {comparison}: the model "
                 "is wrong alike wherever these logs show similar windows, as when these logs come from a world "
@@ -132,7 +132,7 @@ class Diagnosis:
             )
         return (
             f"{share} of the one-step error is a smooth function of the window, but {comparison}: the model is "
-            "as imprecise on logs of its own training world (more data or training, not an added effect). "
+            "about as imprecise on logs of its own training world (more data or training, not an added effect). "
         )
 
     def _quality_text(self) -> str:
@@ -267,8 +267,8 @@ def held_out_fit(
     """Does the model fit these logs worse than its own held-out logs (validation logs of its training
     world)? Per log, the one-step residual mean square in units of each state's range; one-sided
     Mann-Whitney U test, these logs against the held-out ones. Misfit on logs of the training world
-    is imprecision of the model; only a fit significantly worse than there says the logs come from
-    another world. None with fewer than 3 held-out logs."""
+    is imprecision of the model; only a fit significantly and clearly worse than there says the logs
+    come from another world (:func:`another_world`). None with fewer than 3 held-out logs."""
     if len(held_out) < 3:
         return None
     here = res.ms_by_run(n_logs)
