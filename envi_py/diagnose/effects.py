@@ -22,8 +22,9 @@ model was not trained on. For that case a candidate may also have a *what-if* (:
 the model is fed its inputs as the effect would have changed them, and the part of the raw
 residual mean square that removes is a second route to significance (:data:`WHAT_IF_BAR`).
 
-When the diagnosed logs come from another world than the model's training logs (they fit worse
-than its own held-out logs), the model's own shortcomings show in them too: a model of too short a
+When the diagnosed logs come from another world than the model's training logs (they fit
+significantly and clearly worse than its own held-out logs, :func:`~.run.another_world`), the
+model's own shortcomings show in them too: a model of too short a
 window lacks memory on its training world as much as on any other. There a share counts only for
 what it explains beyond the share the same test finds on the held-out logs (:attr:`Finding.excess`):
 what changed between the worlds, not what the model always missed.
