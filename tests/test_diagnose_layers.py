@@ -9,14 +9,16 @@ import torch
 
 from envi_py.diagnose.layers import (
     confirm,
+    fit_and_confirm,
     fit_layer,
     layers_path,
     load_layers,
+    own_level,
     save_layers,
     simulate_layered,
 )
 from envi_py.diagnose.gap import cut_logs
-from envi_py.diagnose.validate import LANE, validation_training, world_logs
+from envi_py.diagnose.validate import LANE, PID, validation_training, world_logs
 from envi_py.effect_layers import Layer, layered_commands
 from envi_py.simulate import initial_windows, rollout
 from envi_py.train import train
@@ -114,6 +116,39 @@ def test_a_delay_fitted_where_the_model_never_went_is_said_to_be_a_guess(clean_m
     assert fit_layer(clean_model, "delay", affected, boot=20).support is None
     noise = fit_layer(clean_model, "noise", world_logs("steered", LANE, 6, 100, {}, 1), 2, 0, 20, train_logs)
     assert noise.support is None and noise.identifiable
+
+
+def test_a_layered_gap_is_set_against_the_model_alone_on_held_out_logs_of_its_own_world(clean_model, clean_logs):
+    """The model's own level is the gap :func:`confirm` measures with nothing added (one definition),
+    on held-out clean logs. This small model is itself beyond 1.5x the floor there, which no layer
+    adds; a noise layer comes within 1.5x of that level, a delay fitted where the model never went
+    does not; fewer than 4 logs per version give no level, and held-out runs that do not vary (a
+    floor of 0) no ratio."""
+    held = world_logs("steered", LANE, 12, 100, {}, 3)
+    own = own_level(clean_model, held)
+    c = confirm(clean_model, Layer("delay"), held, boot=20)
+    assert own is not None and (own["gap"], own["floor"], own["logs"]) == (c["before"], c["floor"], 12)
+    assert own["ratio"] == pytest.approx(c["before"] / c["floor"]) and own["ratio"] > 1.5, own
+    assert own_level(clean_model, held[:3]) is None
+    settled = own_level(clean_model, world_logs("steered", PID, 6, 100, {}, 3))  # PID runs that do not vary
+    assert settled is not None and settled["floor"] == 0 and settled["ratio"] is None, settled
+
+    def layered(candidate: str, effects: dict, own_logs: list) -> dict:
+        shown, other = (world_logs("steered", LANE, 12, 100, effects, s) for s in (1, 2))
+        r = fit_and_confirm(
+            clean_model, candidate, shown, other, boot=20, train_logs=clean_logs[:12], own_logs=own_logs
+        )
+        assert r is not None
+        return r
+
+    noisy = layered("noise", {"noise": 3.0}, held)
+    assert (
+        noisy["own"]["within_1.5_own"] and noisy["confirm"]["after"] <= 1.5 * own["ratio"] * noisy["confirm"]["floor"]
+    )
+    delayed = layered("memory_delay", {"delay": 2}, held)
+    assert not delayed["fit"]["identifiable"] and not delayed["own"]["within_1.5_own"]
+    assert delayed["confirm"]["after"] > 1.5 * own["ratio"] * delayed["confirm"]["floor"], delayed["confirm"]
+    assert layered("noise", {"noise": 3.0}, held[:3])["own"] is None
 
 
 def test_fitted_layers_are_saved_beside_the_model_and_read_back(tmp_path):

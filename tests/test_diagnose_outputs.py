@@ -18,7 +18,7 @@ import torch
 from envi_py.cli import main
 from envi_py.controllers import ControllerSpec
 from envi_py.diagnose.layers import Fit
-from envi_py.diagnose.run import Diagnosis, diagnose
+from envi_py.diagnose.run import Diagnosis, diagnose, own_level_text
 from envi_py.effect_layers import Layer
 from envi_py.logs import load_logs
 from envi_py.model import Checkpoint
@@ -93,6 +93,27 @@ def test_a_new_diagnosis_replaces_the_earlier_one_as_a_whole(lane, tmp_path, mon
         "mine+lag.pt",
         "notes.txt",
     ]
+
+
+def test_the_report_sets_the_layered_gap_against_the_model_alone_on_its_held_out_logs(lane, tmp_path, monkeypatch):
+    _, _, _, d = lane
+    own = {"gap": 0.12, "floor": 0.06, "ratio": 2.0, "logs": 5, "within_1.5_own": True}
+    assert _diagnose_into(monkeypatch, lane, tmp_path / "a", replace(d, layer={**LAYER, "own": own}), {})[0] == 0
+    report = (tmp_path / "a" / "diagnosis.md").read_text()
+    assert "| model alone on its held-out logs (x their floor) | within 1.5x of that (or the floor) |" in report
+    assert "| 2.00x (5 logs) | yes |" in report
+    assert own_level_text({**LAYER, "own": own}) == (
+        " On 5 of its own held-out logs the model alone is at 2.00x their floor (a layer adds the effect, not "
+        "what the model misses on its own world); the layered model is at 2.00x, within 1.5x that level (or the "
+        "floor, where it is higher)."
+    )
+    assert _diagnose_into(monkeypatch, lane, tmp_path / "b", replace(d, layer={**LAYER, "own": None}), {})[0] == 0
+    assert "| not measured | - |" in (tmp_path / "b" / "diagnosis.md").read_text()
+    assert "not measured: fewer than 4 held-out logs" in own_level_text({**LAYER, "own": None})
+    settled = {"gap": 0.0, "floor": 0.0, "ratio": None, "logs": 6, "within_1.5_own": None}
+    assert _diagnose_into(monkeypatch, lane, tmp_path / "c", replace(d, layer={**LAYER, "own": settled}), {})[0] == 0
+    assert "| floor 0 (6 logs) | - |" in (tmp_path / "c" / "diagnosis.md").read_text()
+    assert "the runs do not vary (floor 0)" in own_level_text({**LAYER, "own": settled})
 
 
 def test_a_diagnosis_that_cannot_be_written_leaves_the_earlier_one(lane, tmp_path, monkeypatch):

@@ -246,7 +246,7 @@ def test_injected_effects_are_given_in_the_units_of_their_layers():
 def test_the_layer_table_counts_coverage_and_the_floor():
     from envi_py.diagnose.validate import layer_table
 
-    def row(seed, covered, within, shrink, identifiable=True):
+    def row(seed, covered, within, shrink, identifiable=True, own=(None, None)):
         r = _world_result("diffdrive", "delay", "memory_delay", "memory_delay", mode="verification", seed=seed)
         r["layer"] = {
             "fitted": f"delay {seed} ticks [{seed}, {seed}]",
@@ -254,6 +254,8 @@ def test_the_layer_table_counts_coverage_and_the_floor():
             "identifiable": identifiable,
             "outside_share": 0.1 if identifiable else 1.0,
             "within_1.5_floor": within,
+            "own_ratio": own[0],
+            "within_1.5_own": own[1],
             "shrink": shrink,
             "shrink_ci": [shrink - 0.1, shrink + 0.1],
         }
@@ -261,7 +263,11 @@ def test_the_layer_table_counts_coverage_and_the_floor():
             r["layer"]["covered"] = covered
         return r
 
-    rows = [row(2, True, True, 0.8), row(3, False, True, 0.6), row(1, False, False, 0.4)]
+    rows = [
+        row(2, True, True, 0.8, own=(1.2, True)),
+        row(3, False, True, 0.6),
+        row(1, False, False, 0.4, own=(2.0, True)),
+    ]
     rows.append(row(5, True, False, 0.5, identifiable=False))
     line = next(x for x in layer_table(rows) if x.startswith("| shipped | diffdrive | delay |"))
     fitted = "delay 2 ticks [2, 2]; delay 3 ticks [3, 3]; delay 1 ticks [1, 1]; delay 5 ticks [5, 5]"
@@ -270,7 +276,9 @@ def test_the_layer_table_counts_coverage_and_the_floor():
     noise["case"], noise["layer"]["outside_share"] = "noise", None  # a fit by simulation: not checked
     noise_line = next(x for x in layer_table([noise]) if x.startswith("| shipped | diffdrive | noise |"))
     assert "| delay 2 | - | 1/1 (100%, 3%-100%) |" in noise_line
-    assert "| 3/4 (75%, 19%-99%) | 1/3 (33%, 1%-91%) | 2/4 (50%, 7%-93%) | +55% [+45%, +65%] |" in line
+    assert "| 3/4 (75%, 19%-99%) | 1/3 (33%, 1%-91%) | 2/4 (50%, 7%-93%) | 1.60x | 2/2 (100%, 16%-100%) |" in line
+    assert line.endswith("| +55% [+45%, +65%] |")
+    assert "| 1/1 (100%, 3%-100%) | - | - | +30%" in noise_line  # the model's own level not measured
 
 
 def test_a_fix_is_said_as_the_train_options_that_make_it():

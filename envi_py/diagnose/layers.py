@@ -50,6 +50,7 @@ A fitted layer is saved as JSON beside the model (``<model>.layers.json``); ``en
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
@@ -70,6 +71,9 @@ from .shrink import scoring_of
 
 #: Fitted on one-step residuals (the rest by simulation; see the module's docstring).
 RESIDUAL_FIT = ("delay", "lag", "play", "gain_drift")
+
+#: The fewest held-out logs per controller version :func:`own_level` measures a gap on (2 runs a side).
+MIN_OWN_LOGS = 4
 
 #: Above this share of fitting windows outside the training windows' cover, a one-step fit is an
 #: extrapolation (see the module's docstring; steered world: clean logs 0.02-0.32, affected 1.00).
@@ -108,16 +112,26 @@ def _versions(scoring: Scoring, logs: Sequence[Log]) -> list[_Version]:
 
 
 def simulate_layered(
-    ckpt: Checkpoint, controller: ControllerSpec, init_logs: Sequence[Log], layer: Layer, runs: int = 1, seed: int = 0
+    ckpt: Checkpoint,
+    controller: ControllerSpec,
+    init_logs: Sequence[Log],
+    layer: Layer | None,
+    runs: int = 1,
+    seed: int = 0,
 ) -> list[Log]:
-    """``runs`` simulations of the model with ``layer`` from each log's initial window, as logs
-    (initial log, then replicate), each as long as its initial log and with its time stamps and
-    metadata (all logs must have one length: cut them first)."""
+    """``runs`` simulations of the model with ``layer`` (None: the learnt model alone) from each log's
+    initial window, as logs (initial log, then replicate), each as long as its initial log and with
+    its time stamps and metadata (all logs must have one length: cut them first)."""
     hist, ns = ckpt.config.history, ckpt.config.n_state
     if len({len(lg) for lg in init_logs}) != 1:
         raise ValueError("simulate_layered: the initial logs must have one length (cut them first)")
     rows = rollout(
-        ckpt.with_layers((layer,)), controller, initial_windows(init_logs, hist), len(init_logs[0]) - hist, runs, seed
+        ckpt.with_layers(() if layer is None else (layer,)),
+        controller,
+        initial_windows(init_logs, hist),
+        len(init_logs[0]) - hist,
+        runs,
+        seed,
     )
     out = []
     for i, tr in enumerate(rows):
@@ -126,7 +140,9 @@ def simulate_layered(
     return out
 
 
-def _simulate_table(ckpt: Checkpoint, scoring: Scoring, v: _Version, layer: Layer, runs: int, seed: int) -> np.ndarray:
+def _simulate_table(
+    ckpt: Checkpoint, scoring: Scoring, v: _Version, layer: Layer | None, runs: int, seed: int
+) -> np.ndarray:
     """(R*runs, G): the goal table of ``runs`` layered simulations from each log's initial window."""
     return scoring.table(scoring.runs(simulate_layered(ckpt, v.spec, v.logs, layer, runs, seed)))
 
@@ -307,6 +323,40 @@ def fit_layer(
     )
 
 
+def _matched_and_floor(versions: Sequence[_Version], sims: Sequence[np.ndarray], seed: int) -> tuple[float, float]:
+    """The matched W1 of each version's real runs against its simulated ones (``sims``, one goal table
+    per version) and the fair floor (:func:`~envi_py.verify.fair_reference`), each the mean over the
+    goals, averaged over versions: one definition for every gap a layer is judged by."""
+    matched, floor = [], []
+    for v, sim in zip(versions, sims):
+        fl, m, _ = fair_reference(v.real, sim, v.scale, None, None, seed, 10, 19)
+        matched.append(float(np.mean(m.w1)))
+        floor.append(float(np.mean(fl.w1)))
+    return float(np.mean(matched)), float(np.mean(floor))
+
+
+def own_level(ckpt: Checkpoint, logs: Sequence[Log], runs: int = 2, seed: int = 0) -> dict[str, Any] | None:
+    """The model's own gap on held-out ``logs`` of its training world (nothing added): the matched W1,
+    the fair floor and their ratio, as :func:`confirm` measures a gap: the level a layered model is set
+    against, since a layer adds the effect, not what the model misses on its own world. Why it is
+    reported beside "within 1.5x the floor": on the steered twin the small models of
+    ``benchmarks/layers_recovery.py`` (12 clean training logs; seeds 0-3) sit at 1.4-2.4x the floor
+    on clean held-out logs, and a saturation layer fitted to the injected limits exactly left the gap
+    at that level (1.4-2.5x), so "within 1.5x the floor" failed for the model, not for the layer.
+    None when a version has fewer than :data:`MIN_OWN_LOGS` logs (a floor needs two runs a side); the
+    ratio is None when the floor is 0."""
+    groups = group_by_controller(logs)
+    if not groups or min(len(g) for g in groups.values()) < MIN_OWN_LOGS:
+        return None
+    scoring = scoring_of(ckpt)
+    versions = _versions(scoring, logs)
+    gap, floor = _matched_and_floor(
+        versions, [_simulate_table(ckpt, scoring, v, None, runs, seed) for v in versions], seed
+    )
+    # a floor of 0 (held-out runs that do not vary, as a PID loop's settle) makes no ratio: said as such
+    return {"gap": gap, "floor": floor, "ratio": gap / floor if floor > 0 else None, "logs": len(logs)}
+
+
 def confirm(
     ckpt: Checkpoint, layer: Layer, logs: Sequence[Log], runs: int = 2, seed: int = 0, boot: int = 500
 ) -> dict[str, Any]:
@@ -318,13 +368,8 @@ def confirm(
     versions = _versions(scoring, logs)
     base = [_simulate_table(ckpt, scoring, v, Layer(layer.kind), runs, seed) for v in versions]
     fitted = [_simulate_table(ckpt, scoring, v, layer, runs, seed) for v in versions]
-    before, after, floor = [], [], []
-    for v, b, a in zip(versions, base, fitted):
-        fl, matched_b, _ = fair_reference(v.real, b, v.scale, None, None, seed, 10, 19)
-        _, matched_a, _ = fair_reference(v.real, a, v.scale, None, None, seed, 10, 19)
-        before.append(float(np.mean(matched_b.w1)))
-        after.append(float(np.mean(matched_a.w1)))
-        floor.append(float(np.mean(fl.w1)))
+    before, floor = _matched_and_floor(versions, base, seed)
+    after, _ = _matched_and_floor(versions, fitted, seed)
     offsets = np.cumsum([0] + [len(v.logs) for v in versions])
     owner = np.concatenate([np.full(len(v.logs), k) for k, v in enumerate(versions)])
 
@@ -347,7 +392,7 @@ def confirm(
         method="percentile",
         random_state=seed,
     )
-    b, a, f = float(np.mean(before)), float(np.mean(after)), float(np.mean(floor))
+    b, a, f = before, after, floor
     return {
         "layer": layer.to_json(),
         "before": b,
@@ -382,20 +427,25 @@ def fit_and_confirm(
     seed: int = 0,
     boot: int = 200,
     train_logs: Sequence[Log] = (),
+    own_logs: Sequence[Log] = (),
 ) -> dict[str, Any] | None:
     """The layers standing for a diagnosed candidate, each fitted on ``fit_logs`` (checked for support
     against ``train_logs``, the model's training logs); the one of smallest goal gap on the fitting
-    logs is confirmed on ``confirm_logs``. None when the candidate has no layer."""
+    logs is confirmed on ``confirm_logs``, and set against the model's own level on ``own_logs``
+    (held-out logs of its training world, :func:`own_level`; None without enough of them). None when
+    the candidate has no layer."""
     kinds = FOR_CANDIDATE.get(candidate, ())
     if not kinds:
         return None
     fits = [fit_layer(ckpt, k, fit_logs, runs, seed, boot, train_logs) for k in kinds]
     best = fits[0] if len(fits) == 1 else min(fits, key=lambda f: goal_gap(ckpt, f.layer, fit_logs, runs, seed))
-    return {
-        "candidate": candidate,
-        "fit": best.to_json(),
-        "confirm": confirm(ckpt, best.layer, confirm_logs, runs, seed),
-    }
+    confirmed = confirm(ckpt, best.layer, confirm_logs, runs, seed)
+    own = own_level(ckpt, own_logs, runs, seed)
+    if own is not None:
+        after = confirmed["after"] / confirmed["floor"] if confirmed["floor"] > 0 else math.inf
+        # the model's level is at least the floor: a held-out ratio below 1 is the floor's own noise
+        own["within_1.5_own"] = None if own["ratio"] is None else bool(after <= 1.5 * max(1.0, own["ratio"]))
+    return {"candidate": candidate, "fit": best.to_json(), "confirm": confirmed, "own": own}
 
 
 def layers_path(model_path: str | Path) -> Path:

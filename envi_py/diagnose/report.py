@@ -275,11 +275,20 @@ def _shrink_cell(a: dict[str, Any]) -> str:
     return f"{a['shrink']:+.0%}" + (f" ({ci[0]:+.0%} to {ci[1]:+.0%})" if ci else "")
 
 
+def _own_cell(own: dict[str, Any] | None) -> str:
+    """The model alone on its held-out logs (:func:`~.layers.own_level`), as a ratio to their floor."""
+    if not own:
+        return "not measured"
+    if own["ratio"] is None:
+        return f"floor 0 ({own['logs']} logs)"
+    return f"{own['ratio']:.2f}x ({own['logs']} logs)"
+
+
 def _layer_section(d: Diagnosis) -> list[Section]:
     """The leading candidate fitted as a small layer around the learnt model, confirmed elsewhere."""
     if not d.layer:
         return []
-    f, c = d.layer["fit"], d.layer["confirm"]
+    f, c, own = d.layer["fit"], d.layer["confirm"], d.layer.get("own")
     lo, hi = c["shrink_ci"]
     return [
         Section(
@@ -288,7 +297,9 @@ def _layer_section(d: Diagnosis) -> list[Section]:
                 Text(
                     f"The leading candidate ({d.layer['candidate']}) as a parametric layer around the learnt model, "
                     f"fitted on the logs that show the gap ({f['criterion']}; the interval is a bootstrap over those "
-                    "logs), then the gap measured on the confirmation logs without and with it. "
+                    "logs), then the gap measured on the confirmation logs without and with it, and set against the "
+                    "model alone on its own held-out logs: a layer adds the effect, not what the model misses on its "
+                    "own world. "
                     + (
                         "Saved beside the report as <model>.layers.json."
                         if layer_shown_to_help(d)
@@ -296,7 +307,16 @@ def _layer_section(d: Diagnosis) -> list[Section]:
                     )
                 ),
                 Table(
-                    ["fitted layer", "gap before", "gap after", "floor", "shrink (95%)", "within 1.5x the floor"],
+                    [
+                        "fitted layer",
+                        "gap before",
+                        "gap after",
+                        "floor",
+                        "shrink (95%)",
+                        "within 1.5x the floor",
+                        "model alone on its held-out logs (x their floor)",
+                        "within 1.5x of that (or the floor)",
+                    ],
                     [
                         [
                             f["short"],
@@ -305,6 +325,12 @@ def _layer_section(d: Diagnosis) -> list[Section]:
                             f"{c['floor']:.4f}",
                             f"{c['shrink']:+.0%} ({lo:+.0%} to {hi:+.0%})",
                             "yes" if c["within_1.5_floor"] else "no",
+                            _own_cell(own),
+                            "-"
+                            if not own or own["within_1.5_own"] is None
+                            else "yes"
+                            if own["within_1.5_own"]
+                            else "no",
                         ]
                     ],
                     numeric=frozenset({1, 2, 3, 4}),

@@ -32,7 +32,7 @@ from .gap import (
 )
 from .residuals import ResidualSet, one_step_residuals
 from .data_quality import data_quality
-from .layers import MAX_OUTSIDE, fit_and_confirm
+from .layers import MAX_OUTSIDE, MIN_OWN_LOGS, fit_and_confirm
 from .shrink import scoring_of, shrink, simulate_groups, version_label
 from .stages import refit_gaussian, spread_check, stage_text
 
@@ -190,6 +190,7 @@ class Diagnosis:
                 f"shrink, 95% interval {lo:+.0%} to {hi:+.0%}; floor {c['floor']:.4f}"
                 f"{', within 1.5x the floor' if c['within_1.5_floor'] else ''})."
             )
+            text += own_level_text(self.layer)
         return text
 
     def _coverage_text(self) -> str:
@@ -232,6 +233,32 @@ class Diagnosis:
             "residual_correlation": self.correlation,
             "layer": self.layer,
         }
+
+
+def own_level_text(layer: dict[str, Any]) -> str:
+    """The layered gap set against the model's own level on its held-out logs (:func:`~.layers.own_level`):
+    how much of what remains is the model's own imprecision, which no layer adds."""
+    own, c = layer.get("own"), layer["confirm"]
+    if not own:
+        return (
+            f" The model's own level was not measured: fewer than {MIN_OWN_LOGS} held-out logs of its training "
+            "world per controller version."
+        )
+    if own["ratio"] is None:
+        return (
+            f" On {own['logs']} of its own held-out logs the runs do not vary (floor 0), so the model's own level "
+            f"is no ratio to the floor (its normalised W1 there: {own['gap']:.4f})."
+        )
+    after = c["after"] / c["floor"] if c["floor"] > 0 else float("inf")
+    return (
+        f" On {own['logs']} of its own held-out logs the model alone is at {own['ratio']:.2f}x their floor (a "
+        f"layer adds the effect, not what the model misses on its own world); the layered model is at {after:.2f}x, "
+        + (
+            "within 1.5x that level (or the floor, where it is higher)."
+            if own["within_1.5_own"]
+            else "beyond 1.5x that level (and the floor)."
+        )
+    )
 
 
 def split_choose_confirm(logs: Sequence[Log], seed: int) -> tuple[list[Log], list[Log]]:
@@ -517,7 +544,9 @@ def diagnose(
     layer = None
     if retrain and sig:
         say(f"6/6 fitting a {sig[0].effect} layer around the model and confirming it on {len(confirm_l)} logs")
-        layer = fit_and_confirm(ckpt, sig[0].candidate, choose, confirm_l, runs=2, seed=seed, train_logs=train_logs)
+        layer = fit_and_confirm(
+            ckpt, sig[0].candidate, choose, confirm_l, runs=2, seed=seed, train_logs=train_logs, own_logs=val_logs
+        )
     misfit, misfit_each = misfit_by_signal(res)
     return Diagnosis(
         findings,

@@ -209,11 +209,19 @@ def covers(fit: dict[str, Any], truth: tuple[str, float] | None) -> bool | None:
 
 
 def _layer_trial(
-    ckpt: Any, case: Case, diag: Sequence[Log], d: Any, size: Size, seed: int, train_logs: Sequence[Log]
+    ckpt: Any,
+    case: Case,
+    diag: Sequence[Log],
+    d: Any,
+    size: Size,
+    seed: int,
+    train_logs: Sequence[Log],
+    val_logs: Sequence[Log],
 ) -> dict[str, Any] | None:
     """Shrink where the gap is: the layers of the diagnosed top candidate, fitted on the logs the
     diagnosis chose on (checked for support against the model's ``train_logs``) and confirmed on its
-    confirmation logs (used for neither). Whether the interval covers the injected value is scored
+    confirmation logs (used for neither), beside the model's own level on its ``val_logs`` (as the
+    diagnosis does). Whether the interval covers the injected value is scored
     for an identifiable fit only: an extrapolation's interval is the whole grid, which covers anything."""
     from .layers import FOR_CANDIDATE, fit_and_confirm
 
@@ -223,9 +231,11 @@ def _layer_trial(
     by_name = {lg.name: lg for lg in diag}
     choose = [by_name[n] for n in d.choose_logs]
     confirm = [by_name[n] for n in d.confirm_logs]
-    r = fit_and_confirm(ckpt, top, choose, confirm, runs=size.runs, seed=seed, boot=200, train_logs=train_logs)
+    r = fit_and_confirm(
+        ckpt, top, choose, confirm, runs=size.runs, seed=seed, boot=200, train_logs=train_logs, own_logs=val_logs
+    )
     assert r is not None
-    fit, conf = r["fit"], r["confirm"]
+    fit, conf, own = r["fit"], r["confirm"], r["own"]
     layer = fit["layer"]
     out = {
         "candidate": top,
@@ -236,6 +246,9 @@ def _layer_trial(
         "identifiable": fit["identifiable"],
         "outside_share": None if fit["support"] is None else fit["support"]["outside_share"],
         **{k: conf[k] for k in ("before", "after", "floor", "shrink", "shrink_ci", "within_1.5_floor")},
+        # the model alone on its held-out logs (x their floor), and the layered model within 1.5x of that level
+        "own_ratio": None if own is None else own["ratio"],
+        "within_1.5_own": None if own is None else own["within_1.5_own"],
     }
     truth = injected_layer(case, ckpt.period_ms)
     if truth is not None:
@@ -366,7 +379,7 @@ def trial(
     if mode == "verification" and case.expected is not None:
         out["where"] = _where(ckpt, case, size, seed, world)
         if layers:
-            layer = _layer_trial(ckpt, case, diag, d, size, seed, train_logs)
+            layer = _layer_trial(ckpt, case, diag, d, size, seed, train_logs, val_logs)
             if layer is not None:
                 out["layer"] = layer
     return out
@@ -626,6 +639,11 @@ def to_markdown(scores: Sequence[Score], size: Size) -> str:
     return "\n".join(lines)
 
 
+def _median_ratio(ratios: Sequence[float]) -> str:
+    """A median ratio to the floor, or '-' when none was measured."""
+    return f"{float(np.median(ratios)):.2f}x" if ratios else "-"
+
+
 def _rate(hits: Sequence[bool]) -> str:
     """``k/n (p%, 95% CI lo-hi%)`` with the Clopper-Pearson interval; ``-`` when there are no trials."""
     from scipy.stats import binomtest
@@ -731,8 +749,9 @@ def layer_table(
         "choose logs, gap re-measured on the confirmation logs):",
         "",
         "| procedure | world | case | trials | fitted (interval) | injected | identifiable | interval covers "
-        "(identifiable fits) | within 1.5x floor | median shrink [median CI] |",
-        "|---|---|---|---:|---|---|---|---|---|---|",
+        "(identifiable fits) | within 1.5x floor | model alone on its held-out logs (median, x floor) | "
+        "within 1.5x of that (or the floor) | median shrink [median CI] |",
+        "|---|---|---|---:|---|---|---|---|---|---:|---|---|",
     ]
     for pr, w in [(pr, w) for pr in procedures for w in worlds]:
         here = [r for r in rows if _procedure(r) == pr and r.get("world", TUNED_ON) == w]
@@ -740,13 +759,15 @@ def layer_table(
             ls = [r["layer"] for r in here if r["case"] == c]
             inj = {f"{x['injected']['kind']} {x['injected']['value']:g}" for x in ls if "injected" in x}
             cov = [x["covered"] for x in ls if "covered" in x]
+            own = [x["own_ratio"] for x in ls if x.get("own_ratio") is not None]
             lo = float(np.median([x["shrink_ci"][0] for x in ls]))
             hi = float(np.median([x["shrink_ci"][1] for x in ls]))
             lines.append(
                 f"| {pr} | {w} | {c} | {len(ls)} | {'; '.join(x['fitted'] for x in ls)} | "
                 f"{', '.join(sorted(inj)) or '-'} | "
                 f"{_rate([x['identifiable'] for x in ls if x.get('outside_share') is not None])} | "
-                f"{_rate(cov)} | {_rate([x['within_1.5_floor'] for x in ls])} | "
+                f"{_rate(cov)} | {_rate([x['within_1.5_floor'] for x in ls])} | {_median_ratio(own)} | "
+                f"{_rate([x['within_1.5_own'] for x in ls if x.get('within_1.5_own') is not None])} | "
                 f"{float(np.median([x['shrink'] for x in ls])):+.0%} [{lo:+.0%}, {hi:+.0%}] |"
             )
     return lines
