@@ -122,15 +122,17 @@ def test_a_layered_gap_is_set_against_the_model_alone_on_held_out_logs_of_its_ow
     """The model's own level is the gap :func:`confirm` measures with nothing added (one definition),
     on held-out clean logs. This small model is itself beyond 1.5x the floor there, which no layer
     adds; a noise layer comes within 1.5x of that level, a delay fitted where the model never went
-    does not; fewer than 4 logs per version give no level, and held-out runs that do not vary (a
-    floor of 0) no ratio."""
-    held = world_logs("steered", LANE, 12, 100, {}, 3)
-    own = own_level(clean_model, held)
-    c = confirm(clean_model, Layer("delay"), held, boot=20)
+    does not; fewer held-out logs than confirmation logs give no level (a floor depends on the runs
+    per side), and held-out runs that do not vary (a floor of 0) no ratio."""
+    held = world_logs("steered", LANE, 14, 100, {}, 3)
+    like = world_logs("steered", LANE, 12, 100, {"noise": 3.0}, 2)  # as many as the confirmation logs
+    own = own_level(clean_model, held, like)
+    c = confirm(clean_model, Layer("delay"), held[:12], boot=20)
     assert own is not None and (own["gap"], own["floor"], own["logs"]) == (c["before"], c["floor"], 12)
     assert own["ratio"] == pytest.approx(c["before"] / c["floor"]) and own["ratio"] > 1.5, own
-    assert own_level(clean_model, held[:3]) is None
-    settled = own_level(clean_model, world_logs("steered", PID, 6, 100, {}, 3))  # PID runs that do not vary
+    assert own_level(clean_model, held[:11], like) is None  # fewer runs a side than the confirmation's
+    pid = world_logs("steered", PID, 6, 100, {}, 3)
+    settled = own_level(clean_model, pid, pid)  # PID runs that do not vary
     assert settled is not None and settled["floor"] == 0 and settled["ratio"] is None, settled
 
     def layered(candidate: str, effects: dict, own_logs: list) -> dict:

@@ -109,7 +109,9 @@ def test_the_report_sets_the_layered_gap_against_the_model_alone_on_its_held_out
     )
     assert _diagnose_into(monkeypatch, lane, tmp_path / "b", replace(d, layer={**LAYER, "own": None}), {})[0] == 0
     assert "| not measured | - |" in (tmp_path / "b" / "diagnosis.md").read_text()
-    assert "not measured: fewer than 4 held-out logs" in own_level_text({**LAYER, "own": None})
+    assert "not measured: its held-out logs of its training world are fewer than the confirmation logs" in (
+        own_level_text({**LAYER, "own": None})
+    )
     settled = {"gap": 0.0, "floor": 0.0, "ratio": None, "logs": 6, "within_1.5_own": None}
     assert _diagnose_into(monkeypatch, lane, tmp_path / "c", replace(d, layer={**LAYER, "own": settled}), {})[0] == 0
     assert "| floor 0 (6 logs) | - |" in (tmp_path / "c" / "diagnosis.md").read_text()

@@ -32,7 +32,7 @@ from .gap import (
 )
 from .residuals import ResidualSet, one_step_residuals
 from .data_quality import data_quality
-from .layers import MAX_OUTSIDE, MIN_OWN_LOGS, fit_and_confirm
+from .layers import MAX_OUTSIDE, fit_and_confirm
 from .shrink import scoring_of, shrink, simulate_groups, version_label
 from .stages import refit_gaussian, spread_check, stage_text
 
@@ -241,8 +241,8 @@ def own_level_text(layer: dict[str, Any]) -> str:
     own, c = layer.get("own"), layer["confirm"]
     if not own:
         return (
-            f" The model's own level was not measured: fewer than {MIN_OWN_LOGS} held-out logs of its training "
-            "world per controller version."
+            " The model's own level was not measured: its held-out logs of its training world are fewer than "
+            "the confirmation logs for some controller version, and a floor depends on the runs per side."
         )
     if own["ratio"] is None:
         return (

@@ -216,12 +216,12 @@ def _layer_trial(
     size: Size,
     seed: int,
     train_logs: Sequence[Log],
-    val_logs: Sequence[Log],
+    world: str,
 ) -> dict[str, Any] | None:
     """Shrink where the gap is: the layers of the diagnosed top candidate, fitted on the logs the
     diagnosis chose on (checked for support against the model's ``train_logs``) and confirmed on its
-    confirmation logs (used for neither), beside the model's own level on its ``val_logs`` (as the
-    diagnosis does). Whether the interval covers the injected value is scored
+    confirmation logs (used for neither), beside the model's own level on as many fresh clean logs of
+    its ``world``. Whether the interval covers the injected value is scored
     for an identifiable fit only: an extrapolation's interval is the whole grid, which covers anything."""
     from .layers import FOR_CANDIDATE, fit_and_confirm
 
@@ -231,8 +231,11 @@ def _layer_trial(
     by_name = {lg.name: lg for lg in diag}
     choose = [by_name[n] for n in d.choose_logs]
     confirm = [by_name[n] for n in d.confirm_logs]
+    # the model's own level on clean logs of its world, as many as the confirmation logs (a floor
+    # depends on the runs per side: its 5 validation logs would pull the ratio toward 1)
+    own_logs = _logs(case, len(confirm), size.steps, seed + 4_000_000, {}, world)
     r = fit_and_confirm(
-        ckpt, top, choose, confirm, runs=size.runs, seed=seed, boot=200, train_logs=train_logs, own_logs=val_logs
+        ckpt, top, choose, confirm, runs=size.runs, seed=seed, boot=200, train_logs=train_logs, own_logs=own_logs
     )
     assert r is not None
     fit, conf, own = r["fit"], r["confirm"], r["own"]
@@ -379,7 +382,7 @@ def trial(
     if mode == "verification" and case.expected is not None:
         out["where"] = _where(ckpt, case, size, seed, world)
         if layers:
-            layer = _layer_trial(ckpt, case, diag, d, size, seed, train_logs, val_logs)
+            layer = _layer_trial(ckpt, case, diag, d, size, seed, train_logs, world)
             if layer is not None:
                 out["layer"] = layer
     return out
