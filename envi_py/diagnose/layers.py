@@ -396,16 +396,15 @@ def confirm(
         method="percentile",
         random_state=seed,
     )
-    b, a, f = before, after, floor
     return {
         "layer": layer.to_json(),
-        "before": b,
-        "after": a,
-        "floor": f,
-        "shrink": 1 - a / max(b, 1e-12),
+        "before": before,
+        "after": after,
+        "floor": floor,
+        "shrink": 1 - after / max(before, 1e-12),
         "shrink_all_runs": shrink_of(idx),
         "shrink_ci": [float(res.confidence_interval.low), float(res.confidence_interval.high)],
-        "within_1.5_floor": a <= 1.5 * f,
+        "within_1.5_floor": after <= 1.5 * floor,
         "confirm_logs": [lg.name for lg in logs],
         "runs": runs,
         "boot": boot,

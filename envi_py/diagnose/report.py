@@ -252,7 +252,7 @@ def _candidates_section(d: Diagnosis) -> Section:
                 [
                     [
                         f.effect,
-                        "yes" if f.significant else "no",
+                        _yes(f.significant),
                         f"{f.p_holm:.2g}",
                         share_text(f.share),
                         share_text(f.held_out) if counted else "-",
@@ -273,6 +273,10 @@ def _shrink_cell(a: dict[str, Any]) -> str:
         return "unchanged: the model already has it"
     ci = a.get("shrink_ci")
     return f"{a['shrink']:+.0%}" + (f" ({ci[0]:+.0%} to {ci[1]:+.0%})" if ci else "")
+
+
+def _yes(flag: bool) -> str:
+    return "yes" if flag else "no"
 
 
 def _own_cell(own: dict[str, Any] | None) -> str:
@@ -324,13 +328,9 @@ def _layer_section(d: Diagnosis) -> list[Section]:
                             f"{c['after']:.4f}",
                             f"{c['floor']:.4f}",
                             f"{c['shrink']:+.0%} ({lo:+.0%} to {hi:+.0%})",
-                            "yes" if c["within_1.5_floor"] else "no",
+                            _yes(c["within_1.5_floor"]),
                             _own_cell(own),
-                            "-"
-                            if not own or own["within_1.5_own"] is None
-                            else "yes"
-                            if own["within_1.5_own"]
-                            else "no",
+                            "-" if not own or own["within_1.5_own"] is None else _yes(own["within_1.5_own"]),
                         ]
                     ],
                     numeric=frozenset({1, 2, 3, 4}),
