@@ -411,6 +411,11 @@ def confirm(
     }
 
 
+def layered_ratio(confirmed: dict[str, Any]) -> float:
+    """The layered model's gap on the confirmation logs over their floor (:func:`confirm`); inf on a floor of 0."""
+    return confirmed["after"] / confirmed["floor"] if confirmed["floor"] > 0 else math.inf
+
+
 def goal_gap(ckpt: Checkpoint, layer: Layer, logs: Sequence[Log], runs: int = 2, seed: int = 0) -> float:
     """Mean normalised W1 over the goals of ``logs`` against their layered simulations (averaged over
     versions): how two fitted layers of one candidate are compared on the fitting logs."""
@@ -445,9 +450,10 @@ def fit_and_confirm(
     confirmed = confirm(ckpt, best.layer, confirm_logs, runs, seed)
     own = own_level(ckpt, own_logs, confirm_logs, runs, seed)
     if own is not None:
-        after = confirmed["after"] / confirmed["floor"] if confirmed["floor"] > 0 else math.inf
         # the model's level is at least the floor: a held-out ratio below 1 is the floor's own noise
-        own["within_1.5_own"] = None if own["ratio"] is None else bool(after <= 1.5 * max(1.0, own["ratio"]))
+        own["within_1.5_own"] = (
+            None if own["ratio"] is None else bool(layered_ratio(confirmed) <= 1.5 * max(1.0, own["ratio"]))
+        )
     return {"candidate": candidate, "fit": best.to_json(), "confirm": confirmed, "own": own}
 
 

@@ -32,7 +32,7 @@ from .gap import (
 )
 from .residuals import ResidualSet, one_step_residuals
 from .data_quality import data_quality
-from .layers import MAX_OUTSIDE, fit_and_confirm
+from .layers import MAX_OUTSIDE, fit_and_confirm, layered_ratio
 from .shrink import scoring_of, shrink, simulate_groups, version_label
 from .stages import refit_gaussian, spread_check, stage_text
 
@@ -249,7 +249,7 @@ def own_level_text(layer: dict[str, Any]) -> str:
             f" On {own['logs']} of its own held-out logs the runs do not vary (floor 0), so the model's own level "
             f"is no ratio to the floor (its normalised W1 there: {own['gap']:.4f})."
         )
-    after = c["after"] / c["floor"] if c["floor"] > 0 else float("inf")
+    after = layered_ratio(c)
     return (
         f" On {own['logs']} of its own held-out logs the model alone is at {own['ratio']:.2f}x their floor (a "
         f"layer adds the effect, not what the model misses on its own world); the layered model is at {after:.2f}x, "
