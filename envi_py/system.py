@@ -64,11 +64,13 @@ class Channel:
     resolution: float | None = None
     saturates: bool = False
 
-    def reads(self, values: Any, level: float) -> np.ndarray:
-        """Where ``values`` are the reading ``level``: within half the declared resolution step, else
-        within 1e-6 of it (relative beyond 1). The one test of "at a limit reading", for the limit
-        events, the event head's targets and the in-range clamp alike."""
-        tol = self.resolution / 2 if self.resolution else 1e-6 * max(1.0, abs(level))
+    def reads(self, values: Any, level: Any) -> np.ndarray:
+        """Where ``values`` are the reading ``level`` (a number, or readings of the same shape): within
+        half the declared resolution step, else within 1e-6 of it (relative beyond 1). The one test of
+        "the same reading", for the limit events, the event head's targets, the in-range clamp and a
+        run that repeats itself (:mod:`envi_py.diagnose.cycles`) alike."""
+        level = np.asarray(level, dtype=np.float64)
+        tol = self.resolution / 2 if self.resolution else 1e-6 * np.maximum(1.0, np.abs(level))
         return np.abs(np.asarray(values, dtype=np.float64) - level) <= tol
 
     def to_json(self) -> dict[str, Any]:

@@ -31,6 +31,7 @@ from .gap import (
     windows_of,
 )
 from .residuals import ResidualSet, one_step_residuals
+from .cycles import cycle_check, cycle_text
 from .data_quality import data_quality
 from .layers import MAX_OUTSIDE, fit_and_confirm, layered_ratio
 from .shrink import scoring_of, shrink, simulate_groups, version_label
@@ -63,6 +64,7 @@ class Diagnosis:
     stage: dict[str, Any] | None = None  # :mod:`.stages`: the model class was wrong, and the refit
     correlation: list[dict[str, Any]] = field(default_factory=list)  # :func:`residual_correlation`
     layer: dict[str, Any] | None = None  # :func:`~.layers.fit_and_confirm` for the leading candidate
+    cycles: dict[str, Any] | None = None  # :func:`~.cycles.cycle_check`: simulated runs that repeat themselves
 
     @property
     def significant(self) -> list[Finding]:
@@ -149,6 +151,7 @@ class Diagnosis:
             self._quality_text()
             + (stage_text(stage, stage["mean_w1_before"], stage["mean_w1_after"]) if stage else "")
             + self._gap_text()
+            + cycle_text(self.cycles)
             + self._horizon_text()
             + self._coverage_text()
         )
@@ -232,6 +235,7 @@ class Diagnosis:
             "confirm_logs": self.confirm_logs,
             "residual_correlation": self.correlation,
             "layer": self.layer,
+            "cycles": self.cycles,
         }
 
 
@@ -518,6 +522,7 @@ def diagnose(
             if keep_models is not None and after < before:  # offered only when it narrowed the gap
                 keep_models["refit"] = ckpt
         stage = {**check, "refit": refit, "mean_w1_before": before, "mean_w1_after": after}
+    cycles = cycle_check(groups, ckpt.schema.states, scoring_of(ckpt).skip)
     say("4/6 candidate effects on the residuals")
     held = held_out_fit(ckpt, res, len(choose), val_logs)
     findings = run_candidates(res, ckpt, alpha, min_share, logs=choose, held_out=own_shares(ckpt, held, val_logs))
@@ -568,4 +573,5 @@ def diagnose(
         stage,
         residual_correlation(res),
         layer,
+        cycles,
     )
