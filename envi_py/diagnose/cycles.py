@@ -13,7 +13,12 @@ distinct values against 9 in the real runs (medians). These models sit at 1.4-3.
 on their own world. Keeping the model's window unrounded halves those 87 runs to 43; that probe is
 not in the code (README, "What keeps the steered models off the floor"). The same models with the
 Gaussian head settle in none of 160 runs. Neither head's models settle on the diffdrive twin,
-whose clean runs vary.
+whose clean runs vary. In the validation (`envi diagnose validate`, seeds 100-109, 220 trials of
+the cases none, none_gaussian, noise, saturation, lag and run_variation), the check is significant
+in 78 of 100 steered trials with the deterministic head. It is significant in none of the 10 with
+the Gaussian head and in none of the 110 diffdrive trials. Among the 78 are 5 of the 10 steered
+trials whose models were trained on noisy logs: their runs repeat themselves where the noisy real
+runs never do (0 of 200).
 
 So the diagnosis says where runs part this way. A goal that counts or times events (how often
 the robot overshoots, for how long) then differs partly for this reason, not for a missing effect.
@@ -100,7 +105,8 @@ def cycle_text(check: dict[str, Any] | None) -> str:
         f"The model's runs settle into an exact repeating cycle (period {periods} rows) in "
         f"{check['sim_settled']} of {check['runs']} runs, against {check['real_settled']} of {check['runs']} "
         f"real runs (one simulated run per real log's initial window; Fisher exact p={check['p']:.2g}). "
-        "There the model repeats itself while the real loop keeps drifting, as a deterministic model whose "
-        "readings are rounded to the sensor's resolution does when the drift it predicts is below half a "
-        "step. So part of the gap in goals that count or time events is the model's own, not a missing effect. "
+        "There the model repeats itself where the real runs keep changing, by a slow drift or at random. A "
+        "deterministic model whose readings are rounded to the sensor's resolution does so once the change "
+        "it predicts over a cycle rounds away. So part of the gap in goals that count or time events is the "
+        "model's own, not a missing effect. "
     )
