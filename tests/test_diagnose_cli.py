@@ -43,6 +43,8 @@ def test_deterministic_model_of_a_noisy_world_is_refitted_before_the_rest_is_dia
     assert d["data_quality"] == []
     md = (out / "diagnosis.md").read_text()
     figures = ("metrics.png", "horizon.png", "residual_map.png", "residual_correlation.png")
+    assert "| controller | real runs | settled, real | settled, simulated | periods (rows) |" in md
+    assert d["cycles"]["runs"] == 12 and len(d["cycles"]["versions"]) == 1
     for part in ("## Data quality", "## Model class", *(f"diagnosis_figures/{f}" for f in figures)):
         assert part in md
         if part.endswith(".png"):

@@ -10,6 +10,7 @@ import numpy as np
 
 from envi_py.controllers import ControllerSpec
 from envi_py.diagnose.cycles import MAX_PERIOD, cycle_check, cycle_text, settled_period
+from envi_py.diagnose.report import _cycles_table
 from envi_py.diagnose.run import _gaps
 from envi_py.diagnose.shrink import scoring_of
 from envi_py.logs import Log, LogMeta
@@ -84,7 +85,12 @@ def test_the_verdict_says_where_simulated_runs_settle_and_the_json_carries_it():
     # after the gap it qualifies, before the horizon
     where = [verdict.index(t) for t in ("largest closed-loop gap", "repeating cycle", "Over the horizon")]
     assert where == sorted(where)
+    table = _cycles_table(d)[0]
+    assert table.rows == [["x=30", "10", "0", "10", "2"]]
+    assert "10 of 10 simulated against 0 of 10 real" in table.caption and "(more than the real ones)" in table.caption
     quiet = cycle_check([("x=30", real, real)], [COLOUR], 4)
+    assert _cycles_table(replace(d, cycles=quiet))[0].rows == [["x=30", "10", "0", "0", "-"]]
+    assert _cycles_table(replace(d, cycles=None)) == []
     assert "repeating cycle" not in replace(_diagnosis(0.001), cycles=quiet).verdict()
     assert "repeating cycle" not in _diagnosis(0.001).verdict()  # older diagnoses: no check at all
 

@@ -17,6 +17,7 @@ from ..model import Checkpoint
 from ..report.files import Attachment, ReportFiles, write_files
 from ..report.plots import correlation_figure, png_bytes, pyplot
 from ..report.stats import Correlations
+from .cycles import MAX_PERIOD
 from .effects import CANDIDATES, MIN_SHARE, WHAT_IF_BAR
 from .gap import ratio_text, share_text
 from .layers import save_layers
@@ -419,6 +420,7 @@ def _gaps_section(d: Diagnosis) -> Section:
                 numeric=frozenset({2, 3, 4, 5, 6, 7}),
             )
         )
+    blocks.extend(_cycles_table(d))
     blocks.append(
         _figure(
             "horizon",
@@ -428,6 +430,36 @@ def _gaps_section(d: Diagnosis) -> Section:
         )
     )
     return Section("Where the gap lies", blocks)
+
+
+def _cycles_table(d: Diagnosis) -> list[Table]:
+    """Per version, how many runs settle into an exact repeating cycle, real and simulated
+    (:mod:`.cycles`); none for a diagnosis without the check."""
+    c = d.cycles
+    if not c:
+        return []
+    return [
+        Table(
+            ["controller", "real runs", "settled, real", "settled, simulated", "periods (rows)"],
+            [
+                [
+                    v["controller"],
+                    str(v["runs"]),
+                    str(v["real_settled"]),
+                    str(v["sim_settled"]),
+                    ", ".join(map(str, v["sim_periods"])) or "-",
+                ]
+                for v in c["versions"]
+            ],
+            caption=(
+                f"Runs whose last half repeats exactly with a period of 1-{MAX_PERIOD} rows (one simulated run per "
+                f"real log's initial window): {c['sim_settled']} of {c['runs']} simulated against "
+                f"{c['real_settled']} of {c['runs']} real, Fisher exact p={c['p']:.2g}"
+                + (" (more than the real ones)" if c["significant"] else "")
+            ),
+            numeric=frozenset({1, 2, 3}),
+        )
+    ]
 
 
 def _correlation_figure(d: Diagnosis) -> list[ReportFigure]:
