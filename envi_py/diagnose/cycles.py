@@ -1,4 +1,4 @@
-"""Where the simulated runs settle into an exact repeating cycle that the real runs never show.
+"""Where the simulated runs settle into an exact repeating cycle more often than the real runs do.
 
 A model is a map from a window of rows to the next state. A deterministic one whose readings are
 rounded to the sensor's resolution is a map on a grid. Once a window repeats, the run repeats it

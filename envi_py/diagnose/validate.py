@@ -365,7 +365,7 @@ def trial(
         # the goals' mean normalised W1 before and after the refit (None without one), so a rule on
         # how much the refit alone closes the gap can be judged from the results
         "stage": None if d.stage is None else {k: d.stage[k] for k in ("refit", "mean_w1_before", "mean_w1_after")},
-        # simulated runs that repeat themselves where the real ones drift (:mod:`.cycles`)
+        # simulated runs that repeat themselves more often than the real ones (:mod:`.cycles`)
         "cycles": None if d.cycles is None else {k: d.cycles[k] for k in ("runs", "real_settled", "sim_settled", "p")},
     }
     if d.shrink:
