@@ -7,6 +7,8 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from envi_py.controllers import ControllerSpec
 from envi_py.diagnose.cycles import MAX_PERIOD, cycle_check, cycle_text, settled_period
@@ -57,6 +59,32 @@ def test_a_run_is_settled_only_where_its_tail_repeats_within_half_a_resolution_s
     exact = Channel("color", "", 0.0, 100.0)
     assert settled_period((_locked(100) + 1e-3 * (np.arange(100) % 2 == 0))[:, None], [exact], 4) == 2
     assert settled_period((_locked(100) + 1e-3 * np.arange(100))[:, None], [exact], 4) is None
+
+
+@settings(max_examples=200, deadline=None, database=None, derandomize=True)
+@given(
+    cycle=st.lists(st.integers(0, 100), min_size=1, max_size=MAX_PERIOD),
+    extra=st.integers(0, 40),
+    skip=st.integers(0, 10),
+    where=st.floats(0.0, 1.0, exclude_max=True),
+)
+def test_a_periodic_tail_is_settled_at_a_divisor_of_its_period_and_one_odd_reading_unsettles_it(
+    cycle, extra, skip, where
+):
+    """Property: readings that repeat ``cycle`` (period p <= MAX_PERIOD) over a tail long enough for
+    4 cycles settle at a period dividing p (the shortest one: by Fine and Wilf's theorem two periods
+    of a long enough run share their gcd); one reading in the tail set outside every value of the
+    cycle leaves no period at all."""
+    p = len(cycle)
+    n = skip + 2 * 4 * p + extra  # the tail is the last half of the rows after skip
+    x = np.resize(np.array(cycle, dtype=float), n)[:, None]
+    found = settled_period(x, [COLOUR], skip)
+    assert found is not None and p % found == 0
+    tail_start = skip + (n - skip) - (n - skip) // 2
+    i = tail_start + int(where * (n - tail_start))
+    odd = x.copy()
+    odd[i, 0] = max(cycle) + 7.0
+    assert settled_period(odd, [COLOUR], skip) is None
 
 
 def test_the_check_counts_one_simulated_run_per_real_window_and_tests_them_like_with_like():
