@@ -522,7 +522,8 @@ def diagnose(
             if keep_models is not None and after < before:  # offered only when it narrowed the gap
                 keep_models["refit"] = ckpt
         stage = {**check, "refit": refit, "mean_w1_before": before, "mean_w1_after": after}
-    cycles = cycle_check(groups, ckpt.schema.states, scoring_of(ckpt).skip)
+    skip = scoring_of(ckpt).skip  # the rows every goal, horizon and cycle skips (sigma_0)
+    cycles = cycle_check(groups, ckpt.schema.states, skip)
     say("4/6 candidate effects on the residuals")
     held = held_out_fit(ckpt, res, len(choose), val_logs)
     findings = run_candidates(res, ckpt, alpha, min_share, logs=choose, held_out=own_shares(ckpt, held, val_logs))
@@ -530,7 +531,6 @@ def diagnose(
     if not gap_tested["significant"]:
         findings = [replace(f, significant=False) for f in findings]
     say("5/6 horizon and training-data coverage")
-    skip = scoring_of(ckpt).skip
     horizon = [
         {
             "controller": label,
